@@ -1,0 +1,122 @@
+"""`datagen`: make toss datasets (`toss`), check them (`inspect`), import real tosses (`import`)."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .config import ConfigError, load_config
+
+EPILOG = """examples:
+  datagen toss --shapes cube,sphere --sizes small --materials metal --scenes 100 --out data/toy
+  datagen toss --objects 3-10 --scenes 50 --valid 10 --test 10 --workers 2 --seed 1 --out data/multi
+  datagen inspect data/toy
+"""
+
+
+def _fail(msg: str) -> int:
+    print(f"error: {msg}", file=sys.stderr)
+    return 2
+
+
+def cmd_toss(a) -> int:
+    from .generate import generate
+    sets = list(a.set or [])
+    for flag, key in (("shapes", "scene.shapes"), ("sizes", "scene.sizes"), ("materials", "scene.materials")):
+        val = getattr(a, flag)
+        if val is not None:
+            items = [s.strip() for s in val.split(",") if s.strip()]
+            sets.append(f"{key}=[{', '.join(repr(s).replace(chr(39), chr(34)) for s in items)}]")
+    for flag, key in (("objects", "scene.objects"), ("frames", "scene.frames"), ("frame_rate", "scene.frame_rate"),
+                      ("physics_rate", "physics.rate")):
+        val = getattr(a, flag)
+        if val is not None:
+            sets.append(f'{key}="{val}"' if flag == "objects" else f"{key}={val}")
+    cfg = load_config(a.config, sets)
+    counts = {"train": a.scenes, "valid": a.valid, "test": a.test}
+    meta = generate(cfg, a.seed, counts, a.out, workers=a.workers, per_shard=a.scenes_per_shard,
+                    resume=a.resume, overwrite=a.overwrite, progress=not a.quiet)
+    n = sum(v["num_scenes"] for v in meta["splits"].values())
+    print(f"wrote {n} scenes to {a.out} (" + ", ".join(f"{k} {v['num_scenes']}" for k, v in meta["splits"].items()) + ")")
+    return 0
+
+
+def cmd_inspect(a) -> int:
+    from .inspect import format_summary, inspect
+    problems, summary = inspect(a.path)
+    if summary:
+        print(format_summary(summary))
+    for p in problems:
+        print(f"problem: {p}", file=sys.stderr)
+    if problems:
+        print(f"{len(problems)} problem(s) found in {a.path}", file=sys.stderr)
+        return 1
+    print("ok: no problems found")
+    return 0
+
+
+def cmd_import(a) -> int:
+    from .contactnets import import_contactnets
+    meta = import_contactnets(a.src, a.out, overwrite=a.overwrite, progress=not a.quiet)
+    print(f"imported {sum(v['num_scenes'] for v in meta['splits'].values())} tosses into {a.out}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="datagen", description=__doc__, epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    t = sub.add_parser("toss", help="simulate tossed objects in PyBullet and write HDF5 shards",
+                       description="Simulate MOVi-A-style tosses (configs/movi_a.toml) and write a dataset "
+                                   "folder: shards per split plus metadata.json (docs/data_format.md).")
+    t.add_argument("--out", required=True, help="output dataset folder")
+    t.add_argument("--scenes", type=int, default=100, help="training scenes (default 100)")
+    t.add_argument("--valid", type=int, default=0, help="validation scenes (default 0)")
+    t.add_argument("--test", type=int, default=0, help="test scenes (default 0)")
+    t.add_argument("--seed", type=int, default=0, help="master seed; each scene's RNG is keyed by (seed, split, index)")
+    t.add_argument("--workers", type=int, default=1, help="worker processes; the output does not depend on it")
+    t.add_argument("--shapes", help="comma list of cube, beveled_cube, cylinder, sphere")
+    t.add_argument("--sizes", help="comma list of size names from the config (small, large)")
+    t.add_argument("--materials", help="comma list of material names from the config (metal, rubber)")
+    t.add_argument("--objects", help="objects per scene: N or a range like 3-10 (default 1)")
+    t.add_argument("--frames", type=int, help="frames recorded per scene (default 24)")
+    t.add_argument("--frame-rate", type=float, help="recorded frames per second (default 12)")
+    t.add_argument("--physics-rate", type=float, help="physics steps per second (default 240)")
+    t.add_argument("--config", help="a TOML file overriding configs/movi_a.toml")
+    t.add_argument("--set", action="append", metavar="KEY=VALUE", help="override one config key, e.g. floor.friction=0.5")
+    t.add_argument("--scenes-per-shard", type=int, default=50, help="scenes per HDF5 shard (default 50)")
+    g = t.add_mutually_exclusive_group()
+    g.add_argument("--resume", action="store_true", help="finish an interrupted run in --out (same command)")
+    g.add_argument("--overwrite", action="store_true", help="replace an existing dataset in --out")
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+    t.set_defaults(func=cmd_toss)
+    i = sub.add_parser("inspect", help="validate a dataset folder and print a summary",
+                       description="Check schema version, array shapes, NaN/inf, unit quaternions, objects "
+                                   "below the floor, missing or truncated shards. Exit 1 if any problem.")
+    i.add_argument("path")
+    i.set_defaults(func=cmd_inspect)
+    m = sub.add_parser("import", help="import external data into the shard format")
+    msub = m.add_subparsers(dest="source", required=True)
+    c = msub.add_parser("contactnets", help="real cube tosses from DAIRLab/contact-nets data/tosses_processed")
+    c.add_argument("src", help="folder of N.pt toss files (tosses_processed)")
+    c.add_argument("--out", required=True)
+    c.add_argument("--overwrite", action="store_true")
+    c.add_argument("--quiet", action="store_true")
+    c.set_defaults(func=cmd_import)
+    return p
+
+
+def main(argv=None) -> int:
+    from .shards import DataError
+    a = build_parser().parse_args(argv)
+    try:
+        return a.func(a)
+    except (ConfigError, DataError) as e:
+        return _fail(str(e))
+    except KeyboardInterrupt:
+        return _fail("interrupted; no partial shard was left (rerun with --resume to finish)")
+    except OSError as e:
+        return _fail(f"{e.strerror or e} ({e.filename})" if getattr(e, "filename", None) else str(e))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,120 @@
+"""`datagen inspect`: validate a dataset folder and summarise it.
+
+Every problem is reported as one line naming the shard and scene, so a user can act on it;
+the caller exits non-zero when any is found.
+"""
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from .shards import METADATA_FILE, Dataset, DataError, Scene, read_shard
+
+# A recorded frame can catch an impact between the physics step that crossed the floor and the
+# one that resolves it, so a vertex may legitimately sit one physics step of travel below the
+# floor, or a few % of the size in a resting contact. Deeper than both is a bug or tunnelling.
+MAX_SINK_FRACTION = 0.05
+UNIT_QUAT_TOL = 1e-6
+
+
+def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors v (..., V, 3) by unit quaternions q (..., 4) in w x y z order."""
+    w, u = q[..., None, :1], q[..., None, 1:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def check_scene(sc: Scene, meshes: dict, floor, where: str, physics_dt: float = 0.0) -> list[str]:
+    problems = []
+    T, N = sc.positions.shape[:2]
+    expect = {"positions": (T, N, 3), "quaternions": (T, N, 4), "velocities": (T, N, 3), "angular_velocities": (T, N, 3)}
+    for k, shape in expect.items():
+        a = getattr(sc, k)
+        if a.shape != shape:
+            problems.append(f"{where}: {k} has shape {a.shape}, expected {shape}")
+        elif not np.isfinite(a).all():
+            problems.append(f"{where}: {k} contains NaN or inf")
+    for k in ("scale", "mass", "friction", "restitution"):
+        a = getattr(sc, k)
+        if a.shape != (N,):
+            problems.append(f"{where}: {k} has shape {a.shape}, expected ({N},)")
+        elif not np.isfinite(a).all():
+            problems.append(f"{where}: {k} contains NaN or inf")
+    if len(sc.shape) != N:
+        problems.append(f"{where}: {len(sc.shape)} shape names for {N} objects")
+    if problems:
+        return problems
+    if (sc.scale <= 0).any() or (sc.mass <= 0).any():
+        problems.append(f"{where}: non-positive scale or mass")
+    norm_err = np.abs(np.linalg.norm(sc.quaternions, axis=-1) - 1).max()
+    if norm_err > UNIT_QUAT_TOL:
+        problems.append(f"{where}: quaternions are not unit (off by up to {norm_err:.2e})")
+    missing = sorted(set(sc.shape) - set(meshes))
+    if missing:
+        problems.append(f"{where}: no rest mesh for shape(s) {', '.join(missing)}")
+    elif floor is not None:
+        for n, name in enumerate(sc.shape):
+            verts = rotate(sc.quaternions[:, n], sc.scale[n] * meshes[name][0][None])
+            low = (verts[..., 2] + sc.positions[:, n, 2:3]).min(axis=-1)
+            sink = float(floor["z"]) - low
+            step_travel = np.abs(sc.velocities[:, n, 2]) * physics_dt
+            allowed = np.maximum(MAX_SINK_FRACTION * sc.scale[n], 1.5 * step_travel)
+            if (sink > allowed).any():
+                t = int(np.argmax(sink - allowed))
+                problems.append(f"{where}: object {n} ({name}) is {sink[t]:.3g} below the floor at frame {t}")
+    return problems
+
+
+def inspect(root: str | Path) -> tuple[list[str], dict]:
+    """Returns (problems, summary). Problems are one line each."""
+    root = Path(root)
+    try:
+        ds = Dataset(root)
+    except DataError as e:
+        return [str(e)], {}
+    problems: list[str] = []
+    summary = {"root": str(root), "format_version": ds.meta["format_version"], "frame_rate": ds.frame_rate,
+               "gravity": ds.meta["gravity"], "seed": ds.meta.get("seed"), "splits": {}}
+    shapes, materials, sizes, frames, objects = Counter(), Counter(), Counter(), Counter(), Counter()
+    physics_dt = 1.0 / float(ds.meta["physics_rate"]) if ds.meta.get("physics_rate") else 0.0
+    listed = set()
+    for split, info in ds.meta["splits"].items():
+        count = 0
+        for path in ds.shard_paths(split):
+            listed.add(path.name)
+            try:
+                scenes, meshes = read_shard(path)
+            except DataError as e:
+                problems.append(str(e))
+                continue
+            for m, (v, f) in meshes.items():
+                if f.max(initial=-1) >= len(v) or f.min(initial=0) < 0:
+                    problems.append(f"{path.name}: mesh {m} has faces indexing missing vertices")
+            for i, sc in enumerate(scenes):
+                problems += check_scene(sc, meshes, ds.floor, f"{path.name} scene {i}", physics_dt)
+                shapes.update(sc.shape)
+                materials.update(sc.material)
+                sizes.update(f"{s:g}" for s in sc.scale)
+                frames[sc.num_frames] += 1
+                objects[sc.num_objects] += 1
+            count += len(scenes)
+        if count != info["num_scenes"] and not any(str(p.name) in q for p in ds.shard_paths(split) for q in problems):
+            problems.append(f"split {split}: {count} scenes in shards, metadata says {info['num_scenes']}")
+        summary["splits"][split] = count
+    stray = sorted(p.name for p in root.glob("*.h5") if p.name not in listed)
+    if stray:
+        problems.append(f"shards not listed in {METADATA_FILE}: {', '.join(stray)}")
+    summary.update(shapes=dict(shapes), materials=dict(materials), sizes=dict(sizes),
+                   frames_per_scene=dict(frames), objects_per_scene=dict(objects))
+    return problems, summary
+
+
+def format_summary(s: dict) -> str:
+    lines = [f"dataset {s['root']}: format v{s['format_version']}, {s['frame_rate']:g} fps, gravity {s['gravity']}, seed {s['seed']}"]
+    lines.append("scenes: " + ", ".join(f"{k} {v}" for k, v in s["splits"].items()))
+    for key in ("shapes", "materials", "sizes", "frames_per_scene", "objects_per_scene"):
+        lines.append(f"{key.replace('_', ' ')}: " + json.dumps(s[key], sort_keys=True).strip("{}").replace('"', ""))
+    return "\n".join(lines)

@@ -1,0 +1,228 @@
+"""The dataset format: HDF5 shards plus `metadata.json`. The contract is docs/data_format.md.
+
+This module is the only place that knows the layout on disk. The generator writes through
+`write_shard`/`write_metadata`; the GNS trainer, rollouts and `datagen inspect` read through
+`Dataset`. Every write goes to a temporary file first and is renamed when complete, so a
+crash or a full disk never leaves a half-written shard under its final name.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import h5py
+import numpy as np
+
+FORMAT_VERSION = 1
+METADATA_FILE = "metadata.json"
+QUATERNION_ORDER = "wxyz"
+SPLITS = ("train", "valid", "test")
+
+SCENE_ARRAYS = ("positions", "quaternions", "velocities", "angular_velocities")
+OBJECT_ARRAYS = ("scale", "mass", "friction", "restitution")
+OBJECT_STRINGS = ("shape", "material")
+
+
+class DataError(Exception):
+    """A dataset or shard that does not follow the format. The message is one line for a user."""
+
+
+@dataclass
+class Scene:
+    """One recorded scene: T frames of N objects. Poses are the objects' centre of mass."""
+
+    positions: np.ndarray           # (T, N, 3) float64, world frame
+    quaternions: np.ndarray         # (T, N, 4) float64, w x y z, body -> world
+    velocities: np.ndarray          # (T, N, 3) float64, world frame
+    angular_velocities: np.ndarray  # (T, N, 3) float64, world frame
+    shape: list[str]                # (N,) asset names, keys of Dataset.meshes
+    material: list[str]             # (N,)
+    scale: np.ndarray               # (N,) uniform scale of the unit asset
+    mass: np.ndarray                # (N,)
+    friction: np.ndarray            # (N,)
+    restitution: np.ndarray         # (N,)
+    attrs: dict = field(default_factory=dict)  # scene_id, seed, and anything the source adds
+
+    @property
+    def num_frames(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def num_objects(self) -> int:
+        return self.positions.shape[1]
+
+
+def _atomic_path(final: Path):
+    fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
+    os.close(fd)
+    return Path(tmp)
+
+
+def write_shard(path: str | Path, scenes: list[Scene], meshes: dict[str, tuple[np.ndarray, np.ndarray]],
+                attrs: dict | None = None) -> None:
+    """Write scenes and the rest meshes they use into one HDF5 shard, atomically."""
+    path = Path(path)
+    tmp = _atomic_path(path)
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format_version"] = FORMAT_VERSION
+            f.attrs["quaternion_order"] = QUATERNION_ORDER
+            f.attrs["num_scenes"] = len(scenes)
+            for k, v in (attrs or {}).items():
+                f.attrs[k] = v
+            # Every shard carries all the dataset's meshes so it can be read on its own.
+            mg = f.create_group("meshes")
+            for name in sorted(meshes):
+                verts, faces = meshes[name]
+                g = mg.create_group(name)
+                g.create_dataset("vertices", data=np.asarray(verts, np.float64))
+                g.create_dataset("faces", data=np.asarray(faces, np.int32))
+            sg = f.create_group("scenes")
+            for i, sc in enumerate(scenes):
+                g = sg.create_group(f"{i:06d}")
+                for k in SCENE_ARRAYS:
+                    g.create_dataset(k, data=np.asarray(getattr(sc, k), np.float64))
+                for k in OBJECT_ARRAYS:
+                    g.create_dataset(k, data=np.asarray(getattr(sc, k), np.float64))
+                for k in OBJECT_STRINGS:
+                    g.create_dataset(k, data=np.array(getattr(sc, k), dtype=h5py.string_dtype()))
+                for k, v in sc.attrs.items():
+                    g.attrs[k] = v
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_metadata(root: str | Path, meta: dict) -> None:
+    root = Path(root)
+    final = root / METADATA_FILE
+    tmp = _atomic_path(final)
+    try:
+        tmp.write_text(json.dumps({"format_version": FORMAT_VERSION, **meta}, indent=2, sort_keys=True) + "\n")
+        os.replace(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def read_shard(path: str | Path) -> tuple[list[Scene], dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """All scenes and meshes of one shard. Raises DataError with one line on any problem."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"missing shard: {path}")
+    try:
+        with h5py.File(path, "r") as f:
+            version = int(f.attrs.get("format_version", -1))
+            if version != FORMAT_VERSION:
+                raise DataError(f"{path}: format version {version}, this reader reads {FORMAT_VERSION}")
+            order = f.attrs.get("quaternion_order", "")
+            if order != QUATERNION_ORDER:
+                raise DataError(f"{path}: quaternion order {order!r}, expected {QUATERNION_ORDER!r}")
+            meshes = {name: (g["vertices"][()], g["faces"][()]) for name, g in f["meshes"].items()}
+            scenes = []
+            for key in sorted(f["scenes"]):
+                g = f["scenes"][key]
+                arrays = {k: g[k][()] for k in SCENE_ARRAYS + OBJECT_ARRAYS}
+                strings = {k: [s.decode() if isinstance(s, bytes) else str(s) for s in g[k][()]]
+                           for k in OBJECT_STRINGS}
+                attrs = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in g.attrs.items()}
+                scenes.append(Scene(**arrays, **strings, attrs=attrs))
+            if len(scenes) != int(f.attrs.get("num_scenes", len(scenes))):
+                raise DataError(f"{path}: holds {len(scenes)} scenes, header says {f.attrs['num_scenes']}")
+    except DataError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as e:
+        raise DataError(f"unreadable or truncated shard {path}: {e}") from None
+    return scenes, meshes
+
+
+class Dataset:
+    """A dataset folder: `metadata.json` plus the shards it lists, per split."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        meta_path = self.root / METADATA_FILE
+        if not self.root.is_dir():
+            raise DataError(f"not a dataset folder (does not exist): {self.root}")
+        if not meta_path.exists():
+            raise DataError(f"not a dataset folder (no {METADATA_FILE}): {self.root}")
+        try:
+            self.meta = json.loads(meta_path.read_text())
+        except json.JSONDecodeError as e:
+            raise DataError(f"{meta_path}: invalid JSON ({e})") from None
+        version = self.meta.get("format_version")
+        if version != FORMAT_VERSION:
+            raise DataError(f"{meta_path}: format version {version}, this reader reads {FORMAT_VERSION}")
+        if self.meta.get("complete") is False:
+            raise DataError(f"{self.root}: incomplete dataset (generation was interrupted); "
+                            "finish it with `datagen toss ... --resume`")
+        self._meshes: dict | None = None
+
+    # Scene-level physical constants, so the trainer never reads the generator's config.
+    @property
+    def frame_rate(self) -> float:
+        return float(self.meta["frame_rate"])
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.frame_rate
+
+    @property
+    def gravity(self) -> np.ndarray:
+        return np.asarray(self.meta["gravity"], np.float64)
+
+    @property
+    def floor(self) -> dict | None:
+        return self.meta.get("floor")
+
+    @property
+    def splits(self) -> list[str]:
+        return [s for s in SPLITS if self.meta["splits"].get(s, {}).get("num_scenes", 0) > 0]
+
+    def num_scenes(self, split: str) -> int:
+        return int(self.meta["splits"].get(split, {}).get("num_scenes", 0))
+
+    def shard_paths(self, split: str) -> list[Path]:
+        if split not in self.meta["splits"]:
+            raise DataError(f"{self.root}: no split {split!r}; it has {', '.join(self.meta['splits'])}")
+        return [self.root / name for name in self.meta["splits"][split]["shards"]]
+
+    def scenes(self, split: str) -> Iterator[Scene]:
+        for p in self.shard_paths(split):
+            scenes, meshes = read_shard(p)
+            self._remember(meshes)
+            yield from scenes
+
+    def load(self, split: str, limit: int | None = None) -> list[Scene]:
+        out = []
+        for sc in self.scenes(split):
+            if limit is not None and len(out) >= limit:
+                break
+            out.append(sc)
+        return out
+
+    @property
+    def meshes(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Rest meshes by shape name, read from the shards (the simulated shapes, exactly)."""
+        if self._meshes is None:
+            split = self.splits[0] if self.splits else None
+            if split is None:
+                raise DataError(f"{self.root}: the dataset holds no scenes")
+            _, meshes = read_shard(self.shard_paths(split)[0])
+            self._remember(meshes)
+        return self._meshes
+
+    def _remember(self, meshes):
+        if self._meshes is None:
+            self._meshes = {}
+        self._meshes.update(meshes)
+
+    @property
+    def materials_vary(self) -> bool:
+        """Whether friction or restitution differ between objects: then they are node features."""
+        return bool(self.meta.get("materials_vary", False))

@@ -1,0 +1,122 @@
+"""The one place that talks to PyBullet: build a scene, step it, record poses.
+
+Settings follow Kubric's MOVi worker (design.md section 3): a fresh client per scene (a
+reused world loses bit-exact repeatability), contactProcessingThreshold=0 per body (without it
+bounces die), no restitution velocity threshold, no warm starting, split impulse, no contact
+slop, deterministic overlapping pairs, no damping, and the mesh's true inertia (Bullet would
+otherwise replace it with a box approximation).
+"""
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+
+
+def _import_pybullet_quietly():
+    # PyBullet prints its build time to C stdout on import; keep our stdout clean for users
+    # who pipe `datagen` output.
+    sys.stdout.flush()
+    fd = os.dup(1)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            import pybullet
+    finally:
+        os.dup2(fd, 1)
+        os.close(fd)
+    return pybullet
+
+
+pb = _import_pybullet_quietly()
+
+from .scenes import SceneSpec
+from .shapes import get_shape
+from .shards import Scene
+
+
+def _wxyz(q_xyzw) -> list[float]:
+    return [q_xyzw[3], q_xyzw[0], q_xyzw[1], q_xyzw[2]]
+
+
+def _xyzw(q_wxyz) -> list[float]:
+    return [q_wxyz[1], q_wxyz[2], q_wxyz[3], q_wxyz[0]]
+
+
+def build_world(spec: SceneSpec, cfg: dict) -> tuple[int, list[int]]:
+    """A new DIRECT client holding the floor and the scene's objects. Returns (client, body ids)."""
+    ph, fl = cfg["physics"], cfg["floor"]
+    c = pb.connect(pb.DIRECT)
+    pb.setGravity(*[float(g) for g in ph["gravity"]], physicsClientId=c)
+    pb.setPhysicsEngineParameter(
+        fixedTimeStep=1.0 / float(ph["rate"]), numSolverIterations=int(ph["solver_iterations"]),
+        numSubSteps=0, restitutionVelocityThreshold=0, warmStartingFactor=0, useSplitImpulse=True,
+        contactSlop=0, splitImpulsePenetrationThreshold=0, enableConeFriction=False, deterministicOverlappingPairs=True, physicsClientId=c)
+    if fl["enabled"]:
+        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
+        floor = pb.createMultiBody(0, plane, useMaximalCoordinates=True, physicsClientId=c)
+        pb.changeDynamics(floor, -1, lateralFriction=float(fl["friction"]), restitution=float(fl["restitution"]),
+                          contactProcessingThreshold=0, physicsClientId=c)
+    bodies = []
+    for o in spec.objects:
+        shape = get_shape(o.shape)
+        col = pb.createCollisionShape(pb.GEOM_MESH, vertices=(shape.vertices * o.scale).tolist(), physicsClientId=c)
+        b = pb.createMultiBody(o.mass, col, basePosition=o.position.tolist(),
+                               baseOrientation=_xyzw(o.quaternion), useMaximalCoordinates=True, physicsClientId=c)
+        pb.changeDynamics(b, -1, lateralFriction=o.friction, restitution=o.restitution,
+                          mass=o.mass, localInertiaDiagonal=o.inertia.tolist(), linearDamping=0, angularDamping=0,
+                          contactProcessingThreshold=0, physicsClientId=c)
+        pb.resetBaseVelocity(b, o.velocity.tolist(), o.angular_velocity.tolist(), physicsClientId=c)
+        bodies.append(b)
+    return c, bodies
+
+
+def steps_per_frame(cfg: dict) -> int:
+    return int(round(float(cfg["physics"]["rate"]) / float(cfg["scene"]["frame_rate"])))
+
+
+def simulate(spec: SceneSpec, cfg: dict) -> Scene:
+    """Simulate one scene and record `scene.frames` frames (frame 0 is the initial state)."""
+    frames, sub = int(cfg["scene"]["frames"]), steps_per_frame(cfg)
+    n = len(spec.objects)
+    pos = np.empty((frames, n, 3))
+    quat = np.empty((frames, n, 4))
+    vel = np.empty((frames, n, 3))
+    ang = np.empty((frames, n, 3))
+    c, bodies = build_world(spec, cfg)
+    try:
+        for t in range(frames):
+            if t:
+                for _ in range(sub):
+                    pb.stepSimulation(physicsClientId=c)
+            for j, b in enumerate(bodies):
+                p, q = pb.getBasePositionAndOrientation(b, physicsClientId=c)
+                v, w = pb.getBaseVelocity(b, physicsClientId=c)
+                pos[t, j], quat[t, j], vel[t, j], ang[t, j] = p, _wxyz(q), v, w
+    finally:
+        pb.disconnect(c)
+    # One cover of the quaternion per object, chosen continuous in time, so finite differences
+    # of quaternions (and readers interpolating them) see no sign flips.
+    flip = np.cumprod(np.where(np.sum(quat[1:] * quat[:-1], axis=-1) < 0, -1.0, 1.0), axis=0)
+    quat[1:] *= flip[..., None]
+    return Scene(
+        positions=pos, quaternions=quat, velocities=vel, angular_velocities=ang,
+        shape=[o.shape for o in spec.objects], material=[o.material for o in spec.objects],
+        scale=np.array([o.scale for o in spec.objects]), mass=np.array([o.mass for o in spec.objects]),
+        friction=np.array([o.friction for o in spec.objects]),
+        restitution=np.array([o.restitution for o in spec.objects]),
+        attrs={"scene_id": spec.scene_id, "seed": spec.seed, "index": spec.index,
+               "size": ",".join(o.size for o in spec.objects)},
+    )
+
+
+def step_only(spec: SceneSpec, cfg: dict) -> None:
+    """Build and step the same world without recording: the benchmark's bare-PyBullet baseline."""
+    frames, sub = int(cfg["scene"]["frames"]), steps_per_frame(cfg)
+    c, _ = build_world(spec, cfg)
+    try:
+        for _ in range((frames - 1) * sub):
+            pb.stepSimulation(physicsClientId=c)
+    finally:
+        pb.disconnect(c)

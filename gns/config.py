@@ -1,0 +1,205 @@
+"""Training configuration: dataclasses with defaults, TOML presets and `--set key=value` overrides.
+
+Every key a user can set is a dataclass field, so an unknown key is an error that names the key
+and the nearest known one. The defaults are the paper's model (L = 10, K = 3, latent 128); the
+presets in configs/ override what they need.
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+class ConfigError(Exception):
+    """A config file or override that cannot be used. The message is one line for a user."""
+
+
+@dataclass
+class ModelConfig:
+    latent_size: int = 128
+    hidden_size: int = 128
+    hidden_layers: int = 2             # hidden layers of every MLP
+    message_passing_steps: int = 10    # L: blocks with unshared weights
+    processor_repeats: int = 3         # K: the L blocks are applied K times
+
+
+@dataclass
+class FeatureConfig:
+    encoding: str = "relative"         # "relative" (paper) or "absolute" (the unstable ablation)
+    velocity: bool = True              # 2 finite-difference velocities per node
+    floor_distance: bool = True        # used only when the dataset has a floor
+    floor_clip: float = 0.5            # floor distance clipped to [0, floor_clip], scene units
+    material: bool = True              # friction, restitution; used only when materials vary
+    rest_position: bool = True         # body-frame rest position of each vertex (node feature)
+    rest_edges: bool = True            # d^U and |d^U| on edges (relative encoding only)
+    normalizer_steps: int = 1000       # training steps during which normalisers accumulate
+
+
+@dataclass
+class AugmentConfig:
+    rotate: bool = True                # rotate input and target about z by U[-pi, pi]
+    noise_std: float = 0.003           # random-walk noise, std on the last input frame, scene units
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 1_000_000
+    batch_size: int = 8                # graphs (object windows) per step
+    lr_init: float = 1e-4
+    lr_final: float = 1e-6
+    lr_decay_steps: int = 5_000_000    # lr - lr_final shrinks 10x every lr_decay_steps
+    grad_clip: float = 1.0             # max global gradient norm; 0 disables clipping
+    seed: int = 0
+    threads: int = 0                   # torch threads; 0 = all cores
+    device: str = "cpu"
+    log_every: int = 100
+    checkpoint_every: int = 1000
+    keep_checkpoints: int = 3          # numbered checkpoints kept besides latest.pt; 0 keeps all
+
+
+@dataclass
+class ValidConfig:
+    every: int = 1000                  # steps between validations; 0 disables validation
+    windows: int = 256                 # valid windows for the one-step loss
+    rollout_scenes: int = 4
+    rollout_steps: int = 10
+
+
+@dataclass
+class Config:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    valid: ValidConfig = field(default_factory=ValidConfig)
+
+
+# Changing any key in these sections changes the network or its inputs, so a checkpoint trained
+# with other values cannot be resumed with them.
+ARCHITECTURE_SECTIONS = ("model", "features")
+
+
+def config_to_dict(cfg: Config) -> dict:
+    return dataclasses.asdict(cfg)
+
+
+def known_keys() -> list[str]:
+    return [f"{s.name}.{k.name}" for s in dataclasses.fields(Config)
+            for k in dataclasses.fields(s.default_factory)]
+
+
+def _unknown_key(key: str, where: str) -> ConfigError:
+    candidates = known_keys() + [f.name for f in dataclasses.fields(Config)]
+    close = difflib.get_close_matches(key, candidates, n=1, cutoff=0.5)
+    hint = (f"; did you mean '{close[0]}'?" if close
+            else f"; sections are {', '.join(f.name for f in dataclasses.fields(Config))}")
+    return ConfigError(f"unknown config key '{key}' {where}{hint}")
+
+
+def _coerce(key: str, value, default, where: str):
+    # bool is a subclass of int, so it is checked first; ints are accepted where floats are expected.
+    expected = type(default)
+    if expected is bool:
+        ok = isinstance(value, bool)
+    elif expected is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    elif expected is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, expected)
+    if not ok:
+        raise ConfigError(f"config key '{key}' {where} must be {expected.__name__}, got {value!r}")
+    return expected(value)
+
+
+def apply_dict(cfg: Config, data: dict, where: str) -> Config:
+    """Set every key of a nested dict {section: {key: value}} on cfg, strictly."""
+    sections = {f.name for f in dataclasses.fields(cfg)}
+    for section, values in data.items():
+        if section not in sections:
+            raise _unknown_key(section, where)
+        if not isinstance(values, dict):
+            raise ConfigError(f"config key '{section}' {where} must be a table of keys")
+        sub = getattr(cfg, section)
+        for key, value in values.items():
+            name = f"{section}.{key}"
+            if key not in {f.name for f in dataclasses.fields(sub)}:
+                raise _unknown_key(name, where)
+            setattr(sub, key, _coerce(name, value, getattr(sub, key), where))
+    return cfg
+
+
+def parse_override(text: str) -> dict:
+    """'section.key=value' -> {section: {key: value}}. The value is read as TOML, else as a string."""
+    if "=" not in text:
+        raise ConfigError(f"override '{text}' is not of the form section.key=value")
+    key, raw = (s.strip() for s in text.split("=", 1))
+    if key.count(".") != 1:
+        raise _unknown_key(key, "in --set")
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    section, name = key.split(".")
+    return {section: {name: value}}
+
+
+def load_toml(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: invalid TOML ({e})") from None
+
+
+def build_config(base: dict | None = None, path: str | Path | None = None,
+                 overrides: list[str] = ()) -> Config:
+    """Defaults, then `base` (a saved config dict), then the TOML file, then each override."""
+    cfg = Config()
+    if base is not None:
+        apply_dict(cfg, base, "in the checkpoint")
+    if path is not None:
+        apply_dict(cfg, load_toml(path), f"in {path}")
+    for text in overrides:
+        apply_dict(cfg, parse_override(text), "in --set")
+    validate(cfg)
+    return cfg
+
+
+def validate(cfg: Config) -> None:
+    checks = [
+        (cfg.features.encoding in ("relative", "absolute"), "features.encoding must be 'relative' or 'absolute'"),
+        (cfg.model.latent_size > 0 and cfg.model.hidden_size > 0, "model sizes must be positive"),
+        (cfg.model.hidden_layers >= 0, "model.hidden_layers must be >= 0"),
+        (cfg.model.message_passing_steps >= 1 and cfg.model.processor_repeats >= 1,
+         "model.message_passing_steps and model.processor_repeats must be >= 1"),
+        (cfg.features.floor_clip > 0, "features.floor_clip must be > 0"),
+        (cfg.augment.noise_std >= 0, "augment.noise_std must be >= 0"),
+        (cfg.train.batch_size >= 1, "train.batch_size must be >= 1"),
+        (cfg.train.steps >= 0, "train.steps must be >= 0"),
+        (cfg.train.lr_init > 0 and cfg.train.lr_final >= 0, "learning rates must be positive"),
+        (cfg.train.lr_decay_steps > 0, "train.lr_decay_steps must be > 0"),
+        (cfg.train.log_every >= 1 and cfg.train.checkpoint_every >= 1,
+         "train.log_every and train.checkpoint_every must be >= 1"),
+        (cfg.valid.every >= 0 and cfg.valid.rollout_steps >= 1, "valid.every must be >= 0, valid.rollout_steps >= 1"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise ConfigError(message)
+
+
+def architecture_differences(saved: dict, current: Config) -> list[str]:
+    """Keys of the architecture sections whose values differ, as 'key: saved -> current'."""
+    now = config_to_dict(current)
+    out = []
+    for section in ARCHITECTURE_SECTIONS:
+        for key, value in now[section].items():
+            old = saved.get(section, {}).get(key)
+            if old != value:
+                out.append(f"{section}.{key} is {old!r} in the checkpoint, {value!r} now")
+    return out

@@ -1,0 +1,203 @@
+"""Rollout metrics in the ContactNets convention (used by Allen et al., CoRL 2022).
+
+For a predicted and a true trajectory of object poses:
+- position error: |p_pred - p_true| of the object centre, % of the object's width;
+- rotation error: angle of q_pred * conj(q_true), degrees;
+- penetration: max(0, floor_z - lowest world vertex z), % of the object's width.
+
+Averaging order (see docs/metrics.md): per frame and object -> mean over the frames t >= start
+of each object's trajectory -> mean over all objects of all scenes (each object trajectory
+weighs the same, whatever its length). The default start = 0 includes the given initial frames,
+as ContactNets averages over the whole toss; start = 3 scores only the predicted frames.
+
+Width = scale * largest extent of the rest mesh. The unit assets span exactly 1, so this is the
+scale (2 for the real cube of half-width 1) as in the paper, and stays right if someone feeds a
+mesh that does not span 1 (e.g. the ContactNets cube with vertices at +-1 and scale 1).
+
+Numpy only, no torch: scoring an analytic simulator needs no deep-learning stack.
+"""
+from __future__ import annotations
+
+from collections import defaultdict
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from gns.geometry import pose_to_vertices, rotation_angle
+
+METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
+DEFAULT_HORIZONS = (1, 5, 10, 20, 50, 100, 200)
+NUM_GIVEN = 3  # rollouts start from 3 true frames (history of 2 velocities)
+
+
+def object_width(scale, rest_vertices: np.ndarray) -> np.ndarray:
+    """Width of a scaled unit asset: scale (...) * largest axis extent of the rest mesh (V, 3)."""
+    extent = float(np.max(np.ptp(np.asarray(rest_vertices, np.float64), axis=0)))
+    return np.asarray(scale, np.float64) * extent
+
+
+def position_error_pct(pred_positions: np.ndarray, true_positions: np.ndarray, width) -> np.ndarray:
+    """Centre distance as % of the width: (..., 3), (..., 3), width broadcastable to (...) -> (...)."""
+    d = np.linalg.norm(np.asarray(pred_positions, np.float64) - np.asarray(true_positions, np.float64), axis=-1)
+    return 100.0 * d / np.asarray(width, np.float64)
+
+
+def rotation_error_deg(pred_quaternions: np.ndarray, true_quaternions: np.ndarray) -> np.ndarray:
+    """Angle of q_pred * conj(q_true) in degrees, in [0, 180]: (..., 4), (..., 4) wxyz -> (...).
+    q and -q are the same rotation and give 0."""
+    return np.degrees(rotation_angle(pred_quaternions, true_quaternions))
+
+
+def penetration_pct(positions: np.ndarray, quaternions: np.ndarray, scale, rest_vertices: np.ndarray,
+                    floor_z: float = 0.0, width=None) -> np.ndarray:
+    """max(0, floor_z - lowest world vertex z) as % of the width.
+
+    positions (..., 3), quaternions (..., 4), scale scalar or (...), rest_vertices (V, 3) -> (...).
+    width defaults to object_width(scale, rest_vertices).
+    """
+    verts = pose_to_vertices(positions, quaternions, scale, rest_vertices)  # (..., V, 3)
+    lowest = verts[..., 2].min(axis=-1)
+    if width is None:
+        width = object_width(scale, rest_vertices)
+    return 100.0 * np.maximum(0.0, floor_z - lowest) / np.asarray(width, np.float64)
+
+
+def _check_pair(pred, true, i: int | None = None) -> None:
+    where = "" if i is None else f"scene {i}: "
+    if pred.positions.shape != true.positions.shape:
+        raise ValueError(f"{where}predicted positions {pred.positions.shape} != true {true.positions.shape}")
+    if pred.quaternions.shape != true.quaternions.shape:
+        raise ValueError(f"{where}predicted quaternions {pred.quaternions.shape} != true {true.quaternions.shape}")
+
+
+def per_frame_errors(pred, true, meshes: Mapping[str, tuple], floor_z: float = 0.0) -> dict[str, np.ndarray]:
+    """Per-frame, per-object metrics of one predicted scene against the true one.
+
+    pred, true: datagen.shards.Scene with the same (T, N); the object properties (shape, scale)
+    are read from `true`. meshes: shape name -> (rest vertices (V, 3), faces).
+    Returns METRICS plus "true_penetration_pct", each (T, N).
+    """
+    _check_pair(pred, true)
+    T, N = true.positions.shape[:2]
+    scale = np.asarray(true.scale, np.float64)
+    out = {k: np.empty((T, N)) for k in METRICS + ("true_penetration_pct",)}
+    for n in range(N):  # objects can have different meshes; each call is vectorised over T
+        rest = np.asarray(meshes[true.shape[n]][0], np.float64)
+        width = object_width(scale[n], rest)
+        out["position_error_pct"][:, n] = position_error_pct(pred.positions[:, n], true.positions[:, n], width)
+        out["rotation_error_deg"][:, n] = rotation_error_deg(pred.quaternions[:, n], true.quaternions[:, n])
+        out["penetration_pct"][:, n] = penetration_pct(pred.positions[:, n], pred.quaternions[:, n], scale[n],
+                                                       rest, floor_z, width)
+        out["true_penetration_pct"][:, n] = penetration_pct(true.positions[:, n], true.quaternions[:, n],
+                                                            scale[n], rest, floor_z, width)
+    return out
+
+
+def per_frame_curves(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mapping[str, tuple],
+                     floor_z: float = 0.0) -> dict[str, np.ndarray]:
+    """Mean over all objects of all scenes at each frame index, for error-vs-time plots.
+
+    Scenes may differ in length: frame t averages the objects whose trajectory reaches t.
+    Returns each metric as (T_max,) plus "count" (T_max,), the number of objects averaged.
+    """
+    frames = [per_frame_errors(p, t, meshes, floor_z) for p, t in zip(pred_scenes, true_scenes, strict=True)]
+    t_max = max(f["position_error_pct"].shape[0] for f in frames)
+    sums = defaultdict(lambda: np.zeros(t_max))
+    count = np.zeros(t_max)
+    for f in frames:
+        T, N = f["position_error_pct"].shape
+        count[:T] += N
+        for k, v in f.items():
+            sums[k][:T] += v.sum(axis=1)
+    with np.errstate(invalid="ignore"):
+        out = {k: s / count for k, s in sums.items()}
+    out["count"] = count
+    return out
+
+
+def _mean(values: list[float]) -> float | None:
+    return float(np.mean(values)) if values else None
+
+
+def _summary(rows: list[dict]) -> dict:
+    """Mean of each metric over object rows (each row is one object trajectory's means)."""
+    out = {k: _mean([r[k] for r in rows]) for k in METRICS + ("true_penetration_pct",)}
+    out["num_objects"] = len(rows)
+    return out
+
+
+def evaluate_scenes(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mapping[str, tuple],
+                    floor_z: float = 0.0, horizons: Sequence[int] = DEFAULT_HORIZONS, start: int = 0,
+                    num_given: int = NUM_GIVEN) -> dict:
+    """Score predicted scenes against the true ones; returns a JSON-ready dict.
+
+    pred_scenes, true_scenes: matching lists of Scene (same T and N pairwise; T may vary between
+    scenes). Each metric is averaged over frames t >= start of each object, then over all
+    objects of all scenes. Keys:
+      position_error_pct, rotation_error_deg, penetration_pct, true_penetration_pct (the
+      ground truth's own penetration: the floor the predicted penetration can be compared to),
+      num_scenes, num_objects, start, num_given, floor_z;
+      horizons: {"h": {metrics..., num_objects}} at frame index num_given - 1 + h (h steps after
+        the last given frame), over the objects whose trajectory is long enough; a horizon no
+        trajectory reaches is left out;
+      by_shape, by_size, by_material: {value: {metrics..., num_objects}} (size is the scale,
+        written with %g).
+    """
+    if len(pred_scenes) != len(true_scenes):
+        raise ValueError(f"{len(pred_scenes)} predicted scenes but {len(true_scenes)} true scenes")
+    if not true_scenes:
+        raise ValueError("no scenes to evaluate")
+    rows = []                       # one row per object trajectory
+    horizon_rows = defaultdict(list)
+    for i, (pred, true) in enumerate(zip(pred_scenes, true_scenes)):
+        _check_pair(pred, true, i)
+        f = per_frame_errors(pred, true, meshes, floor_z)
+        T = true.num_frames
+        if start >= T:
+            raise ValueError(f"scene {i}: start={start} but the scene has only {T} frames")
+        for n in range(true.num_objects):
+            row = {k: float(v[start:, n].mean()) for k, v in f.items()}
+            row.update(shape=true.shape[n], material=true.material[n], size=f"{float(true.scale[n]):g}")
+            rows.append(row)
+            for h in horizons:
+                t = num_given - 1 + int(h)
+                if t < T:
+                    horizon_rows[int(h)].append({k: float(v[t, n]) for k, v in f.items()})
+    results = _summary(rows)
+    results.update(num_scenes=len(true_scenes), start=int(start), num_given=int(num_given), floor_z=float(floor_z))
+    results["horizons"] = {str(h): _summary(horizon_rows[h]) for h in sorted(horizon_rows)}
+    for key in ("shape", "size", "material"):
+        groups = defaultdict(list)
+        for r in rows:
+            groups[r[key]].append(r)
+        results[f"by_{key}"] = {g: _summary(groups[g]) for g in sorted(groups)}
+    return results
+
+
+def _fmt(v) -> str:
+    return "-" if v is None else f"{v:.3g}" if abs(v) < 0.1 else f"{v:.2f}"
+
+
+def format_table(results: dict) -> str:
+    """A plain-text table of evaluate_scenes' results for the terminal."""
+    cols = ("position_error_pct", "rotation_error_deg", "penetration_pct", "true_penetration_pct", "num_objects")
+    heads = ("pos %", "rot deg", "pen %", "true pen %", "objects")
+    lines = [(f"all ({results['num_scenes']} scenes, frames >= {results['start']})",
+              *[_fmt(results[c]) if c != "num_objects" else str(results[c]) for c in cols])]
+
+    def add(title, group):
+        for name, r in group.items():
+            lines.append((f"{title} {name}", *[_fmt(r[c]) if c != "num_objects" else str(r[c]) for c in cols]))
+
+    add("horizon", results.get("horizons", {}))
+    add("shape", results.get("by_shape", {}))
+    add("size", results.get("by_size", {}))
+    add("material", results.get("by_material", {}))
+    table = [("", *heads)] + lines
+    widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
+    text = []
+    for j, row in enumerate(table):
+        text.append("  ".join([row[0].ljust(widths[0])] + [c.rjust(w) for c, w in zip(row[1:], widths[1:])]))
+        if j == 0:
+            text.append("-" * len(text[0]))
+    return "\n".join(text)

@@ -1,0 +1,100 @@
+"""Encode-process-decode graph network on an already built, normalised graph. Imports only torch.
+
+Message passing convention (pinned by tests/test_gns_network.py):
+- An edge k goes from node s = senders[k] to node r = receivers[k]. In the paper's notation
+  E_ij with i = r (the node that is updated) and j = s (its neighbour).
+- Edge update: m_k = f_E(E_k, V_r, V_s), inputs concatenated in that order.
+- Node update: V'_r = V_r + f_V(V_r, sum_{k: receivers[k] = r} m_k). A node sums the new
+  messages m_k, i.e. the edge update *before* the edge residual is added, as DeepMind's
+  InteractionNetwork (graph_nets / jraph) does.
+- Edge residual: E'_k = E_k + m_k; the next block sees E'.
+- The processor holds L blocks with unshared weights and applies the sequence K times.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class MLP(nn.Sequential):
+    """`hidden_layers` ReLU layers of width `hidden`, a linear output, optionally a LayerNorm."""
+
+    def __init__(self, in_size: int, hidden: int, hidden_layers: int, out_size: int, layer_norm: bool):
+        sizes = [in_size] + [hidden] * hidden_layers
+        layers: list[nn.Module] = []
+        for a, b in zip(sizes[:-1], sizes[1:]):
+            layers += [nn.Linear(a, b), nn.ReLU()]
+        layers.append(nn.Linear(sizes[-1], out_size))
+        if layer_norm:
+            layers.append(nn.LayerNorm(out_size))
+        super().__init__(*layers)
+
+
+class InteractionBlock(nn.Module):
+    """One message-passing update with residuals on nodes and edges (see the module docstring).
+
+    The first layer of f_E acts on [E, V_r, V_s]; its node parts are applied once per node and
+    then gathered per edge, which equals the concatenated form but costs O(N) instead of O(E).
+    """
+
+    def __init__(self, latent: int, hidden: int, hidden_layers: int, layer_norm: bool = True):
+        super().__init__()
+        first = hidden if hidden_layers > 0 else latent
+        self.edge_in = nn.Linear(latent, first)                    # acts on E
+        self.receiver_in = nn.Linear(latent, first, bias=False)   # acts on V_r
+        self.sender_in = nn.Linear(latent, first, bias=False)     # acts on V_s
+        # The rest of f_E: the remaining layers of an MLP whose first layer is split above.
+        rest: list[nn.Module] = []
+        if hidden_layers > 0:
+            rest.append(nn.ReLU())
+            rest.extend(MLP(hidden, hidden, hidden_layers - 1, latent, layer_norm))
+        elif layer_norm:
+            rest.append(nn.LayerNorm(latent))
+        self.edge_rest = nn.Sequential(*rest)
+        self.node_mlp = MLP(2 * latent, hidden, hidden_layers, latent, layer_norm)
+
+    def forward(self, nodes: torch.Tensor, edges: torch.Tensor, senders: torch.Tensor,
+                receivers: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """nodes (N, D), edges (E, D), senders/receivers (E,) -> new nodes (N, D), edges (E, D)."""
+        projected = self.edge_in(edges) + self.receiver_in(nodes)[receivers] + self.sender_in(nodes)[senders]
+        messages = self.edge_rest(projected)
+        summed = torch.zeros_like(nodes).index_add_(0, receivers, messages)
+        new_nodes = nodes + self.node_mlp(torch.cat([nodes, summed], dim=-1))
+        return new_nodes, edges + messages
+
+
+class EncodeProcessDecode(nn.Module):
+    """Node and edge encoders (MLP + LayerNorm), L x K interaction blocks, node decoder (MLP)."""
+
+    def __init__(self, node_in: int, edge_in: int, out_size: int, latent: int = 128, hidden: int = 128,
+                 hidden_layers: int = 2, message_passing_steps: int = 10, processor_repeats: int = 1):
+        super().__init__()
+        self.processor_repeats = processor_repeats
+        self.node_encoder = MLP(node_in, hidden, hidden_layers, latent, layer_norm=True)
+        self.edge_encoder = MLP(edge_in, hidden, hidden_layers, latent, layer_norm=True)
+        self.blocks = nn.ModuleList(InteractionBlock(latent, hidden, hidden_layers)
+                                    for _ in range(message_passing_steps))
+        self.decoder = MLP(latent, hidden, hidden_layers, out_size, layer_norm=False)
+
+    def forward(self, nodes: torch.Tensor, edges: torch.Tensor, senders: torch.Tensor,
+                receivers: torch.Tensor) -> torch.Tensor:
+        """nodes (N, node_in), edges (E, edge_in), senders/receivers (E,) int64 -> (N, out_size)."""
+        v = self.node_encoder(nodes)
+        e = self.edge_encoder(edges)
+        for _ in range(self.processor_repeats):
+            for block in self.blocks:
+                v, e = block(v, e, senders, receivers)
+        return self.decoder(v)
+
+    def forward_flops(self, num_nodes: int, num_edges: int) -> int:
+        """Multiply-add FLOPs (2 per MAC) of all Linear layers in one forward pass."""
+        def linear_flops(module: nn.Module, rows: int) -> int:
+            return sum(2 * rows * m.in_features * m.out_features
+                       for m in module.modules() if isinstance(m, nn.Linear))
+
+        block_flops = sum(
+            linear_flops(b.edge_in, num_edges) + linear_flops(b.edge_rest, num_edges)
+            + linear_flops(b.receiver_in, num_nodes) + linear_flops(b.sender_in, num_nodes)
+            + linear_flops(b.node_mlp, num_nodes) for b in self.blocks)
+        return (linear_flops(self.node_encoder, num_nodes) + linear_flops(self.edge_encoder, num_edges)
+                + self.processor_repeats * block_flops + linear_flops(self.decoder, num_nodes))
