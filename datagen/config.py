@@ -119,7 +119,10 @@ def validate(cfg: dict) -> None:
         raise ConfigError("physics.solver_iterations must be >= 1")
     parse_objects(sc["objects"])
     from .shapes import parse_shapes
-    parse_shapes(sc["shapes"])
+    try:
+        parse_shapes(sc["shapes"])
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     for name in sc["sizes"]:
         if name not in cfg["sizes"]:
             raise ConfigError(f"unknown size {name!r}; known sizes: {', '.join(cfg['sizes'])}")

@@ -36,6 +36,9 @@ from .shapes import get_shape
 from .shards import Scene
 
 
+FLOOR_HALF_WIDTH = 1000.0
+
+
 def _wxyz(q_xyzw) -> list[float]:
     return [q_xyzw[3], q_xyzw[0], q_xyzw[1], q_xyzw[2]]
 
@@ -54,8 +57,10 @@ def build_world(spec: SceneSpec, cfg: dict) -> tuple[int, list[int]]:
         numSubSteps=0, restitutionVelocityThreshold=0, warmStartingFactor=0, useSplitImpulse=True,
         contactSlop=0, splitImpulsePenetrationThreshold=0, enableConeFriction=False, deterministicOverlappingPairs=True, physicsClientId=c)
     if fl["enabled"]:
-        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
-        floor = pb.createMultiBody(0, plane, useMaximalCoordinates=True, physicsClientId=c)
+        # A thick box with its top face at z = 0 rather than GEOM_PLANE: creating a plane body
+        # costs ~15 ms a scene (more than simulating it), the box 0.3 ms, and the contacts agree.
+        box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[FLOOR_HALF_WIDTH, FLOOR_HALF_WIDTH, 1.0], physicsClientId=c)
+        floor = pb.createMultiBody(0, box, basePosition=[0, 0, -1.0], useMaximalCoordinates=True, physicsClientId=c)
         pb.changeDynamics(floor, -1, lateralFriction=float(fl["friction"]), restitution=float(fl["restitution"]),
                           contactProcessingThreshold=0, physicsClientId=c)
     bodies = []

@@ -120,7 +120,8 @@ def apply_dict(cfg: Config, data: dict, where: str) -> Config:
     sections = {f.name for f in dataclasses.fields(cfg)}
     for section, values in data.items():
         if section not in sections:
-            raise _unknown_key(section, where)
+            first = next(iter(values), None) if isinstance(values, dict) else None
+            raise _unknown_key(section if first is None else f"{section}.{first}", where)
         if not isinstance(values, dict):
             raise ConfigError(f"config key '{section}' {where} must be a table of keys")
         sub = getattr(cfg, section)

@@ -1,0 +1,123 @@
+"""Training speed of the GNS presets: steps/s, graphs/s, and achieved FLOP rate vs matmul peak.
+
+The FLOPs are those of the Linear layers (2 per multiply-add), counted analytically from the
+batch's node and edge counts; a training step is taken as 3x the forward pass (backward ~2x).
+Peak is this machine's measured float32 rate for a 1024 x 1024 matmul with the same threads,
+timed in the same run, so the fraction says how well the small MLPs use the hardware.
+
+    python benchmarks/bench_train.py                      # synthetic MOVi-like tosses
+    python benchmarks/bench_train.py --data data/movi_a   # a real dataset's train split
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from datagen.shapes import get_shape
+from datagen.shards import Dataset, Scene
+from gns.config import build_config
+from gns.data import ObjectTracks, feature_spec
+from gns.geometry import quat_from_axis_angle
+from gns.graph import MeshLibrary
+from gns.train import build_simulator, learning_rate, train_step
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+SHAPES = ("beveled_cube", "cylinder", "sphere")  # MOVi-A's shapes: 51-64 vertices each
+
+
+def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0) -> tuple[ObjectTracks, dict]:
+    """Ballistic spinning tosses of the MOVi-A shapes; speed depends on graph sizes, not physics."""
+    rng = np.random.default_rng(seed)
+    meshes = {name: (get_shape(name).vertices, get_shape(name).faces) for name in SHAPES}
+    t = np.arange(frames) / 12.0
+    out = []
+    for i in range(scenes):
+        p = rng.uniform([-3, -3, 1], [3, 3, 5]) + rng.uniform(-4, 4, 3) * t[:, None] - 5 * t[:, None] ** 2 * [0, 0, 1]
+        q = quat_from_axis_angle(rng.normal(size=3), rng.uniform(0, 3) * t)
+        zero = np.zeros((frames, 1, 3))
+        out.append(Scene(positions=p[:, None], quaternions=q[:, None], velocities=zero, angular_velocities=zero,
+                         shape=[SHAPES[i % 3]], material=["metal"], scale=np.array([rng.choice([0.7, 1.4])]),
+                         mass=np.ones(1), friction=np.array([rng.choice([0.4, 0.8])]),
+                         restitution=np.array([rng.choice([0.3, 0.7])])))
+    spec = {"floor": {"z": 0.0}, "materials_vary": True}
+    return ObjectTracks(out, MeshLibrary(meshes)), spec
+
+
+def matmul_gflops(size: int = 1024, seconds: float = 1.0) -> float:
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    for _ in range(3):
+        a @ b
+    n, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        a @ b
+        n += 1
+    return 2 * size ** 3 * n / (time.perf_counter() - start) / 1e9
+
+
+def bench_preset(name: str, tracks: ObjectTracks, spec: dict, steps: int, warmup: int, threads: int) -> dict:
+    cfg = build_config(path=CONFIGS / f"gns_{name}.toml", overrides=[f"train.threads={threads}"])
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    sim = build_simulator(cfg, spec).train()
+    optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
+
+    def step(i):
+        batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std)
+        train_step(sim, optimizer, batch, learning_rate(cfg, i), cfg.train.grad_clip)
+        return batch.graph.num_nodes, len(batch.graph.mesh_edges.senders)
+
+    for i in range(warmup):
+        step(i)
+    flops, nodes, edges = 0, 0, 0
+    start = time.perf_counter()
+    for i in range(steps):
+        n, e = step(warmup + i)
+        nodes, edges = nodes + n, edges + e
+        flops += 3 * sim.network.forward_flops(n, e)
+    elapsed = time.perf_counter() - start
+    m = cfg.model
+    return {"preset": name, "LxK": f"{m.message_passing_steps}x{m.processor_repeats}", "latent": m.latent_size,
+            "batch": cfg.train.batch_size, "nodes": nodes / steps, "edges": edges / steps,
+            "steps_per_sec": steps / elapsed, "graphs_per_sec": steps * cfg.train.batch_size / elapsed,
+            "gflop_per_step": flops / steps / 1e9, "gflops": flops / elapsed / 1e9}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", help="dataset folder (default: synthetic MOVi-like tosses in memory)")
+    p.add_argument("--presets", default="tiny,cpu,paper", help="comma list of configs/gns_<name>.toml")
+    p.add_argument("--steps", type=int, default=20, help="timed steps per preset")
+    p.add_argument("--warmup", type=int, default=3, help="untimed steps per preset")
+    p.add_argument("--threads", type=int, default=os.cpu_count(), help="torch threads (default: all cores)")
+    args = p.parse_args(argv)
+
+    torch.set_num_threads(args.threads)
+    if args.data:
+        dataset = Dataset(args.data)
+        scenes = dataset.load("train")
+        tracks, spec = ObjectTracks(scenes, MeshLibrary(dataset.meshes)), feature_spec(dataset, scenes)
+        source = f"{args.data} ({len(scenes)} train scenes)"
+    else:
+        tracks, spec = synthetic_tracks()
+        source = "synthetic tosses of " + ", ".join(SHAPES)
+    peak = matmul_gflops()
+    print(f"data: {source}; threads: {args.threads}; float32 matmul 1024^3: {peak:.1f} GFLOP/s\n")
+    header = (f"{'preset':<7}{'LxK':>6}{'latent':>7}{'batch':>6}{'nodes':>7}{'edges':>7}{'steps/s':>9}"
+              f"{'graphs/s':>10}{'GFLOP/step':>11}{'GFLOP/s':>9}{'of peak':>9}")
+    print(header)
+    print("-" * len(header))
+    for name in args.presets.split(","):
+        r = bench_preset(name.strip(), tracks, spec, args.steps, args.warmup, args.threads)
+        print(f"{r['preset']:<7}{r['LxK']:>6}{r['latent']:>7}{r['batch']:>6}{r['nodes']:>7.0f}{r['edges']:>7.0f}"
+              f"{r['steps_per_sec']:>9.2f}{r['graphs_per_sec']:>10.1f}{r['gflop_per_step']:>11.3f}"
+              f"{r['gflops']:>9.2f}{r['gflops'] / peak:>9.1%}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,171 @@
+"""Training windows from the shards: poses in memory, vertex positions built per batch.
+
+A *track* is one object through one scene. A *window* is 3 input frames (t-2, t-1, t) and the
+target frame t+1 of one track; one window makes one graph. Memory holds only the poses
+(positions and quaternions, float64) and the meshes once; vertex positions are computed for the
+windows of a batch, vectorised, as R(q) (scale * rest) + p.
+
+Augmentation (training only):
+- rotation of inputs and target about the world z axis by theta ~ U[-pi, pi], one per graph;
+- random-walk position noise as in learning_to_simulate: per node, each input velocity gets
+  N(0, noise_std^2 / 2) noise, accumulated over the history, so the last input frame carries
+  noise of std noise_std. The target position is shifted by the last frame's noise, so the
+  target acceleration x_{t+1} - 2 x_t + x_{t-1} asks the model to undo the noise of the last
+  input velocity.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from datagen.shards import Dataset, DataError, Scene
+from gns.geometry import quat_to_matrix
+from gns.graph import Graph, MeshLibrary
+from gns.simulator import HISTORY
+
+WINDOW = HISTORY + 1
+
+
+def rotation_z(theta: torch.Tensor) -> torch.Tensor:
+    """Angles (B,) -> rotations about +z (B, 3, 3)."""
+    c, s = theta.cos(), theta.sin()
+    zero, one = torch.zeros_like(theta), torch.ones_like(theta)
+    return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).reshape(-1, 3, 3)
+
+
+def vertices_from_poses(graph: Graph, positions: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
+    """World vertices R (rest) + p for every node and frame.
+
+    positions (B, T, 3), rotations (B, T, 3, 3) per graph of `graph` -> (N, T, 3) float64.
+    """
+    rot = rotations[graph.node_graph]                        # (N, T, 3, 3)
+    return torch.einsum("ntij,nj->nti", rot, graph.rest) + positions[graph.node_graph]
+
+
+@dataclass
+class Batch:
+    history: torch.Tensor  # (N, 3, 3) float64 input positions at t-2, t-1, t
+    target: torch.Tensor   # (N, 3) float64 position at t+1 (noise-corrected)
+    graph: Graph
+
+    def to(self, device) -> "Batch":
+        return Batch(self.history.to(device), self.target.to(device), self.graph.to(device))
+
+
+class ObjectTracks:
+    """All tracks of a list of scenes, with their training windows."""
+
+    def __init__(self, scenes: list[Scene], library: MeshLibrary, name: str = "scenes"):
+        positions, quaternions, lengths, scene_of = [], [], [], []
+        shapes, scale, friction, restitution = [], [], [], []
+        for i, sc in enumerate(scenes):
+            if not (np.isfinite(sc.positions).all() and np.isfinite(sc.quaternions).all()
+                    and (np.linalg.norm(sc.quaternions, axis=-1) > 0).all()):
+                raise DataError(f"{name}: scene {i} has non-finite positions or invalid quaternions")
+            for n in range(sc.num_objects):
+                positions.append(sc.positions[:, n])
+                quaternions.append(sc.quaternions[:, n])
+                lengths.append(sc.num_frames)
+                scene_of.append(i)
+            shapes += list(sc.shape)
+            scale.append(sc.scale)
+            friction.append(sc.friction)
+            restitution.append(sc.restitution)
+        if not lengths:
+            raise DataError(f"{name}: no scenes")
+        try:
+            self.shape_ids = library.shape_ids(shapes)
+        except ValueError as e:
+            raise DataError(f"{name}: {e}") from None
+        self.library = library
+        self.positions = torch.from_numpy(np.concatenate(positions))      # (F, 3) all frames of all tracks
+        self.quaternions = torch.from_numpy(np.concatenate(quaternions))  # (F, 4)
+        self.length = torch.tensor(lengths)
+        self.track_scene = torch.tensor(scene_of)
+        self.start = torch.cumsum(self.length, 0) - self.length
+        self.scale = torch.from_numpy(np.concatenate(scale))
+        self.friction = torch.from_numpy(np.concatenate(friction))
+        self.restitution = torch.from_numpy(np.concatenate(restitution))
+        per_track = (self.length - WINDOW + 1).clamp(min=0)
+        self.window_track = torch.repeat_interleave(torch.arange(len(lengths)), per_track)
+        offset = torch.cumsum(per_track, 0) - per_track
+        self.window_first = torch.arange(int(per_track.sum())) - offset[self.window_track]
+        if self.num_windows == 0:
+            raise DataError(f"{name}: no scene has the {WINDOW} frames a training window needs")
+
+    @property
+    def num_tracks(self) -> int:
+        return len(self.length)
+
+    @property
+    def num_windows(self) -> int:
+        return len(self.window_track)
+
+    def graph(self, tracks: torch.Tensor) -> Graph:
+        return self.library.pack(self.shape_ids[tracks], self.scale[tracks], self.friction[tracks],
+                                 self.restitution[tracks])
+
+    def poses(self, tracks: torch.Tensor, first: torch.Tensor, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Centre positions (B, frames, 3) and rotation matrices (B, frames, 3, 3) from `first` on."""
+        idx = (self.start[tracks] + first)[:, None] + torch.arange(frames)
+        return self.positions[idx], torch.from_numpy(quat_to_matrix(self.quaternions[idx].numpy()))
+
+    def batch(self, windows: torch.Tensor, rng: np.random.Generator | None = None, rotate: bool = False,
+              noise_std: float = 0.0) -> Batch:
+        """The graphs of the given windows (B,), packed; augmentation needs `rng`."""
+        tracks = self.window_track[windows]
+        pos, rot = self.poses(tracks, self.window_first[windows], WINDOW)
+        if rotate:
+            rz = rotation_z(torch.from_numpy(rng.uniform(-np.pi, np.pi, len(windows))))
+            rot = rz[:, None] @ rot
+            pos = (rz[:, None] @ pos[..., None])[..., 0]
+        graph = self.graph(tracks)
+        x = vertices_from_poses(graph, pos, rot)                  # (N, 4, 3)
+        history, target = x[:, :HISTORY], x[:, HISTORY]
+        if noise_std > 0:
+            step_std = noise_std / np.sqrt(HISTORY - 1)
+            velocity_noise = rng.normal(0.0, step_std, (graph.num_nodes, HISTORY - 1, 3))
+            position_noise = torch.from_numpy(np.concatenate(
+                [np.zeros((graph.num_nodes, 1, 3)), np.cumsum(velocity_noise, axis=1)], axis=1))
+            history = history + position_noise
+            target = target + position_noise[:, -1]
+        return Batch(history, target, graph)
+
+    def sample(self, rng: np.random.Generator, batch_size: int, rotate: bool, noise_std: float) -> Batch:
+        windows = torch.from_numpy(rng.integers(0, self.num_windows, batch_size))
+        return self.batch(windows, rng, rotate, noise_std)
+
+    def track_vertices(self, tracks: torch.Tensor, frames: int) -> tuple[Graph, torch.Tensor, torch.Tensor]:
+        """For rollouts: graph, vertices (N, frames, 3) and centres (B, frames, 3) from frame 0."""
+        pos, rot = self.poses(tracks, torch.zeros_like(tracks), frames)
+        graph = self.graph(tracks)
+        return graph, vertices_from_poses(graph, pos, rot), pos
+
+
+def _range(values: list[np.ndarray]) -> list[float]:
+    flat = np.concatenate([np.ravel(v) for v in values])
+    return [float(flat.min()), float(flat.max())]
+
+
+def feature_spec(dataset: Dataset, scenes: list[Scene]) -> dict:
+    """What a model trained on these scenes was shown: physics constants and value ranges.
+
+    Speeds are of the centre of mass in scene units per second; ranges are [min, max].
+    """
+    return {
+        "frame_rate": dataset.frame_rate,
+        "gravity": dataset.gravity.tolist(),
+        "floor": dataset.floor,
+        "materials_vary": dataset.materials_vary,
+        "shapes": sorted({s for sc in scenes for s in sc.shape}),
+        "ranges": {
+            "speed": _range([np.linalg.norm(sc.velocities, axis=-1) for sc in scenes]),
+            "angular_speed": _range([np.linalg.norm(sc.angular_velocities, axis=-1) for sc in scenes]),
+            "height": _range([sc.positions[..., 2] for sc in scenes]),
+            "scale": _range([sc.scale for sc in scenes]),
+            "friction": _range([sc.friction for sc in scenes]),
+            "restitution": _range([sc.restitution for sc in scenes]),
+        },
+    }

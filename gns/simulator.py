@@ -1,0 +1,150 @@
+"""The learned simulator: features -> network -> acceleration -> next positions, and back.
+
+Owns everything physical around the network: feature building and normalisation, the integrator
+x_{t+1} = x_t + (x_t - x_{t-1}) + a with its exact inverse (targets), the loss, and shape
+matching (rigid projection of predicted vertices, used in rollouts only). Positions are float64
+throughout; the network runs in float32 on normalised features.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from gns.features import (FeatureLayout, Normalizer, make_layout, raw_edge_features,
+                          raw_node_features)
+from gns.graph import Graph
+from gns.network import EncodeProcessDecode
+
+HISTORY = 3  # input frames t-2, t-1, t: two finite-difference velocities (paper: h = 2)
+
+
+def integrate(x_tm1: torch.Tensor, x_t: torch.Tensor, acceleration: torch.Tensor) -> torch.Tensor:
+    """Semi-implicit Euler with dt = one frame: x_{t+1} = x_t + (x_t - x_{t-1}) + a. (N, 3) each."""
+    return x_t + (x_t - x_tm1) + acceleration
+
+
+def acceleration_of(x_tm1: torch.Tensor, x_t: torch.Tensor, x_tp1: torch.Tensor) -> torch.Tensor:
+    """The inverse of `integrate`: a = x_{t+1} - 2 x_t + x_{t-1}. (N, 3) each."""
+    return (x_tp1 - x_t) - (x_t - x_tm1)
+
+
+def _rotation_from_covariance(h: torch.Tensor) -> torch.Tensor:
+    """Rotation part of the polar decomposition of h (B, 3, 3), never a reflection.
+
+    For h = sum_i p_i q_i^T = U S V^T, R = U diag(1, 1, det(U V^T)) V^T maximises
+    sum_i p_i . R q_i over proper rotations (Kabsch).
+    """
+    u, _, vh = torch.linalg.svd(h)
+    sign = torch.linalg.det(u @ vh)
+    fix = torch.ones_like(h[:, 0])
+    fix[:, 2] = sign
+    return (u * fix[:, None, :]) @ vh
+
+
+def shape_match(x: torch.Tensor, rest: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Best rigid transform of the rest shape onto the points, batched.
+
+    x: (B, V, 3) predicted vertices; rest: (B, V, 3) rest vertices in the body frame.
+    Returns R (B, 3, 3), t (B, 3) with x ~ R rest + t (t is the pose translation, so it is the
+    centre of mass when rest is centred on it), and x_proj = R rest + t (B, V, 3).
+    """
+    cx, cr = x.mean(1, keepdim=True), rest.mean(1, keepdim=True)
+    h = (x - cx).transpose(1, 2) @ (rest - cr)
+    rot = _rotation_from_covariance(h)
+    t = cx[:, 0] - (rot @ cr[:, 0, :, None])[..., 0]
+    return rot, t, rest @ rot.transpose(1, 2) + t[:, None]
+
+
+def shape_match_packed(x: torch.Tensor, rest: torch.Tensor, node_graph: torch.Tensor,
+                       num_graphs: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`shape_match` for a packed batch with different vertex counts per graph.
+
+    x, rest: (N, 3); node_graph: (N,) graph index. Returns R (G, 3, 3), t (G, 3), x_proj (N, 3).
+    """
+    count = torch.zeros(num_graphs, dtype=x.dtype, device=x.device).index_add_(
+        0, node_graph, torch.ones_like(x[:, 0]))[:, None]
+    cx = torch.zeros(num_graphs, 3, dtype=x.dtype, device=x.device).index_add_(0, node_graph, x) / count
+    cr = torch.zeros(num_graphs, 3, dtype=x.dtype, device=x.device).index_add_(0, node_graph, rest) / count
+    p, q = x - cx[node_graph], rest - cr[node_graph]
+    h = torch.zeros(num_graphs, 3, 3, dtype=x.dtype, device=x.device).index_add_(
+        0, node_graph, p[:, :, None] * q[:, None, :])
+    rot = _rotation_from_covariance(h)
+    t = cx - (rot @ cr[:, :, None])[..., 0]
+    x_proj = (rot[node_graph] @ rest[:, :, None])[..., 0] + t[node_graph]
+    return rot, t, x_proj
+
+
+class LearnedSimulator(nn.Module):
+    """GNS for rigid meshes. `spec` is the dataset's feature spec (see gns.data.feature_spec)."""
+
+    def __init__(self, model_cfg, features_cfg, spec: dict):
+        super().__init__()
+        floor = spec.get("floor")
+        self.layout: FeatureLayout = make_layout(
+            features_cfg, None if floor is None else float(floor["z"]), bool(spec["materials_vary"]))
+        steps = features_cfg.normalizer_steps
+        self.node_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.node_groups})
+        self.edge_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.edge_groups})
+        self.target_normalizer = Normalizer(3, steps)
+        self.network = EncodeProcessDecode(
+            self.layout.node_size, self.layout.edge_size, 3, latent=model_cfg.latent_size,
+            hidden=model_cfg.hidden_size, hidden_layers=model_cfg.hidden_layers,
+            message_passing_steps=model_cfg.message_passing_steps,
+            processor_repeats=model_cfg.processor_repeats)
+
+    def _inputs(self, history: torch.Tensor, graph: Graph) -> tuple[torch.Tensor, torch.Tensor]:
+        """history (N, 3, 3) float64 -> normalised node (N, Fn) and edge (E, Fe) float32 inputs.
+
+        Normalisers accumulate statistics while the module is in training mode.
+        """
+        acc = self.training
+        raw_nodes = raw_node_features(self.layout, history, graph)
+        nodes = torch.cat([self.node_normalizers[n](raw_nodes[n], acc) for n, _ in self.layout.node_groups], -1)
+        if self.layout.absolute:
+            edges = torch.zeros(graph.mesh_edges.senders.shape[0], 1, device=history.device)
+        else:
+            raw_edges = raw_edge_features(self.layout, history, graph)
+            edges = torch.cat([self.edge_normalizers[n](raw_edges[n], acc) for n, _ in self.layout.edge_groups], -1)
+        return nodes, edges
+
+    def forward(self, history: torch.Tensor, graph: Graph) -> torch.Tensor:
+        """history (N, 3, 3) float64 positions at t-2, t-1, t -> normalised acceleration (N, 3) float32."""
+        nodes, edges = self._inputs(history, graph)
+        return self.network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers)
+
+    def predict_acceleration(self, history: torch.Tensor, graph: Graph) -> torch.Tensor:
+        """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2."""
+        return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
+
+    def predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: Graph) -> torch.Tensor:
+        """Vertex positions (N, 3) float64 at t-2, t-1, t -> positions at t+1 (N, 3) float64."""
+        history = torch.stack([x_tm2, x_tm1, x_t], dim=1)
+        return integrate(x_tm1, x_t, self.predict_acceleration(history, graph))
+
+    @torch.no_grad()
+    def rollout(self, history: torch.Tensor, graph: Graph, steps: int, shape_matching: bool = True) -> torch.Tensor:
+        """Run on its own predictions from history (N, 3, 3) float64 -> positions (steps, N, 3).
+
+        With shape_matching, each prediction is replaced by the rigid projection of the rest mesh
+        before it enters the history (paper, rollouts only).
+        """
+        frames = list(history.unbind(1))
+        out = []
+        for _ in range(steps):
+            x = self.predict_next(*frames[-HISTORY:], graph)
+            if shape_matching:
+                x = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)[2]
+            frames.append(x)
+            out.append(x)
+        return torch.stack(out)
+
+    def loss(self, history: torch.Tensor, target: torch.Tensor, graph: Graph) -> torch.Tensor:
+        """Per-node MSE of the normalised acceleration: mean over nodes of the sum over x, y, z.
+
+        history (N, 3, 3) float64 (possibly noisy) inputs; target (N, 3) float64 positions at t+1
+        (already corrected for the input noise). The target normaliser accumulates in training.
+        """
+        accel = acceleration_of(history[:, -2], history[:, -1], target).to(torch.float32)
+        target_norm = self.target_normalizer(accel, accumulate=self.training)
+        pred = self(history, graph)
+        return ((pred - target_norm) ** 2).sum(-1).mean()

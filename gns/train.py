@@ -1,0 +1,298 @@
+"""The training loop: sample windows, one Adam step on the per-node MSE, validate, checkpoint.
+
+A run folder holds `ckpt-NNNNNN.pt` (the newest `train.keep_checkpoints`), `latest.pt`,
+`metrics.jsonl` (one JSON object a line) and `config.json`. A checkpoint alone rebuilds the model
+(`load_model`) and resumes training exactly: it holds the model with its normalisers, the
+optimiser, the step, the RNG states, the full config and the dataset's feature spec. The
+learning rate is a function of the step and the train.lr_* keys, so there is no separate
+scheduler state to save.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import random
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from datagen.shards import Dataset
+from gns.config import Config, architecture_differences, build_config, config_to_dict
+from gns.data import Batch, ObjectTracks, feature_spec
+from gns.graph import MeshLibrary
+from gns.simulator import HISTORY, LearnedSimulator, shape_match_packed
+
+CHECKPOINT_FORMAT = 1
+LATEST = "latest.pt"
+METRICS = "metrics.jsonl"
+
+
+class TrainingError(Exception):
+    """Training cannot go on (e.g. the loss became NaN). One line for a user."""
+
+
+class CheckpointError(Exception):
+    """A run folder or checkpoint that cannot be used as asked. One line for a user."""
+
+
+def learning_rate(cfg: Config, step: int) -> float:
+    """lr_final + (lr_init - lr_final) * 0.1^(step / lr_decay_steps), as learning_to_simulate."""
+    t = cfg.train
+    return t.lr_final + (t.lr_init - t.lr_final) * 0.1 ** (step / t.lr_decay_steps)
+
+
+def checkpoint_paths(run: Path) -> list[Path]:
+    """Numbered checkpoints of a run folder, oldest first."""
+    return sorted(run.glob("ckpt-*.pt"))
+
+
+def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_checkpoint(run: Path, state: dict, keep: int) -> Path:
+    path = run / f"ckpt-{state['step']:06d}.pt"
+    for target in (path, run / LATEST):
+        _atomic_write(target, lambda p: torch.save(state, p))
+    if keep > 0:
+        for old in checkpoint_paths(run)[:-keep]:
+            old.unlink()
+    return path
+
+
+def read_checkpoint(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many types for a damaged or foreign file
+        raise CheckpointError(f"unreadable checkpoint {path}: {str(e).splitlines()[0]}") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path} is not a gns checkpoint of format {CHECKPOINT_FORMAT}")
+    return ckpt
+
+
+def build_simulator(cfg: Config, spec: dict) -> LearnedSimulator:
+    return LearnedSimulator(cfg.model, cfg.features, spec)
+
+
+def load_model(checkpoint_path: str | Path) -> tuple[LearnedSimulator, Config]:
+    """Rebuild a trained simulator (in eval mode, on the CPU) and its config from a checkpoint."""
+    ckpt = read_checkpoint(checkpoint_path)
+    cfg = build_config(base=ckpt["config"])
+    sim = build_simulator(cfg, ckpt["spec"])
+    sim.load_state_dict(ckpt["model"])
+    sim.eval()
+    return sim, cfg
+
+
+def _with_layout(spec: dict, sim: LearnedSimulator) -> dict:
+    return {**spec, "node_features": [n for n, _ in sim.layout.node_groups],
+            "edge_features": [n for n, _ in sim.layout.edge_groups]}
+
+
+def _merge_ranges(old: dict, new: dict) -> dict:
+    """The spec of training on old data then new data: value ranges and shapes united."""
+    ranges = {k: [min(old["ranges"][k][0], v[0]), max(old["ranges"][k][1], v[1])]
+              for k, v in new["ranges"].items()}
+    return {**new, "ranges": ranges, "shapes": sorted(set(old["shapes"]) | set(new["shapes"]))}
+
+
+def _incompatibility(ckpt: dict, cfg: Config, spec: dict) -> str | None:
+    diffs = architecture_differences(ckpt["config"], cfg)
+    for key in ("node_features", "edge_features"):
+        if ckpt["spec"][key] != spec[key]:
+            diffs.append(f"{key} are {ckpt['spec'][key]} in the checkpoint, {spec[key]} with this data")
+    old_floor, new_floor = ckpt["spec"]["floor"], spec["floor"]
+    if (old_floor is None) != (new_floor is None) or (old_floor and old_floor["z"] != new_floor["z"]):
+        diffs.append(f"floor is {old_floor} in the checkpoint, {new_floor} in this data")
+    return "; ".join(diffs) or None
+
+
+def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: Batch, lr: float,
+               grad_clip: float) -> float:
+    """One Adam step on the per-node MSE of a batch; returns the loss.
+
+    Raises FloatingPointError, before the weights change, if the loss or the gradient is not finite.
+    """
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    loss = sim.loss(batch.history, batch.target, batch.graph)
+    if not torch.isfinite(loss):
+        raise FloatingPointError(f"the loss is {loss.item()}")
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    norm = torch.nn.utils.clip_grad_norm_(sim.parameters(), grad_clip or math.inf)
+    if not torch.isfinite(norm):
+        raise FloatingPointError(f"the gradient norm is {norm.item()}")
+    optimizer.step()
+    return loss.item()
+
+
+@torch.no_grad()
+def validate(sim: LearnedSimulator, valid: ObjectTracks, cfg: Config, device: torch.device) -> dict:
+    """One-step loss on evenly spaced valid windows; centre error of short shape-matched rollouts."""
+    sim.eval()
+    try:
+        n = min(cfg.valid.windows, valid.num_windows)
+        windows = torch.linspace(0, valid.num_windows - 1, n).round().long().unique()
+        total, nodes = 0.0, 0
+        for chunk in windows.split(cfg.train.batch_size):
+            batch = valid.batch(chunk).to(device)
+            total += float(sim.loss(batch.history, batch.target, batch.graph)) * batch.graph.num_nodes
+            nodes += batch.graph.num_nodes
+        out = {"valid_loss": total / nodes}
+        tracks = torch.nonzero(valid.track_scene < cfg.valid.rollout_scenes)[:, 0]
+        if len(tracks):
+            out.update(_rollout_error(sim, valid, tracks, cfg.valid.rollout_steps, device))
+        return out
+    finally:
+        sim.train()
+
+
+def _rollout_error(sim: LearnedSimulator, valid: ObjectTracks, tracks: torch.Tensor, max_steps: int,
+                   device: torch.device) -> dict:
+    """Mean distance (scene units) between predicted and true centres over a rollout from 3 true frames."""
+    steps = min(max_steps, int(valid.length[tracks].min()) - HISTORY)
+    graph, verts, centres = valid.track_vertices(tracks, HISTORY + steps)
+    graph = graph.to(device)
+    pred = sim.rollout(verts[:, :HISTORY].to(device), graph, steps)
+    pred_centres = torch.stack([shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)[1]
+                                for x in pred], dim=1).cpu()
+    return {"valid_rollout_position_error": float((pred_centres - centres[:, HISTORY:]).norm(dim=-1).mean()),
+            "valid_rollout_steps": steps}
+
+
+def _rng_state(rng: np.random.Generator) -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": rng.bit_generator.state, "python": random.getstate()}
+
+
+def _restore_rng(state: dict, rng: np.random.Generator) -> None:
+    torch.set_rng_state(state["torch"])
+    rng.bit_generator.state = state["numpy"]
+    random.setstate(state["python"])
+
+
+def _prepare_run(run: Path, resume: bool, overwrite: bool) -> None:
+    existing = checkpoint_paths(run) + ([run / LATEST] if (run / LATEST).exists() else [])
+    if resume:
+        if not (run / LATEST).exists():
+            raise CheckpointError(f"nothing to resume: {run / LATEST} does not exist")
+    elif existing:
+        if not overwrite:
+            raise CheckpointError(f"{run} already holds checkpoints; pass --resume to continue "
+                                  f"or --overwrite to start again")
+        for p in existing + [run / METRICS]:
+            p.unlink(missing_ok=True)
+    run.mkdir(parents=True, exist_ok=True)
+
+
+def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool = False,
+          overwrite: bool = False, log: Callable[[str], None] = print) -> int:
+    """Train until cfg.train.steps; returns the final step. Raises DataError, CheckpointError,
+    TrainingError with one-line messages."""
+    run = Path(run_dir)
+    _prepare_run(run, resume, overwrite)
+    ckpt = read_checkpoint(run / LATEST) if resume else None
+
+    dataset = Dataset(data_dir)
+    train_scenes = dataset.load("train")
+    library = MeshLibrary(dataset.meshes)
+    tracks = ObjectTracks(train_scenes, library, "train split")
+    valid = None
+    if cfg.valid.every > 0 and "valid" in dataset.splits:
+        valid = ObjectTracks(dataset.load("valid"), library, "valid split")
+
+    torch.set_num_threads(cfg.train.threads or os.cpu_count())
+    seed = cfg.train.seed
+    torch.manual_seed(seed)
+    random.seed(seed)
+    rng = np.random.default_rng(seed)
+    device = torch.device(cfg.train.device)
+
+    data_spec = feature_spec(dataset, train_scenes)
+    sim = build_simulator(cfg, data_spec)
+    spec = _with_layout(data_spec, sim)
+    optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
+    step = 0
+    if ckpt is not None:
+        problem = _incompatibility(ckpt, cfg, spec)
+        if problem:
+            raise CheckpointError(f"cannot resume {run / LATEST}: {problem}")
+        sim.load_state_dict(ckpt["model"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        step = int(ckpt["step"])
+        spec = _merge_ranges(ckpt["spec"], spec)
+        _restore_rng(ckpt["rng"], rng)
+    sim.to(device).train()
+    config_dict = config_to_dict(cfg)
+    _atomic_write(run / "config.json", lambda p: p.write_text(json.dumps(config_dict, indent=2) + "\n"))
+
+    def state() -> dict:
+        return {"format": CHECKPOINT_FORMAT, "step": step, "seed": seed, "config": config_dict, "spec": spec,
+                "model": sim.state_dict(), "optimizer": optimizer.state_dict(), "rng": _rng_state(rng)}
+
+    n_params = sum(p.numel() for p in sim.parameters())
+    log(f"{'resuming' if ckpt else 'training'} at step {step} of {cfg.train.steps}: {tracks.num_windows} "
+        f"windows from {len(train_scenes)} train scenes, {n_params} parameters, "
+        f"node features {spec['node_features']}, edge features {spec['edge_features']}")
+
+    last_good = run / LATEST if ckpt else None
+    loss_sum, loss_count, busy, t_mark = 0.0, 0, 0.0, time.perf_counter()
+    bar = tqdm(total=cfg.train.steps, initial=step, unit="step", disable=None, dynamic_ncols=True)
+    with bar, open(run / METRICS, "a") as metrics:
+        while step < cfg.train.steps:
+            t0 = time.perf_counter()
+            lr = learning_rate(cfg, step)
+            batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std).to(device)
+            try:
+                loss = train_step(sim, optimizer, batch, lr, cfg.train.grad_clip)
+            except FloatingPointError as e:
+                raise TrainingError(_stopped(str(e), step + 1, last_good)) from None
+            step += 1
+            busy += time.perf_counter() - t0
+            loss_sum += loss
+            loss_count += 1
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
+
+            validating = valid is not None and step % cfg.valid.every == 0
+            if step % cfg.train.log_every == 0 or validating or step == cfg.train.steps:
+                entry = {"step": step, "loss": loss_sum / loss_count, "lr": lr,
+                         "steps_per_sec": loss_count / busy,
+                         "graphs_per_sec": loss_count * cfg.train.batch_size / busy,
+                         "time": time.perf_counter() - t_mark}
+                if validating:
+                    entry.update(validate(sim, valid, cfg, device))
+                metrics.write(json.dumps(entry) + "\n")
+                metrics.flush()
+                loss_sum, loss_count, busy = 0.0, 0, 0.0
+            if step % cfg.train.checkpoint_every == 0 or step == cfg.train.steps:
+                last_good = save_checkpoint(run, state(), cfg.train.keep_checkpoints)
+    return step
+
+
+def _stopped(what: str, step: int, last_good: Path | None) -> str:
+    kept = f"the last good checkpoint is {last_good}" if last_good else "no checkpoint was written yet"
+    return f"{what} at step {step}; training stopped, {kept}"
+
+
+def resolve_config(run_dir: str | Path, resume: bool, config_path: str | None, overrides: list[str]) -> Config:
+    """The config of a run: on resume the checkpoint's, updated by the file and overrides given."""
+    base = read_checkpoint(Path(run_dir) / LATEST)["config"] if resume and (Path(run_dir) / LATEST).exists() else None
+    return build_config(base=base, path=config_path, overrides=overrides)
+

@@ -1,0 +1,204 @@
+"""Metrics on hand-made trajectories with known errors, and the quaternion helpers."""
+import json
+
+import numpy as np
+import pytest
+
+from datagen.shapes import get_shape
+from datagen.shards import Scene
+from gns.geometry import (matrix_to_quat, pose_to_vertices, quat_conjugate, quat_from_axis_angle,
+                          quat_multiply, quat_normalize, quat_to_matrix, rotation_angle)
+from gns.metrics import (evaluate_scenes, format_table, penetration_pct, per_frame_curves, per_frame_errors,
+                         position_error_pct, rotation_error_deg)
+
+CUBE = get_shape("cube")
+MESHES = {"cube": (CUBE.vertices, CUBE.faces)}
+IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+def make_scene(positions, quaternions=None, scale=1.0, shape="cube", material="metal"):
+    """A Scene of N objects from (T, N, 3) positions and (T, N, 4) quaternions (identity default)."""
+    positions = np.asarray(positions, float)
+    T, N = positions.shape[:2]
+    if quaternions is None:
+        quaternions = np.broadcast_to(IDENTITY, (T, N, 4)).copy()
+    z = np.zeros((T, N, 3))
+    return Scene(positions=positions, quaternions=np.asarray(quaternions, float), velocities=z,
+                 angular_velocities=z, shape=[shape] * N, material=[material] * N,
+                 scale=np.full(N, float(scale)), mass=np.ones(N), friction=np.full(N, 0.5),
+                 restitution=np.full(N, 0.5))
+
+
+def resting(T, N=1, z=5.0):
+    return np.tile([0.0, 0.0, z], (T, N, 1))
+
+
+# ---- geometry ------------------------------------------------------------------------------
+
+def random_quats(n, seed=0):
+    return quat_normalize(np.random.default_rng(seed).normal(size=(n, 4)))
+
+
+def test_quaternion_matrix_round_trip():
+    q = random_quats(500)
+    R = quat_to_matrix(q)
+    assert np.allclose(R @ np.swapaxes(R, -1, -2), np.eye(3), atol=1e-12)
+    assert np.allclose(np.linalg.det(R), 1.0)
+    q2 = matrix_to_quat(R)
+    assert np.all(q2[:, 0] >= 0)
+    assert np.allclose(np.abs(np.sum(q * q2, axis=1)), 1.0)  # same rotation up to sign
+    assert np.allclose(quat_to_matrix(q2), R, atol=1e-12)
+
+
+def test_matrix_to_quat_half_turns_and_identity():
+    # w = 0 for half turns: the branch that divides by w would fail here.
+    for axis in np.eye(3).tolist() + [[1, 1, 0], [1, -2, 3]]:
+        q = quat_from_axis_angle(axis, np.pi)
+        assert np.allclose(quat_to_matrix(matrix_to_quat(quat_to_matrix(q))), quat_to_matrix(q), atol=1e-12)
+    assert np.allclose(matrix_to_quat(np.eye(3)), IDENTITY)
+
+
+def test_quaternion_convention_wxyz_body_to_world():
+    q = quat_from_axis_angle([0, 0, 1], np.pi / 2)  # 90 degrees about z
+    assert np.allclose(q, [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])
+    assert np.allclose(quat_to_matrix(q) @ [1, 0, 0], [0, 1, 0])  # x axis of the body -> world y
+
+
+def test_quat_multiply_matches_matrix_product_and_conjugate_inverts():
+    a, b = random_quats(50, 1), random_quats(50, 2)
+    assert np.allclose(quat_to_matrix(quat_multiply(a, b)), quat_to_matrix(a) @ quat_to_matrix(b))
+    assert np.allclose(np.abs(quat_multiply(a, quat_conjugate(a))), IDENTITY, atol=1e-12)
+
+
+def test_rotation_angle_equals_arccos_form_and_is_exact_at_zero():
+    a, b = random_quats(300, 3), random_quats(300, 4)
+    ref = 2 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=1)), 0, 1))
+    assert np.allclose(rotation_angle(a, b), ref, atol=1e-9)
+    assert np.all(rotation_angle(a, a) < 1e-12)
+
+
+def test_pose_to_vertices_cube_corners():
+    q = quat_from_axis_angle([0, 0, 1], np.pi / 4)
+    v = pose_to_vertices(np.array([1.0, 2.0, 3.0]), q, 2.0, CUBE.vertices)
+    assert v.shape == (8, 3)
+    assert np.allclose(np.sort(np.unique(v[:, 2].round(9))), [2.0, 4.0])
+    assert np.allclose(np.abs(v[:, :2] - [1, 2]).max(axis=0), np.sqrt(2))  # corners on the diagonals
+    # vectorised over (T, N)
+    vv = pose_to_vertices(np.zeros((5, 2, 3)), np.broadcast_to(IDENTITY, (5, 2, 4)), np.ones(2), CUBE.vertices)
+    assert vv.shape == (5, 2, 8, 3)
+
+
+# ---- metrics on known trajectories ----------------------------------------------------------
+
+def test_constant_offset_is_percent_of_width():
+    true = make_scene(resting(10), scale=0.5)
+    pred = make_scene(resting(10) + [0.1, 0, 0], scale=0.5)
+    f = per_frame_errors(pred, true, MESHES)
+    assert f["position_error_pct"].shape == (10, 1)
+    assert np.allclose(f["position_error_pct"], 20.0)
+    assert np.allclose(position_error_pct([0.1, 0, 0], [0, 0, 0], 0.5), 20.0)
+    r = evaluate_scenes([pred], [true], MESHES)
+    assert r["position_error_pct"] == pytest.approx(20.0)
+    assert r["rotation_error_deg"] == pytest.approx(0.0)
+
+
+def test_known_rotation_about_z():
+    q = np.broadcast_to(quat_from_axis_angle([0, 0, 1], np.radians(30)), (6, 1, 4))
+    r = evaluate_scenes([make_scene(resting(6), q)], [make_scene(resting(6))], MESHES)
+    assert r["rotation_error_deg"] == pytest.approx(30.0)
+    assert r["position_error_pct"] == pytest.approx(0.0)
+
+
+def test_double_cover_gives_zero():
+    q = random_quats(7, 5)[:, None]
+    assert np.allclose(rotation_error_deg(q, -q), 0.0, atol=1e-9)
+    r = evaluate_scenes([make_scene(resting(7), -q)], [make_scene(resting(7), q)], MESHES)
+    assert r["rotation_error_deg"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_sink_below_floor():
+    true = make_scene(resting(4, z=0.5))             # resting exactly on the floor: 0
+    pred = make_scene(resting(4, z=0.45))            # lowest vertex at -0.05 -> 5% of width 1
+    r = evaluate_scenes([pred], [true], MESHES)
+    assert r["penetration_pct"] == pytest.approx(5.0)
+    assert r["true_penetration_pct"] == pytest.approx(0.0)
+    # Turning about z does not change the lowest vertex; above the floor counts as 0.
+    qz = quat_from_axis_angle([0, 0, 1], 0.7)
+    assert penetration_pct([0, 0, 0.45], qz, 1.0, CUBE.vertices) == pytest.approx(5.0)
+    assert penetration_pct([0, 0, 3.0], qz, 1.0, CUBE.vertices) == 0.0
+    # A cube on its edge reaches sqrt(2)/2 down; a floor at z = 1 moves the reference.
+    qx = quat_from_axis_angle([1, 0, 0], np.pi / 4)
+    assert penetration_pct([0, 0, 0.7], qx, 1.0, CUBE.vertices) == pytest.approx(100 * (np.sqrt(0.5) - 0.7))
+    assert penetration_pct([0, 0, 1.45], IDENTITY, 1.0, CUBE.vertices, floor_z=1.0) == pytest.approx(5.0)
+
+
+def test_average_over_frames_then_scenes():
+    # Scene A: 4 frames at 10%. Scene B: 10 frames, 0% for 5 then 40% for 5 -> mean 20%.
+    # Mean of per-trajectory means = 15; pooling all 14 frames would give 240/14 = 17.1.
+    a_true = make_scene(resting(4), scale=1.0)
+    a_pred = make_scene(resting(4) + [0.1, 0, 0], scale=1.0)
+    b_true = make_scene(resting(10), scale=1.0)
+    off = np.zeros((10, 1, 3))
+    off[5:, 0, 0] = 0.4
+    b_pred = make_scene(resting(10) + off, scale=1.0)
+    r = evaluate_scenes([a_pred, b_pred], [a_true, b_true], MESHES)
+    assert r["position_error_pct"] == pytest.approx(15.0)
+    assert r["num_scenes"] == 2 and r["num_objects"] == 2
+    # start=3 scores frames 3.. only: A -> 10, B -> (2*0 + 5*40) / 7.
+    r3 = evaluate_scenes([a_pred, b_pred], [a_true, b_true], MESHES, start=3)
+    assert r3["position_error_pct"] == pytest.approx((10 + 200 / 7) / 2)
+    with pytest.raises(ValueError, match="start"):
+        evaluate_scenes([a_pred], [a_true], MESHES, start=4)
+
+
+def test_horizons_count_from_the_last_given_frame_and_skip_long_ones():
+    T = 8
+    off = np.zeros((T, 1, 3))
+    off[:, 0, 0] = np.arange(T) / 100.0              # error at frame t = t % of width 1
+    r = evaluate_scenes([make_scene(resting(T) + off)], [make_scene(resting(T))], MESHES, horizons=(1, 5, 6, 20))
+    assert set(r["horizons"]) == {"1", "5"}          # frame 2+6 = 8 is past the end
+    assert r["horizons"]["1"]["position_error_pct"] == pytest.approx(3.0)
+    assert r["horizons"]["5"]["position_error_pct"] == pytest.approx(7.0)
+    assert r["horizons"]["5"]["num_objects"] == 1
+
+
+def test_breakdowns_by_shape_size_material_and_json():
+    sphere = get_shape("sphere")
+    meshes = {**MESHES, "sphere": (sphere.vertices, sphere.faces)}
+    s1 = make_scene(resting(5), scale=0.7, material="metal")
+    p1 = make_scene(resting(5) + [0.07, 0, 0], scale=0.7, material="metal")        # 10%
+    s2 = make_scene(resting(5), scale=1.4, shape="sphere", material="rubber")
+    p2 = make_scene(resting(5) + [0, 0.42, 0], scale=1.4, shape="sphere", material="rubber")  # 30%
+    r = evaluate_scenes([p1, p2], [s1, s2], meshes)
+    assert r["position_error_pct"] == pytest.approx(20.0)
+    assert r["by_shape"]["cube"]["position_error_pct"] == pytest.approx(10.0)
+    assert r["by_shape"]["sphere"]["position_error_pct"] == pytest.approx(30.0)
+    assert r["by_size"]["0.7"]["position_error_pct"] == pytest.approx(10.0)
+    assert r["by_size"]["1.4"]["num_objects"] == 1
+    assert r["by_material"]["rubber"]["position_error_pct"] == pytest.approx(30.0)
+    json.loads(json.dumps(r))  # JSON-ready: plain floats, ints, str keys
+    table = format_table(r)
+    assert "pos %" in table and "material rubber" in table and "horizon 1" in table
+
+
+def test_multiple_objects_per_scene_weigh_equally():
+    true = make_scene(resting(4, N=2), scale=1.0)
+    pred = make_scene(resting(4, N=2) + np.array([[0.1, 0, 0], [0.3, 0, 0]]), scale=1.0)
+    r = evaluate_scenes([pred], [true], MESHES)
+    assert r["position_error_pct"] == pytest.approx(20.0) and r["num_objects"] == 2
+
+
+def test_per_frame_curves_with_different_lengths():
+    a = make_scene(resting(3))
+    b = make_scene(resting(5))
+    pb = make_scene(resting(5) + [0.2, 0, 0])
+    c = per_frame_curves([a, pb], [a, b], MESHES)
+    assert np.allclose(c["count"], [2, 2, 2, 1, 1])
+    assert np.allclose(c["position_error_pct"], [10, 10, 10, 20, 20])
+
+
+def test_mismatched_scenes_raise():
+    with pytest.raises(ValueError, match="positions"):
+        evaluate_scenes([make_scene(resting(4))], [make_scene(resting(5))], MESHES)
+    with pytest.raises(ValueError, match="scenes"):
+        evaluate_scenes([], [make_scene(resting(5))], MESHES)
