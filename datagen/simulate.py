@@ -15,16 +15,16 @@ import numpy as np
 
 
 def _import_pybullet_quietly():
-    # PyBullet prints its build time to C stdout on import; keep our stdout clean for users
-    # who pipe `datagen` output.
-    sys.stdout.flush()
-    fd = os.dup(1)
+    # PyBullet prints its build time on stderr at import; keep stderr for our progress bar and
+    # one-line errors.
+    sys.stderr.flush()
+    fd = os.dup(2)
     try:
         with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 1)
+            os.dup2(null.fileno(), 2)
             import pybullet
     finally:
-        os.dup2(fd, 1)
+        os.dup2(fd, 2)
         os.close(fd)
     return pybullet
 

@@ -100,6 +100,10 @@ class ObjectTracks:
         return len(self.length)
 
     @property
+    def num_scenes(self) -> int:
+        return int(self.track_scene.max()) + 1
+
+    @property
     def num_windows(self) -> int:
         return len(self.window_track)
 

@@ -56,7 +56,9 @@ class InteractionBlock(nn.Module):
     def forward(self, nodes: torch.Tensor, edges: torch.Tensor, senders: torch.Tensor,
                 receivers: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """nodes (N, D), edges (E, D), senders/receivers (E,) -> new nodes (N, D), edges (E, D)."""
-        projected = self.edge_in(edges) + self.receiver_in(nodes)[receivers] + self.sender_in(nodes)[senders]
+        # index_select is the gather x[idx]; its backward (index_add_) is about twice as fast on CPU.
+        projected = (self.edge_in(edges) + self.receiver_in(nodes).index_select(0, receivers)
+                     + self.sender_in(nodes).index_select(0, senders))
         messages = self.edge_rest(projected)
         summed = torch.zeros_like(nodes).index_add_(0, receivers, messages)
         new_nodes = nodes + self.node_mlp(torch.cat([nodes, summed], dim=-1))

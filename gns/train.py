@@ -13,6 +13,7 @@ import json
 import math
 import os
 import random
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -65,8 +66,8 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
 
 def save_checkpoint(run: Path, state: dict, keep: int) -> Path:
     path = run / f"ckpt-{state['step']:06d}.pt"
-    for target in (path, run / LATEST):
-        _atomic_write(target, lambda p: torch.save(state, p))
+    _atomic_write(path, lambda p: torch.save(state, p))
+    _atomic_write(run / LATEST, lambda p: shutil.copyfile(path, p))
     if keep > 0:
         for old in checkpoint_paths(run)[:-keep]:
             old.unlink()
@@ -187,35 +188,49 @@ def _restore_rng(state: dict, rng: np.random.Generator) -> None:
     random.setstate(state["python"])
 
 
-def _prepare_run(run: Path, resume: bool, overwrite: bool) -> None:
-    existing = checkpoint_paths(run) + ([run / LATEST] if (run / LATEST).exists() else [])
+def _check_run(run: Path, resume: bool, overwrite: bool) -> list[Path]:
+    """Refuse to start over a run's checkpoints unless asked; returns the files to delete."""
+    existing = checkpoint_paths(run) + [p for p in (run / LATEST, run / METRICS) if p.exists()]
     if resume:
         if not (run / LATEST).exists():
             raise CheckpointError(f"nothing to resume: {run / LATEST} does not exist")
-    elif existing:
-        if not overwrite:
-            raise CheckpointError(f"{run} already holds checkpoints; pass --resume to continue "
-                                  f"or --overwrite to start again")
-        for p in existing + [run / METRICS]:
-            p.unlink(missing_ok=True)
-    run.mkdir(parents=True, exist_ok=True)
+        return []
+    if any(p.suffix == ".pt" for p in existing) and not overwrite:
+        raise CheckpointError(f"{run} already holds checkpoints; pass --resume to continue "
+                              f"or --overwrite to start again")
+    return existing
+
+
+def _drop_metrics_after(path: Path, step: int) -> None:
+    """Forget log lines of steps that a resumed run will train again (after a crash)."""
+    if path.exists():
+        lines = [line for line in path.read_text().splitlines() if json.loads(line)["step"] <= step]
+        _atomic_write(path, lambda p: p.write_text("".join(line + "\n" for line in lines)))
+
+
+def _load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, ObjectTracks | None]:
+    """Feature spec, train tracks and (if validating and present) valid tracks of a dataset."""
+    dataset = Dataset(data_dir)
+    scenes = dataset.load("train")
+    library = MeshLibrary(dataset.meshes)
+    tracks = ObjectTracks(scenes, library, "train split")
+    valid = None
+    if cfg.valid.every > 0 and "valid" in dataset.splits:
+        valid = ObjectTracks(dataset.load("valid"), library, "valid split")
+    return feature_spec(dataset, scenes), tracks, valid
 
 
 def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool = False,
           overwrite: bool = False, log: Callable[[str], None] = print) -> int:
-    """Train until cfg.train.steps; returns the final step. Raises DataError, CheckpointError,
-    TrainingError with one-line messages."""
-    run = Path(run_dir)
-    _prepare_run(run, resume, overwrite)
-    ckpt = read_checkpoint(run / LATEST) if resume else None
+    """Train until cfg.train.steps; returns the final step.
 
-    dataset = Dataset(data_dir)
-    train_scenes = dataset.load("train")
-    library = MeshLibrary(dataset.meshes)
-    tracks = ObjectTracks(train_scenes, library, "train split")
-    valid = None
-    if cfg.valid.every > 0 and "valid" in dataset.splits:
-        valid = ObjectTracks(dataset.load("valid"), library, "valid split")
+    Raises DataError, CheckpointError or TrainingError with one-line messages. Nothing in the
+    run folder changes until the data, config and checkpoint have all been checked.
+    """
+    run = Path(run_dir)
+    stale = _check_run(run, resume, overwrite)
+    ckpt = read_checkpoint(run / LATEST) if resume else None
+    data_spec, tracks, valid = _load_data(data_dir, cfg)
 
     torch.set_num_threads(cfg.train.threads or os.cpu_count())
     seed = cfg.train.seed
@@ -224,7 +239,6 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     rng = np.random.default_rng(seed)
     device = torch.device(cfg.train.device)
 
-    data_spec = feature_spec(dataset, train_scenes)
     sim = build_simulator(cfg, data_spec)
     spec = _with_layout(data_spec, sim)
     optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
@@ -239,6 +253,12 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
         spec = _merge_ranges(ckpt["spec"], spec)
         _restore_rng(ckpt["rng"], rng)
     sim.to(device).train()
+
+    for p in stale:
+        p.unlink()
+    run.mkdir(parents=True, exist_ok=True)
+    if ckpt is not None:
+        _drop_metrics_after(run / METRICS, step)
     config_dict = config_to_dict(cfg)
     _atomic_write(run / "config.json", lambda p: p.write_text(json.dumps(config_dict, indent=2) + "\n"))
 
@@ -248,7 +268,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
 
     n_params = sum(p.numel() for p in sim.parameters())
     log(f"{'resuming' if ckpt else 'training'} at step {step} of {cfg.train.steps}: {tracks.num_windows} "
-        f"windows from {len(train_scenes)} train scenes, {n_params} parameters, "
+        f"windows from {tracks.num_scenes} train scenes, {n_params} parameters, "
         f"node features {spec['node_features']}, edge features {spec['edge_features']}")
 
     last_good = run / LATEST if ckpt else None
@@ -282,6 +302,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
                 metrics.flush()
                 loss_sum, loss_count, busy = 0.0, 0, 0.0
             if step % cfg.train.checkpoint_every == 0 or step == cfg.train.steps:
+                if not all(torch.isfinite(p).all() for p in sim.parameters()):
+                    raise TrainingError(_stopped("a weight is not finite", step, last_good))
                 last_good = save_checkpoint(run, state(), cfg.train.keep_checkpoints)
     return step
 

@@ -99,3 +99,14 @@ def test_learning_rate_decays_from_init_to_final():
     assert learning_rate(cfg, 0) == pytest.approx(1e-4)
     assert learning_rate(cfg, 100) == pytest.approx(1e-6 + 0.1 * (1e-4 - 1e-6))
     assert learning_rate(cfg, 10_000) == pytest.approx(1e-6)
+
+
+def test_resume_after_a_crash_forgets_metrics_of_lost_steps(data, tmp_path):
+    train(data, tmp_path, tiny("train.steps=8", "train.log_every=2", "train.checkpoint_every=4",
+                               "train.keep_checkpoints=0", "valid.every=0"), log=quiet)
+    # A crash after step 6 would leave latest.pt at step 4 and log lines for steps 6 and 8.
+    (tmp_path / "latest.pt").write_bytes((tmp_path / "ckpt-000004.pt").read_bytes())
+    (tmp_path / "ckpt-000008.pt").unlink()
+    train(data, tmp_path, tiny("train.steps=8", "train.log_every=2", "train.checkpoint_every=4",
+                               "valid.every=0"), resume=True, log=quiet)
+    assert [r["step"] for r in metrics(tmp_path)] == [2, 4, 6, 8]

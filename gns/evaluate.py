@@ -1,0 +1,86 @@
+"""Judge a trained run on a dataset: rollouts, metrics, plots. Used by `gns eval` and pipelines."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from datagen.shards import Dataset, DataError
+from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors
+from gns.rollout import rollout_scenes
+from gns.train import LATEST, load_model
+
+
+def checkpoint_of(run: str | Path) -> Path:
+    """A run folder means its latest checkpoint; a .pt file is taken as it is."""
+    run = Path(run)
+    return run / LATEST if run.is_dir() else run
+
+
+def _worst_first(per_scene: list[float]) -> list[int]:
+    return list(np.argsort(per_scene)[::-1])
+
+
+def write_json(path: str | Path, obj) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=float) + "\n")
+    tmp.replace(path)
+
+
+def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
+                 shape_matching: bool = True, plots_dir: str | Path | None = None, progress: bool = True,
+                 batch_tracks: int = 256) -> tuple[dict, list, list, Dataset]:
+    """Roll out every scene of a split from its first 3 frames and score it.
+
+    Returns (results, predicted scenes, true scenes, dataset). Results hold the metrics of
+    gns.metrics.evaluate_scenes plus where they came from and what the rollouts cost.
+    """
+    ckpt = checkpoint_of(run)
+    sim, _ = load_model(ckpt)
+    ds = Dataset(data)
+    if split not in ds.splits:
+        raise DataError(f"{data}: no scenes in split {split!r}; it has {', '.join(ds.splits) or 'none'}")
+    scenes = ds.load(split, limit)
+    t0 = time.perf_counter()
+    pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
+                          batch_tracks=batch_tracks, progress=progress)
+    seconds = time.perf_counter() - t0
+    floor_z = float(ds.floor["z"]) if ds.floor else None
+    results = evaluate_scenes(pred, scenes, ds.meshes, floor_z=0.0 if floor_z is None else floor_z)
+    simulated = sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
+    results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
+                   rollout_seconds=seconds, simulated_seconds=simulated,
+                   wall_seconds_per_simulated_second=seconds / simulated if simulated else None)
+    if plots_dir is not None:
+        write_plots(plots_dir, pred, scenes, ds, results)
+    return results, pred, scenes, ds
+
+
+def write_plots(out: str | Path, pred: list, true: list, ds: Dataset, results: dict, count: int = 2) -> list[Path]:
+    """Figure-1 views and a GIF of the best and worst scenes, and error against time."""
+    from gns.plots import animate_rollout, plot_error_vs_time, plot_trajectory
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    floor_z = float(ds.floor["z"]) if ds.floor else 0.0
+    scores = [float(np.mean(per_frame_errors(p, t, ds.meshes, floor_z)["position_error_pct"])) for p, t in zip(pred, true)]
+    order = _worst_first(scores)
+    picks = {"best": order[-1], "worst": order[0]}
+    if len(order) > 2:
+        picks["median"] = order[len(order) // 2]
+    paths = []
+    unit = ds.meta.get("units", "")
+    unit = "half-widths" if "half-width" in unit else unit
+    for name, i in list(picks.items())[:max(count, 1) + 1]:
+        paths.append(plot_trajectory(pred[i], true[i], ds.meshes, out / f"trajectory_{name}.png", dt=ds.dt,
+                                     floor_z=floor_z, unit=unit,
+                                     title=f"{name} scene ({scores[i]:.1f}% position error): prediction vs truth"))
+    curves = per_frame_curves(pred, true, ds.meshes, floor_z)
+    paths.append(plot_error_vs_time({k: v for k, v in curves.items() if k != "count"}, out / "error_vs_time.png", dt=ds.dt))
+    worst = picks["worst"]
+    paths.append(animate_rollout(pred[worst], true[worst], ds.meshes, out / "rollout_worst.gif", fps=min(ds.frame_rate, 24),
+                                 floor_z=floor_z, max_frames=120))
+    return paths
