@@ -27,6 +27,20 @@ def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return v + w * t + np.cross(u, t)
 
 
+def floor_violations(sc: Scene, meshes: dict, floor_z: float, physics_dt: float) -> list[tuple[int, int, float]]:
+    """(object, first bad frame, depth) for objects sunk deeper than contact can explain."""
+    out = []
+    for n, name in enumerate(sc.shape):
+        verts = rotate(sc.quaternions[:, n], sc.scale[n] * meshes[name][0][None])
+        sink = floor_z - (verts[..., 2] + sc.positions[:, n, 2:3]).min(axis=-1)
+        step_travel = np.abs(sc.velocities[:, n, 2]) * physics_dt
+        bad = sink > np.maximum(MAX_SINK_FRACTION * sc.scale[n], 1.5 * step_travel)
+        if bad.any():
+            t = int(np.argmax(bad))
+            out.append((n, t, float(sink[t])))
+    return out
+
+
 def check_scene(sc: Scene, meshes: dict, floor, where: str, physics_dt: float = 0.0) -> list[str]:
     problems = []
     T, N = sc.positions.shape[:2]
@@ -56,15 +70,9 @@ def check_scene(sc: Scene, meshes: dict, floor, where: str, physics_dt: float = 
     if missing:
         problems.append(f"{where}: no rest mesh for shape(s) {', '.join(missing)}")
     elif floor is not None:
-        for n, name in enumerate(sc.shape):
-            verts = rotate(sc.quaternions[:, n], sc.scale[n] * meshes[name][0][None])
-            low = (verts[..., 2] + sc.positions[:, n, 2:3]).min(axis=-1)
-            sink = float(floor["z"]) - low
-            step_travel = np.abs(sc.velocities[:, n, 2]) * physics_dt
-            allowed = np.maximum(MAX_SINK_FRACTION * sc.scale[n], 1.5 * step_travel)
-            if (sink > allowed).any():
-                t = int(np.argmax(sink - allowed))
-                problems.append(f"{where}: object {n} ({name}) is {sink[t]:.3g} below the floor at frame {t}")
+        for n, frame, depth in floor_violations(sc, meshes, float(floor["z"]), physics_dt):
+            problems.append(f"{where}: object {n} ({sc.shape[n]}) is {depth:.3g} below the floor at frame {frame}"
+                            " (tunnelling or a solver failure)")
     return problems
 
 

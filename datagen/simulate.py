@@ -72,6 +72,10 @@ def build_world(spec: SceneSpec, cfg: dict) -> tuple[int, list[int]]:
         pb.changeDynamics(b, -1, lateralFriction=o.friction, restitution=o.restitution,
                           mass=o.mass, localInertiaDiagonal=o.inertia.tolist(), linearDamping=0, angularDamping=0,
                           contactProcessingThreshold=0, physicsClientId=c)
+        if ph["ccd"]:
+            # Continuous collision: a swept sphere inside the object stops it passing through
+            # the floor within one step, at the price of slower contact handling.
+            pb.changeDynamics(b, -1, ccdSweptSphereRadius=0.25 * o.scale, physicsClientId=c)
         pb.resetBaseVelocity(b, o.velocity.tolist(), o.angular_velocity.tolist(), physicsClientId=c)
         bodies.append(b)
     return c, bodies

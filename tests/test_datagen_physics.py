@@ -87,3 +87,22 @@ def test_settled_object_does_not_sink(shape):
     # its facets, bobbing by a few cm/s; Bullet has no rolling friction here.
     assert np.abs(sc.velocities[-5:, 0, 2]).max() < 0.1, "not settled"
     assert verts[..., 2].min() > -0.01 * 0.7
+
+
+@pytest.mark.parametrize("ccd", [False, True])
+def test_tunnelling_is_detected_or_prevented(ccd, tmp_path, capsys):
+    from datagen.cli import main
+    out = tmp_path / "fast"
+    fast = ["--set", "spawn.velocity_low=[0, 0, -400]", "--set", "spawn.velocity_high=[0, 0, -400]",
+            "--set", "spawn.low=[0, 0, 3]", "--set", "spawn.high=[0, 0, 3]", "--set", f"physics.ccd={str(ccd).lower()}"]
+    assert main(["toss", "--out", str(out), "--scenes", "2", "--shapes", "cube", "--quiet", *fast]) == 0
+    err = capsys.readouterr().err
+    assert ("sank through the floor" in err) != ccd
+    assert (main(["inspect", str(out)]) == 1) != ccd
+
+
+def test_very_small_time_step_still_free_falls():
+    cfg = config(frame_rate=1000, frames=12, physics__rate=10000)
+    sc = simulate(one_object(cfg, position=(0, 0, 5), velocity=(0.3, 0, 0)), cfg)
+    acc = (sc.positions[2:, 0] - 2 * sc.positions[1:-1, 0] + sc.positions[:-2, 0]) * 1000**2
+    np.testing.assert_allclose(acc[:, 2], -G, rtol=1e-3)
