@@ -108,7 +108,7 @@ def main(argv=None) -> None:
     else:
         tracks, spec = synthetic_tracks()
         source = "synthetic tosses of " + ", ".join(SHAPES)
-    print(f"data: {source}\n")
+    print(f"data: {source}; load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
     header = (f"{'preset':<7}{'threads':>8}{'LxK':>6}{'latent':>7}{'batch':>6}{'nodes':>7}{'edges':>7}{'steps/s':>9}"
               f"{'graphs/s':>10}{'GFLOP/step':>11}{'GFLOP/s':>9}{'matmul':>8}{'of peak':>9}")
     print(header)

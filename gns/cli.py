@@ -50,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
+    # Imported after parsing so that `gns --help` and usage errors do not wait for torch.
     from gns.train import CheckpointError, TrainingError
 
     try:

@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 from datagen.shards import Dataset, DataError, Scene
-from gns.geometry import quat_to_matrix
+from gns.features import HISTORY
+from gns.geometry import quat_to_matrix, rotation_angle
 from gns.graph import Graph, MeshLibrary
-from gns.simulator import HISTORY
 
 WINDOW = HISTORY + 1
 
@@ -156,8 +156,10 @@ def _range(values: list[np.ndarray]) -> list[float]:
 def feature_spec(dataset: Dataset, scenes: list[Scene]) -> dict:
     """What a model trained on these scenes was shown: physics constants and value ranges.
 
-    Speeds are of the centre of mass in scene units per second; ranges are [min, max].
+    Ranges are [min, max]. Speeds are finite differences between frames, as the model sees
+    them: centre speed in scene units per second, rotation speed in radians per second.
     """
+    rate = dataset.frame_rate
     return {
         "frame_rate": dataset.frame_rate,
         "gravity": dataset.gravity.tolist(),
@@ -165,8 +167,9 @@ def feature_spec(dataset: Dataset, scenes: list[Scene]) -> dict:
         "materials_vary": dataset.materials_vary,
         "shapes": sorted({s for sc in scenes for s in sc.shape}),
         "ranges": {
-            "speed": _range([np.linalg.norm(sc.velocities, axis=-1) for sc in scenes]),
-            "angular_speed": _range([np.linalg.norm(sc.angular_velocities, axis=-1) for sc in scenes]),
+            "speed": _range([np.linalg.norm(np.diff(sc.positions, axis=0), axis=-1) * rate for sc in scenes]),
+            "angular_speed": _range([rotation_angle(sc.quaternions[1:], sc.quaternions[:-1]) * rate
+                                     for sc in scenes]),
             "height": _range([sc.positions[..., 2] for sc in scenes]),
             "scale": _range([sc.scale for sc in scenes]),
             "friction": _range([sc.friction for sc in scenes]),

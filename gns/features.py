@@ -21,9 +21,11 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from gns.config import ConfigError
 from gns.graph import Graph
 
 STD_EPSILON = 1e-5
+HISTORY = 3  # input frames t-2, t-1, t: two finite-difference velocities (paper: h = 2)
 
 
 class Normalizer(nn.Module):
@@ -97,7 +99,7 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool) -> Fe
     f = features_cfg
     node = []
     if f.velocity:
-        node.append(("velocity", 6))
+        node.append(("velocity", 3 * (HISTORY - 1)))
     if f.floor_distance and floor_z is not None:
         node.append(("floor", 1))
     if f.material and materials_vary:
@@ -114,7 +116,7 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool) -> Fe
         if f.rest_edges:
             edge += [("rest_relative", 3), ("rest_relative_norm", 1)]
     if not node:
-        raise ValueError("no node features are switched on")
+        raise ConfigError("no node features are on: switch on features.velocity or features.rest_position")
     return FeatureLayout(tuple(node), tuple(edge), floor_z if f.floor_distance else None, f.floor_clip)
 
 
@@ -125,7 +127,7 @@ def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
     for name, _ in layout.node_groups:
         if name == "velocity":
             v = history[:, 1:] - history[:, :-1]                 # (N, 2, 3): older first
-            out[name] = v.flip(1).reshape(len(history), 6)      # newest first
+            out[name] = v.flip(1).reshape(len(history), 3 * (HISTORY - 1))  # newest first
         elif name == "floor":
             out[name] = (x_t[:, 2:3] - layout.floor_z).clamp(0.0, layout.floor_clip)
         elif name == "material":

@@ -10,12 +10,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from gns.features import (FeatureLayout, Normalizer, make_layout, raw_edge_features,
+from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_edge_features,
                           raw_node_features)
 from gns.graph import Graph
 from gns.network import EncodeProcessDecode
-
-HISTORY = 3  # input frames t-2, t-1, t: two finite-difference velocities (paper: h = 2)
 
 
 def integrate(x_tm1: torch.Tensor, x_t: torch.Tensor, acceleration: torch.Tensor) -> torch.Tensor:
@@ -32,13 +30,17 @@ def _rotation_from_covariance(h: torch.Tensor) -> torch.Tensor:
     """Rotation part of the polar decomposition of h (B, 3, 3), never a reflection.
 
     For h = sum_i p_i q_i^T = U S V^T, R = U diag(1, 1, det(U V^T)) V^T maximises
-    sum_i p_i . R q_i over proper rotations (Kabsch).
+    sum_i p_i . R q_i over proper rotations (Kabsch). A non-finite h (a diverged prediction)
+    gives a NaN rotation for its graph only, instead of stopping LAPACK for the whole batch.
     """
-    u, _, vh = torch.linalg.svd(h)
+    finite = torch.isfinite(h).all(dim=(1, 2))
+    eye = torch.eye(3, dtype=h.dtype, device=h.device)
+    u, _, vh = torch.linalg.svd(torch.where(finite[:, None, None], h, eye))
     sign = torch.linalg.det(u @ vh)
     fix = torch.ones_like(h[:, 0])
     fix[:, 2] = sign
-    return (u * fix[:, None, :]) @ vh
+    rot = (u * fix[:, None, :]) @ vh
+    return torch.where(finite[:, None, None], rot, torch.nan)
 
 
 def shape_match(x: torch.Tensor, rest: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

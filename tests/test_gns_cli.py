@@ -125,3 +125,9 @@ def test_help_lists_train():
     with pytest.raises(SystemExit) as exc:
         main(["--help"])
     assert exc.value.code == 0
+
+
+def test_all_node_features_off(data, tmp_path, capsys):
+    line = fails(capsys, "--data", data, "--out", tmp_path, "--config", TINY, "--set", "features.velocity=false",
+                 "features.floor_distance=false", "features.rest_position=false")
+    assert "no node features" in line

@@ -132,7 +132,10 @@ def test_feature_spec_ranges(dataset):
     assert spec["shapes"] == ["cube"] and spec["frame_rate"] == 12
     lo, hi = spec["ranges"]["scale"]
     assert lo >= 0.7 and hi <= 1.4
-    assert spec["ranges"]["speed"][1] == pytest.approx(max(np.linalg.norm(s.velocities, axis=-1).max() for s in scenes))
+    fastest = max(np.linalg.norm(np.diff(s.positions, axis=0), axis=-1).max() for s in scenes) * 12
+    assert spec["ranges"]["speed"][1] == pytest.approx(fastest)
+    lo, hi = spec["ranges"]["angular_speed"]
+    assert 0.5 - 1e-9 <= lo <= hi <= 3.0 + 1e-9, "the fixture spins at a constant rate in [0.5, 3] rad/s"
 
 
 def test_non_finite_poses_are_a_data_error(dataset):

@@ -198,3 +198,14 @@ def test_rollout_with_shape_matching_keeps_meshes_rigid():
         for g in range(graph.num_graphs):
             pts, rest = x[graph.node_graph == g], graph.rest[graph.node_graph == g]
             assert torch.allclose(torch.cdist(pts, pts), torch.cdist(rest, rest), atol=1e-9)
+
+
+def test_shape_match_of_a_diverged_graph_spoils_only_that_graph():
+    rest, rot, t, x = rigid_setup(seed=7)
+    x[1, 3] = torch.nan
+    x[2, 0, 0] = torch.inf
+    node_graph = torch.arange(4).repeat_interleave(10)
+    r_p, t_p, proj = shape_match_packed(x.reshape(-1, 3), rest.reshape(-1, 3), node_graph, 4)
+    assert torch.isnan(r_p[1]).all() and torch.isnan(r_p[2]).all()
+    assert torch.allclose(r_p[[0, 3]], rot[[0, 3]], atol=1e-12)
+    assert torch.isfinite(proj[node_graph == 0]).all() and torch.isnan(proj[node_graph == 1]).all()
