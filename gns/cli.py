@@ -41,10 +41,80 @@ def add_train_parser(sub) -> None:
     p.set_defaults(run=cmd_train)
 
 
+def cmd_rollout(args: argparse.Namespace) -> None:
+    import time
+
+    from gns.evaluate import check_ranges, checkpoint_of, load_split
+    from gns.rollout import check_output, rollout_scenes, write_rollouts
+    from gns.train import load_model, read_checkpoint
+
+    check_output(args.out, args.overwrite)
+    ckpt = checkpoint_of(args.run_dir)
+    sim, _ = load_model(ckpt)
+    ds, scenes = load_split(args.data, args.split, args.limit)
+    check_ranges(ckpt, ds, scenes)
+    t0 = time.perf_counter()
+    pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=not args.no_shape_matching,
+                          batch_tracks=args.batch)
+    seconds = time.perf_counter() - t0
+    info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(read_checkpoint(ckpt)["step"]),
+            "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
+            "given_frames": 3, "seconds": seconds}
+    write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
+    print(f"rolled out {len(pred)} scenes in {seconds:.2f} s; wrote {args.out}")
+
+
+def cmd_eval(args: argparse.Namespace) -> None:
+    from gns.evaluate import evaluate_run, write_json
+    from gns.metrics import format_table
+
+    results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit,
+                               shape_matching=not args.no_shape_matching, plots_dir=args.plots,
+                               batch_tracks=args.batch)
+    print(format_table(results))
+    print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
+          f"per scene, {results['num_scenes']} scenes batched")
+    if args.json:
+        write_json(args.json, {k: v for k, v in results.items() if k != "per_scene"})
+        print(f"wrote {args.json}")
+    if args.plots:
+        print(f"plots in {args.plots}")
+
+
+def _add_rollout_args(p) -> None:
+    p.add_argument("--run", required=True, dest="run_dir", metavar="RUN",
+                   help="run folder (its latest.pt) or a .pt checkpoint")
+    p.add_argument("--data", required=True, metavar="DIR", help="dataset folder to roll out")
+    p.add_argument("--split", default="test", help="split to roll out (default test)")
+    p.add_argument("--limit", type=int, metavar="N", help="only the first N scenes")
+    p.add_argument("--batch", type=int, default=256, metavar="B", help="object tracks rolled out together (default 256)")
+    p.add_argument("--no-shape-matching", action="store_true",
+                   help="feed raw predictions back (the paper's -sm ablation); default projects onto the rigid shape")
+
+
+def add_eval_parsers(sub) -> None:
+    r = sub.add_parser("rollout", help="roll a trained model out over a dataset and write the trajectories",
+                       description="Start every scene from its first 3 true frames and roll out the rest. "
+                                   "The output is a dataset folder in docs/data_format.md, readable by the "
+                                   "same reader (and by `datagen inspect`).")
+    _add_rollout_args(r)
+    r.add_argument("--out", required=True, metavar="DIR", help="output folder for the rolled-out dataset")
+    r.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    r.set_defaults(run=cmd_rollout)
+    e = sub.add_parser("eval", help="roll out and score: position %%, rotation degrees, penetration %%",
+                       description="Roll out a split and print the metrics of docs/metrics.md (averaged over "
+                                   "frames, then scenes), at fixed horizons and by shape, size and material.")
+    _add_rollout_args(e)
+    e.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    e.add_argument("--plots", metavar="DIR", help="write trajectory plots, error against time and a GIF here")
+    e.set_defaults(run=cmd_eval)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gns", description="Graph network simulator for rigid bodies.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add_train_parser(sub)
+    add_eval_parsers(sub)
     return parser
 
 

@@ -8,9 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from datagen.shards import Dataset, DataError
-from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors
+from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors, per_scene_means
 from gns.rollout import rollout_scenes
-from gns.train import LATEST, load_model
+from gns.data import feature_spec
+from gns.ranges import outside_training
+from gns.train import LATEST, load_model, read_checkpoint
 
 
 def checkpoint_of(run: str | Path) -> Path:
@@ -41,23 +43,64 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     """
     ckpt = checkpoint_of(run)
     sim, _ = load_model(ckpt)
-    ds = Dataset(data)
-    if split not in ds.splits:
-        raise DataError(f"{data}: no scenes in split {split!r}; it has {', '.join(ds.splits) or 'none'}")
-    scenes = ds.load(split, limit)
+    ds, scenes = load_split(data, split, limit)
+    warnings = check_ranges(ckpt, ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
                           batch_tracks=batch_tracks, progress=progress)
-    seconds = time.perf_counter() - t0
-    floor_z = float(ds.floor["z"]) if ds.floor else None
-    results = evaluate_scenes(pred, scenes, ds.meshes, floor_z=0.0 if floor_z is None else floor_z)
-    simulated = sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
+    results = score_predictions(pred, scenes, ds, time.perf_counter() - t0, plots_dir)
     results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
-                   rollout_seconds=seconds, simulated_seconds=simulated,
-                   wall_seconds_per_simulated_second=seconds / simulated if simulated else None)
+                   outside_training=warnings)
+    return results, pred, scenes, ds
+
+
+def check_ranges(ckpt: Path, ds: Dataset, scenes: list, warn=None) -> list[str]:
+    """Warn (stderr, one line each) where the scenes leave the checkpoint's training ranges."""
+    import sys
+    problems = outside_training(read_checkpoint(ckpt)["spec"], feature_spec(ds, scenes))
+    for p in problems:
+        (warn or (lambda m: print(m, file=sys.stderr)))(f"warning: outside training: {p}")
+    return problems
+
+
+def evaluate_baseline(data: str | Path, split: str = "test", params=None, limit: int | None = None,
+                      plots_dir: str | Path | None = None) -> tuple[dict, list, list, Dataset]:
+    """`evaluate_run` for the analytic baseline (datagen.baseline, PyBullet): every one-cube
+    scene of a split simulated from its first 3 frames with `params` (default: the published
+    ContactNets constants), scored the same way. Returns (results, predicted, true, dataset)."""
+    from datagen.baseline import PUBLISHED, simulate_toss  # PyBullet only when asked for
+    params = PUBLISHED if params is None else params
+    ds, scenes = load_split(data, split, limit)
+    t0 = time.perf_counter()
+    try:
+        pred = [simulate_toss(sc, params, frame_rate=ds.frame_rate) for sc in scenes]
+    except ValueError as e:
+        raise DataError(f"{data}: {e}") from None
+    results = score_predictions(pred, scenes, ds, time.perf_counter() - t0, plots_dir)
+    results.update(baseline="pybullet", params=params.to_dict(), data=str(data), split=split)
+    return results, pred, scenes, ds
+
+
+def load_split(data: str | Path, split: str, limit: int | None) -> tuple[Dataset, list]:
+    ds = Dataset(data)
+    if split not in ds.splits:
+        raise DataError(f"{data}: no scenes in split {split!r}; it has {', '.join(ds.splits) or 'none'}")
+    return ds, ds.load(split, limit)
+
+
+def score_predictions(pred: list, scenes: list, ds: Dataset, seconds: float,
+                      plots_dir: str | Path | None = None) -> dict:
+    """Metrics (gns.metrics.evaluate_scenes) of predicted scenes against the truth, what the
+    predictions cost, per-scene means (`per_scene`, for paired comparisons), and plots if asked."""
+    floor_z = float(ds.floor["z"]) if ds.floor else 0.0
+    results = evaluate_scenes(pred, scenes, ds.meshes, floor_z=floor_z)
+    simulated = sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
+    results.update(rollout_seconds=seconds, simulated_seconds=simulated,
+                   wall_seconds_per_simulated_second=seconds / simulated if simulated else None,
+                   per_scene=per_scene_means(pred, scenes, ds.meshes, floor_z))
     if plots_dir is not None:
         write_plots(plots_dir, pred, scenes, ds, results)
-    return results, pred, scenes, ds
+    return results
 
 
 def write_plots(out: str | Path, pred: list, true: list, ds: Dataset, results: dict, count: int = 2) -> list[Path]:

@@ -10,7 +10,7 @@ Rerunning continues where the last run stopped: finished stages are skipped.
 
 Presets (measured costs on a 2-core CPU in the README):
   tiny   a smoke test for the test suite: a few scenes, a tiny model, a few steps
-  small  1000 training scenes, the CPU model (L=5, K=1, latent 128), 6000 steps: < 30 minutes
+  small  1000 training scenes, the CPU model (L=5, K=1, latent 64), 20000 steps: < 30 minutes
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
 PRESETS = {
     "tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", steps=40, scene=["scene.frames=12"]),
-    "small": dict(counts={"train": 1000, "valid": 50, "test": 100}, model="cpu", steps=6000, scene=[]),
+    "small": dict(counts={"train": 1000, "valid": 50, "test": 100}, model="cpu", steps=20000, scene=[]),
     "paper": dict(counts={"train": 9000, "valid": 500, "test": 500}, model="paper", steps=1_000_000, scene=[]),
 }
 

@@ -78,3 +78,46 @@ def test_movi_a_pipeline_tiny_runs_end_to_end_and_resumes(tmp_path, capsys):
     assert movi_a.main(["--preset", "tiny", "--out", str(out), "--workers", "1"]) == 0
     err = capsys.readouterr().err
     assert "data: " in err and err.count("skipping") == 3
+
+
+def test_gns_eval_and_rollout_commands(trained, tmp_path, capsys):
+    from gns.cli import main as gns_main
+    data, run = trained
+    gns_main(["eval", "--run", str(run), "--data", str(data), "--json", str(tmp_path / "r.json")])
+    out = capsys.readouterr().out
+    assert "pos %" in out and "horizon 5" in out
+    results = json.loads((tmp_path / "r.json").read_text())
+    assert {"position_error_pct", "rotation_error_deg", "penetration_pct", "num_scenes"} <= set(results)
+    gns_main(["rollout", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "roll")])
+    assert Dataset(tmp_path / "roll").num_scenes("test") == 3
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        gns_main(["rollout", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "roll")])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "exists and is not empty" in err[0]
+
+
+def test_missing_run_is_one_error_line(trained, tmp_path, capsys):
+    from gns.cli import main as gns_main
+    data, _ = trained
+    with pytest.raises(SystemExit) as e:
+        gns_main(["eval", "--run", str(tmp_path / "nope"), "--data", str(data)])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: no checkpoint at")
+
+
+def test_inputs_outside_training_are_named(trained, tmp_path, capsys):
+    data, run = trained
+    other = tmp_path / "other"
+    assert datagen_main(["toss", "--out", str(other), "--scenes", "0", "--test", "2", "--frames", "16",
+                         "--shapes", "cylinder", "--frame-rate", "24", "--set", "materials.metal.friction=0.0",
+                         "--materials", "metal", "--quiet"]) == 0
+    results, *_ = evaluate_run(run, other, progress=False)
+    err = capsys.readouterr().err
+    text = " | ".join(results["outside_training"])
+    assert "frame rate 24" in text and "cylinder not seen" in text and "friction" in text
+    assert err.count("warning: outside training:") == len(results["outside_training"])
+    inside, *_ = evaluate_run(run, data, progress=False)
+    assert inside["outside_training"] == []
