@@ -115,6 +115,20 @@ def per_frame_curves(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mappi
     return out
 
 
+def per_scene_means(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mapping[str, tuple],
+                    floor_z: float = 0.0, start: int = 0) -> list[dict]:
+    """Each scene's metrics averaged over its frames t >= start and its objects, with its
+    scene_id: for paired comparisons of two simulators on the same scenes."""
+    out = []
+    for pred, true in zip(pred_scenes, true_scenes, strict=True):
+        f = per_frame_errors(pred, true, meshes, floor_z)
+        row = {k: float(v[start:].mean()) for k, v in f.items()}
+        sid = true.attrs.get("scene_id")
+        row["scene_id"] = sid.item() if hasattr(sid, "item") else sid  # numpy scalars from HDF5 attributes
+        out.append(row)
+    return out
+
+
 def _mean(values: list[float]) -> float | None:
     return float(np.mean(values)) if values else None
 

@@ -302,3 +302,35 @@ def plot_curve(xs: Sequence[float], ys_by_label: Mapping[str, Sequence], path, b
         ax.set_title(title)
     fig.tight_layout()
     return _save(fig, path, dpi)
+
+
+def plot_bars(labels: Sequence[str], panels: Mapping[str, Sequence[float]], path,
+              references: Mapping[str, Mapping[str, float]] | None = None, title: str | None = None,
+              dpi: int = 120) -> Path:
+    """Bar charts side by side, one panel per metric (Figure 5 style: ablations).
+
+    panels: {panel y-label: one value per label (NaN: no bar)}; references: {panel y-label:
+    {name: value}} drawn as dashed horizontal lines (e.g. a baseline or the full model).
+    """
+    fig = _figure((3.2 * len(panels) + 0.5, 3.8))
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    x = np.arange(len(labels))
+    for ax, (ylabel, values) in zip(axes, panels.items()):
+        values = np.asarray(values, np.float64)
+        ax.bar(x, np.nan_to_num(values, nan=0.0), color=[f"C{i}" for i in range(len(labels))], alpha=0.85)
+        for xi, v in zip(x, values):
+            ax.text(xi, 0 if np.isnan(v) else v, "n/a" if np.isnan(v) else f"{v:.3g}", ha="center",
+                    va="bottom", fontsize=7)
+        for j, (name, value) in enumerate((references or {}).get(ylabel, {}).items()):
+            ax.axhline(float(value), ls="--", lw=1.2, color=f"C{len(labels) + j}", label=name)
+        if (references or {}).get(ylabel):
+            ax.legend(fontsize=7)
+        ax.set_xticks(x)
+        ax.set_xticklabels(labels, rotation=30, ha="right", fontsize=8)
+        ax.set_ylabel(ylabel)
+        ax.set_ylim(bottom=0)
+        ax.grid(axis="y", alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, path, dpi)
