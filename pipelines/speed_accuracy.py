@@ -20,25 +20,30 @@ from pathlib import Path
 
 import numpy as np
 
+import torch
+
 from datagen.config import load_config as scene_config
 from datagen.scenes import sample_scene
-from datagen.shapes import get_shape
+from datagen.shards import Dataset
 from datagen.simulate import simulate
-from gns.evaluate import write_json
-from gns.metrics import evaluate_scenes
-from pipelines.common import say
+from gns.config import build_config
+from gns.data import feature_spec
+from gns.evaluate import checkpoint_of, evaluate_run, write_json
+from gns.metrics import METRICS, evaluate_scenes
+from gns.rollout import rollout_scenes
+from gns.simulator import LearnedSimulator
+from gns.train import load_model
+from pipelines.common import data_stage, say
 
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
 PRESETS = {
-    "tiny": dict(scenes=2, frames=12, rates=[120, 240], iterations=[10], reference=(1200, 200)),
+    "tiny": dict(scenes=2, frames=12, rates=[120, 240], iterations=[10], reference=(1200, 200),
+                 architectures=[(1, 1, 16)], batches=[1, 2], single_scenes=2),
     "quick": dict(scenes=40, frames=24, rates=[60, 120, 240, 480, 960], iterations=[5, 10, 50],
-                  reference=(9600, 200)),
+                  reference=(9600, 200), architectures=[(1, 1, 64), (5, 1, 32), (5, 1, 64), (5, 1, 128), (10, 3, 128)],
+                  batches=[1, 8, 40], single_scenes=8),
 }
-
-
-def meshes_of(scenes) -> dict:
-    return {n: (get_shape(n).vertices, get_shape(n).faces) for sc in scenes for n in sc.shape}
 
 
 def physics_point(cfg_sets: list[str], n: int, seed: int = 0) -> tuple[list, float]:
@@ -50,23 +55,77 @@ def physics_point(cfg_sets: list[str], n: int, seed: int = 0) -> tuple[list, flo
     return scenes, time.perf_counter() - t0
 
 
-def physics_sweep(p: dict) -> list[dict]:
-    base = [SHAPES, "scene.frame_rate=12", f"scene.frames={p['frames']}"]
+def reference(p: dict, out: Path) -> Dataset:
+    """The fine reference: the test scenes at 10x the finest rate, written as a dataset."""
     rate, iters = p["reference"]
-    say(f"physics: reference at {rate} Hz, {iters} solver iterations")
-    reference, _ = physics_point(base + [f"physics.rate={rate}", f"physics.solver_iterations={iters}"], p["scenes"])
-    meshes = meshes_of(reference)
+    sets = [SHAPES, "scene.frame_rate=12", f"scene.frames={p['frames']}", f"physics.rate={rate}",
+            f"physics.solver_iterations={iters}"]
+    say(f"reference: {p['scenes']} scenes at {rate} Hz, {iters} solver iterations")
+    return data_stage(out, sets, {"test": p["scenes"]}, seed=0, workers=2)
+
+
+def physics_sweep(p: dict, ref: Dataset) -> list[dict]:
+    base = [SHAPES, "scene.frame_rate=12", f"scene.frames={p['frames']}"]
+    true = ref.load("test")
     simulated = p["scenes"] * (p["frames"] - 1) / 12.0
     rows = []
     for r in p["rates"]:
         for it in p["iterations"]:
             scenes, seconds = physics_point(base + [f"physics.rate={r}", f"physics.solver_iterations={it}"], p["scenes"])
-            res = evaluate_scenes(scenes, reference, meshes, floor_z=0.0)
+            res = evaluate_scenes(scenes, true, ref.meshes, floor_z=0.0)
             rows.append({"family": "pybullet", "label": f"{r} Hz, {it} it", "physics_rate": r, "solver_iterations": it,
-                         "seconds_per_simulated_second": seconds / simulated,
-                         **{k: res[k] for k in ("position_error_pct", "rotation_error_deg", "penetration_pct")}})
+                         "batch": 1, "seconds_per_simulated_second": seconds / simulated,
+                         **{k: res[k] for k in METRICS}})
             say(f"physics: {rows[-1]['label']}: {rows[-1]['position_error_pct']:.2f}% position, "
                 f"{rows[-1]['seconds_per_simulated_second'] * 1e3:.2f} ms per simulated s")
+    return rows
+
+
+def _timed_rollout(sim, scenes, ds: Dataset, batch: int) -> float:
+    """Wall seconds per simulated second per trajectory, rolling out `batch` scenes at a time."""
+    t0 = time.perf_counter()
+    for k in range(0, len(scenes), batch):
+        rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, batch_tracks=batch, progress=False)
+    seconds = time.perf_counter() - t0
+    return seconds / sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
+
+
+def gns_speed(p: dict, ref: Dataset) -> list[dict]:
+    """Rollout cost of each architecture and batch size. The cost of a forward pass does not
+    depend on the weights, so untrained models time exactly what trained ones would."""
+    torch.set_num_threads(1)
+    scenes = ref.load("test")
+    spec = feature_spec(ref, scenes)
+    rows = []
+    for L, K, latent in p["architectures"]:
+        cfg = build_config(overrides=[f"model.message_passing_steps={L}", f"model.processor_repeats={K}",
+                                      f"model.latent_size={latent}", f"model.hidden_size={latent}"])
+        sim = LearnedSimulator(cfg.model, cfg.features, spec).eval()
+        for batch in p["batches"]:
+            cost = _timed_rollout(sim, scenes[:max(batch, p["single_scenes"])], ref, batch)
+            rows.append({"family": "gns speed", "label": f"L{L}xK{K}, latent {latent}, batch {batch}", "L": L, "K": K,
+                         "latent": latent, "batch": batch, "seconds_per_simulated_second": cost})
+            say(f"gns speed: {rows[-1]['label']}: {cost * 1e3:.2f} ms per simulated s")
+    return rows
+
+
+def gns_accuracy(runs: list[Path], ref: Dataset, p: dict) -> list[dict]:
+    """Trained runs scored against the fine reference, timed single and batched."""
+    torch.set_num_threads(1)
+    scenes = ref.load("test")
+    rows = []
+    for run in runs:
+        results, *_ = evaluate_run(run, ref.root, "test", progress=False)
+        sim, cfg = load_model(checkpoint_of(run))
+        m = cfg.model
+        for batch in (1, len(scenes)):
+            cost = _timed_rollout(sim, scenes[:max(batch, p["single_scenes"])], ref, batch)
+            rows.append({"family": "gns" if batch == 1 else "gns batched",
+                         "label": f"{Path(run).name}: L{m.message_passing_steps}xK{m.processor_repeats}, "
+                                  f"latent {m.latent_size}, batch {batch}",
+                         "run": str(run), "batch": batch, "seconds_per_simulated_second": cost,
+                         **{k: results[k] for k in METRICS}})
+            say(f"gns: {rows[-1]['label']}: {rows[-1]['position_error_pct']:.2f}% position, {cost * 1e3:.2f} ms")
     return rows
 
 
@@ -74,7 +133,7 @@ def pareto_plot(rows: list[dict], path: Path) -> Path:
     from gns.plots import _figure, _save
     fig = _figure((7, 4.5))
     ax = fig.subplots()
-    for family, marker in (("pybullet", "o"), ("gns", "s"), ("gns batched", "^")):
+    for family, marker in (("pybullet", "o"), ("gns", "s"), ("gns batched", "^")):  # speed-only rows have no error
         pts = [r for r in rows if r["family"] == family]
         if not pts:
             continue
@@ -94,12 +153,23 @@ def pareto_plot(rows: list[dict], path: Path) -> Path:
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| family | setting | ms per simulated s | position % | rotation deg | penetration % |",
+    lines = ["| family | setting | ms per simulated s per trajectory | position % | rotation deg | penetration % |",
              "|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['family']} | {r['label']} | {r['seconds_per_simulated_second'] * 1e3:.3g} | "
-                     f"{r['position_error_pct']:.3g} | {r['rotation_error_deg']:.3g} | {r['penetration_pct']:.3g} |")
+        errs = " | ".join(f"{r[k]:.3g}" if k in r else "-" for k in METRICS)
+        lines.append(f"| {r['family']} | {r['label']} | {r['seconds_per_simulated_second'] * 1e3:.3g} | {errs} |")
     return "\n".join(lines)
+
+
+def throughput_ratio(rows: list[dict]) -> str:
+    """GNS batched rollout throughput against PyBullet at the data's own settings (240 Hz)."""
+    bullet = [r for r in rows if r["family"] == "pybullet" and r["physics_rate"] == 240 and r["solver_iterations"] == 50]
+    gns = [r for r in rows if r["family"] == "gns batched"]
+    if not bullet or not gns:
+        return ""
+    b, g = bullet[0]["seconds_per_simulated_second"], gns[0]["seconds_per_simulated_second"]
+    return (f"GNS batched rollout throughput / PyBullet (240 Hz, 50 iterations, one scene a process): "
+            f"{b / g:.2f}x ({g * 1e3:.3g} vs {b * 1e3:.3g} ms per simulated second per trajectory)")
 
 
 def main(argv=None) -> int:
@@ -107,15 +177,20 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", choices=sorted(PRESETS), default="quick")
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--runs", type=Path, nargs="*", default=[],
+                    help="trained run folders to score against the fine reference (e.g. runs/movi_a_small/run)")
     a = ap.parse_args(argv)
     p = PRESETS[a.preset]
     out = a.out or Path("runs") / f"speed_accuracy_{a.preset}"
     out.mkdir(parents=True, exist_ok=True)
-    rows = physics_sweep(p)
-    write_json(out / "results.json", {"preset": a.preset, "settings": p, "rows": rows})
-    (out / "table.md").write_text(table(rows) + "\n")
+    ref = reference(p, out / "reference")
+    rows = physics_sweep(p, ref) + gns_speed(p, ref) + gns_accuracy(a.runs, ref, p)
+    ratio = throughput_ratio(rows)
+    write_json(out / "results.json", {"preset": a.preset, "settings": p, "rows": rows, "throughput_ratio": ratio})
+    (out / "table.md").write_text(table(rows) + "\n\n" + ratio + "\n")
     pareto_plot(rows, out / "pareto.png")
     print(table(rows))
+    print(ratio)
     return 0
 
 
