@@ -36,18 +36,21 @@ class FeatureConfig:
     rest_position: bool = True         # body-frame rest position of each vertex (node feature)
     rest_edges: bool = True            # d^U and |d^U| on edges (relative encoding only)
     normalizer_steps: int = 1000       # training steps during which normalisers accumulate
+    collision_radius: float = 0.15     # collision edges between objects closer than this, scene units
 
 
 @dataclass
 class AugmentConfig:
     rotate: bool = True                # rotate input and target about z by U[-pi, pi]
     noise_std: float = 0.003           # random-walk noise, std on the last input frame, scene units
+    vertex_noise: float = 0.0          # shape noise (paper Fig. 7a): std of one fixed offset per vertex, x size
+    track_noise: float = 0.0           # tracking noise (Fig. 7b): std of per-frame centre noise, x its displacement
 
 
 @dataclass
 class TrainConfig:
     steps: int = 1_000_000
-    batch_size: int = 8                # graphs (object windows) per step
+    batch_size: int = 8                # windows per step (one graph per object of the window's scene)
     lr_init: float = 1e-4
     lr_final: float = 1e-6
     lr_decay_steps: int = 5_000_000    # lr - lr_final shrinks 10x every lr_decay_steps
@@ -180,7 +183,10 @@ def validate(cfg: Config) -> None:
         (cfg.model.message_passing_steps >= 1 and cfg.model.processor_repeats >= 1,
          "model.message_passing_steps and model.processor_repeats must be >= 1"),
         (cfg.features.floor_clip > 0, "features.floor_clip must be > 0"),
+        (cfg.features.collision_radius > 0, "features.collision_radius must be > 0"),
         (cfg.augment.noise_std >= 0, "augment.noise_std must be >= 0"),
+        (cfg.augment.vertex_noise >= 0, "augment.vertex_noise must be >= 0"),
+        (cfg.augment.track_noise >= 0, "augment.track_noise must be >= 0"),
         (cfg.train.batch_size >= 1, "train.batch_size must be >= 1"),
         (cfg.train.steps >= 0, "train.steps must be >= 0"),
         (cfg.train.lr_init > 0 and cfg.train.lr_final >= 0, "learning rates must be positive"),
@@ -196,11 +202,12 @@ def validate(cfg: Config) -> None:
 
 def architecture_differences(saved: dict, current: Config) -> list[str]:
     """Keys of the architecture sections whose values differ, as 'key: saved -> current'."""
-    now = config_to_dict(current)
+    now, default = config_to_dict(current), config_to_dict(Config())
     out = []
     for section in ARCHITECTURE_SECTIONS:
         for key, value in now[section].items():
-            old = saved.get(section, {}).get(key)
+            # a key newer than the checkpoint had its default value then
+            old = saved.get(section, {}).get(key, default[section][key])
             if old != value:
                 out.append(f"{section}.{key} is {old!r} in the checkpoint, {value!r} now")
     return out

@@ -1,17 +1,28 @@
 """Training windows from the shards: poses in memory, vertex positions built per batch.
 
 A *track* is one object through one scene. A *window* is 3 input frames (t-2, t-1, t) and the
-target frame t+1 of one track; one window makes one graph. Memory holds only the poses
+target frame t+1 of one scene: one graph per object of the scene, packed together and marked as
+one scene (`Graph.graph_scene`) so that collision edges can join them. With one object per
+scene a window is one track and one graph. Memory holds only the poses
 (positions and quaternions, float64) and the meshes once; vertex positions are computed for the
 windows of a batch, vectorised, as R(q) (scale * rest) + p.
 
 Augmentation (training only):
-- rotation of inputs and target about the world z axis by theta ~ U[-pi, pi], one per graph;
+- rotation of inputs and target about the world z axis by theta ~ U[-pi, pi], one per window
+  (all objects of a scene rotate together, about the same axis);
 - random-walk position noise as in learning_to_simulate: per node, each input velocity gets
   N(0, noise_std^2 / 2) noise, accumulated over the history, so the last input frame carries
   noise of std noise_std. The target position is shifted by the last frame's noise, so the
   target acceleration x_{t+1} - 2 x_t + x_{t-1} asks the model to undo the noise of the last
   input velocity.
+Noise of the paper's robustness study (Fig. 7), off by default. It makes the training data
+themselves noisy, target included, and nothing corrects for it:
+- vertex_noise (imperfect shape): one Gaussian offset per vertex, in the body frame, std =
+  vertex_noise x the object's size (largest extent of its scaled rest mesh), the same in the
+  4 frames of a window, so the object moves rigidly with a distorted shape;
+- track_noise (imperfect tracking): Gaussian noise on the centre at every frame of the window,
+  independently, std = track_noise x the centre's displacement at that frame (from the frame
+  before; the first frame uses the next step), added to the pose before vertices are built.
 """
 from __future__ import annotations
 
@@ -23,7 +34,7 @@ import torch
 from datagen.shards import Dataset, DataError, Scene
 from gns.features import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
-from gns.graph import Graph, MeshLibrary
+from gns.graph import Graph, MeshLibrary, _ragged_arange
 
 WINDOW = HISTORY + 1
 
@@ -88,10 +99,17 @@ class ObjectTracks:
         self.scale = torch.from_numpy(np.concatenate(scale))
         self.friction = torch.from_numpy(np.concatenate(friction))
         self.restitution = torch.from_numpy(np.concatenate(restitution))
-        per_track = (self.length - WINDOW + 1).clamp(min=0)
-        self.window_track = torch.repeat_interleave(torch.arange(len(lengths)), per_track)
-        offset = torch.cumsum(per_track, 0) - per_track
-        self.window_first = torch.arange(int(per_track.sum())) - offset[self.window_track]
+        # scenes: their tracks are consecutive; windows are per scene (all its objects together)
+        self.scene_num_tracks = torch.bincount(self.track_scene, minlength=len(scenes))
+        self.scene_first_track = torch.cumsum(self.scene_num_tracks, 0) - self.scene_num_tracks
+        scene_length = torch.tensor([sc.num_frames for sc in scenes], dtype=torch.int64)
+        per_scene = torch.where(self.scene_num_tracks > 0, scene_length - WINDOW + 1, 0).clamp(min=0)
+        self.window_scene = torch.repeat_interleave(torch.arange(len(scenes)), per_scene)
+        offset = torch.cumsum(per_scene, 0) - per_scene
+        self.window_first = torch.arange(int(per_scene.sum())) - offset[self.window_scene]
+        # the first track of each window's scene (its only track in one-object scenes)
+        self.window_track = self.scene_first_track[self.window_scene]
+        self.max_objects = int(self.scene_num_tracks.max())
         if self.num_windows == 0:
             raise DataError(f"{name}: no scene has the {WINDOW} frames a training window needs")
 
@@ -107,9 +125,19 @@ class ObjectTracks:
     def num_windows(self) -> int:
         return len(self.window_track)
 
-    def graph(self, tracks: torch.Tensor) -> Graph:
+    def graph(self, tracks: torch.Tensor, graph_scene: torch.Tensor | None = None) -> Graph:
+        """Packed graphs of tracks (B,); graph_scene (B,) groups them into scenes of the batch
+        (default: the tracks' scenes, so tracks of one scene interact)."""
+        if graph_scene is None:
+            graph_scene = self.track_scene[tracks]
         return self.library.pack(self.shape_ids[tracks], self.scale[tracks], self.friction[tracks],
-                                 self.restitution[tracks])
+                                 self.restitution[tracks], graph_scene)
+
+    def window_tracks(self, windows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Tracks of the given windows' scenes (all objects) and the window (index into windows) of each."""
+        scene = self.window_scene[windows]
+        which, k = _ragged_arange(self.scene_num_tracks[scene])
+        return self.scene_first_track[scene][which] + k, which
 
     def poses(self, tracks: torch.Tensor, first: torch.Tensor, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Centre positions (B, frames, 3) and rotation matrices (B, frames, 3, 3) from `first` on."""
@@ -117,16 +145,26 @@ class ObjectTracks:
         return self.positions[idx], torch.from_numpy(quat_to_matrix(self.quaternions[idx].numpy()))
 
     def batch(self, windows: torch.Tensor, rng: np.random.Generator | None = None, rotate: bool = False,
-              noise_std: float = 0.0) -> Batch:
-        """The graphs of the given windows (B,), packed; augmentation needs `rng`."""
-        tracks = self.window_track[windows]
-        pos, rot = self.poses(tracks, self.window_first[windows], WINDOW)
+              noise_std: float = 0.0, vertex_noise: float = 0.0, track_noise: float = 0.0) -> Batch:
+        """The graphs of the given windows (B,), packed; augmentation and noise need `rng`.
+
+        Every object of a window's scene is in the batch (one graph each, grouped by window)."""
+        tracks, window_of = self.window_tracks(windows)
+        pos, rot = self.poses(tracks, self.window_first[windows][window_of], WINDOW)
+        if track_noise > 0:
+            step = (pos[:, 1:] - pos[:, :-1]).norm(dim=-1)                  # (B, WINDOW - 1)
+            displacement = torch.cat([step[:, :1], step], dim=1)            # (B, WINDOW)
+            pos = pos + torch.from_numpy(rng.normal(0.0, 1.0, pos.shape)) * (track_noise * displacement)[..., None]
         if rotate:
-            rz = rotation_z(torch.from_numpy(rng.uniform(-np.pi, np.pi, len(windows))))
+            rz = rotation_z(torch.from_numpy(rng.uniform(-np.pi, np.pi, len(windows))))[window_of]
             rot = rz[:, None] @ rot
             pos = (rz[:, None] @ pos[..., None])[..., 0]
-        graph = self.graph(tracks)
+        graph = self.graph(tracks, window_of)
         x = vertices_from_poses(graph, pos, rot)                  # (N, 4, 3)
+        if vertex_noise > 0:
+            size = _graph_sizes(graph)[graph.node_graph]           # (N,)
+            offset = torch.from_numpy(rng.normal(0.0, 1.0, (graph.num_nodes, 3))) * (vertex_noise * size)[:, None]
+            x = x + torch.einsum("ntij,nj->nti", rot[graph.node_graph], offset)
         history, target = x[:, :HISTORY], x[:, HISTORY]
         if noise_std > 0:
             step_std = noise_std / np.sqrt(HISTORY - 1)
@@ -137,15 +175,24 @@ class ObjectTracks:
             target = target + position_noise[:, -1]
         return Batch(history, target, graph)
 
-    def sample(self, rng: np.random.Generator, batch_size: int, rotate: bool, noise_std: float) -> Batch:
+    def sample(self, rng: np.random.Generator, batch_size: int, rotate: bool, noise_std: float,
+               vertex_noise: float = 0.0, track_noise: float = 0.0) -> Batch:
         windows = torch.from_numpy(rng.integers(0, self.num_windows, batch_size))
-        return self.batch(windows, rng, rotate, noise_std)
+        return self.batch(windows, rng, rotate, noise_std, vertex_noise, track_noise)
 
     def track_vertices(self, tracks: torch.Tensor, frames: int) -> tuple[Graph, torch.Tensor, torch.Tensor]:
         """For rollouts: graph, vertices (N, frames, 3) and centres (B, frames, 3) from frame 0."""
         pos, rot = self.poses(tracks, torch.zeros_like(tracks), frames)
         graph = self.graph(tracks)
         return graph, vertices_from_poses(graph, pos, rot), pos
+
+
+def _graph_sizes(graph: Graph) -> torch.Tensor:
+    """Largest axis extent of each graph's scaled rest mesh (G,): the object's size."""
+    idx = graph.node_graph[:, None].expand(-1, 3)
+    high = torch.full((graph.num_graphs, 3), -torch.inf, dtype=graph.rest.dtype).scatter_reduce(0, idx, graph.rest, "amax")
+    low = torch.full((graph.num_graphs, 3), torch.inf, dtype=graph.rest.dtype).scatter_reduce(0, idx, graph.rest, "amin")
+    return (high - low).max(dim=1).values
 
 
 def _range(values: list[np.ndarray]) -> list[float]:
@@ -165,6 +212,8 @@ def feature_spec(dataset: Dataset, scenes: list[Scene]) -> dict:
         "gravity": dataset.gravity.tolist(),
         "floor": dataset.floor,
         "materials_vary": dataset.materials_vary,
+        # objects interact (collision edges) only if some scene holds more than one
+        "collision_edges": max(sc.num_objects for sc in scenes) > 1,
         "shapes": sorted({s for sc in scenes for s in sc.shape}),
         "ranges": {
             "speed": _range([np.linalg.norm(np.diff(sc.positions, axis=0), axis=-1) * rate for sc in scenes]),

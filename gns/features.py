@@ -13,6 +13,9 @@ Feature groups (each normalised separately, each switchable in [features]):
   edge  relative       (E, 3)  d = x_r - x_s (receiver minus sender), and |d| (E, 1)
         rest_relative  (E, 3)  d^U = rest_r - rest_s, and |d^U| (E, 1)
   With the absolute encoding edges get one constant zero input (E, 1), unnormalised.
+  collision  collision_relative (C, 3)  d = x_r - x_s across two objects, and |d| (C, 1);
+        only when the dataset has multi-object scenes (spec["collision_edges"]); no rest-shape
+        features (meaningless across objects); the same with either encoding.
 """
 from __future__ import annotations
 
@@ -80,6 +83,16 @@ class FeatureLayout:
     edge_groups: tuple[tuple[str, int], ...]
     floor_z: float | None
     floor_clip: float
+    collision_groups: tuple[tuple[str, int], ...] = ()
+    collision_radius: float = 0.0
+
+    @property
+    def collisions(self) -> bool:
+        return bool(self.collision_groups)
+
+    @property
+    def collision_size(self) -> int:
+        return sum(w for _, w in self.collision_groups)
 
     @property
     def node_size(self) -> int:
@@ -94,8 +107,9 @@ class FeatureLayout:
         return not self.edge_groups
 
 
-def make_layout(features_cfg, floor_z: float | None, materials_vary: bool) -> FeatureLayout:
-    """features_cfg: a FeatureConfig. floor_z None when the dataset has no floor."""
+def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, collisions: bool = False) -> FeatureLayout:
+    """features_cfg: a FeatureConfig. floor_z None when the dataset has no floor; collisions
+    when it has scenes of several objects."""
     f = features_cfg
     node = []
     if f.velocity:
@@ -117,7 +131,9 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool) -> Fe
             edge += [("rest_relative", 3), ("rest_relative_norm", 1)]
     if not node:
         raise ConfigError("no node features are on: switch on features.velocity or features.rest_position")
-    return FeatureLayout(tuple(node), tuple(edge), floor_z if f.floor_distance else None, f.floor_clip)
+    collision = (("collision_relative", 3), ("collision_relative_norm", 1)) if collisions else ()
+    return FeatureLayout(tuple(node), tuple(edge), floor_z if f.floor_distance else None, f.floor_clip,
+                         collision, float(f.collision_radius))
 
 
 def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph) -> dict[str, torch.Tensor]:
@@ -152,3 +168,11 @@ def raw_edge_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
         d = graph.rest[r] - graph.rest[s]
         out["rest_relative"], out["rest_relative_norm"] = d, d.norm(dim=-1, keepdim=True)
     return {k: v.to(torch.float32) for k, v in out.items()}
+
+
+def raw_collision_features(history: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> dict[str, torch.Tensor]:
+    """history (N, 3, 3) float64 -> {group: (C, width) float32} for collision edges s -> r."""
+    x_t = history[:, -1]
+    d = x_t[receivers] - x_t[senders]
+    return {"collision_relative": d.to(torch.float32),
+            "collision_relative_norm": d.norm(dim=-1, keepdim=True).to(torch.float32)}

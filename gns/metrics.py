@@ -3,7 +3,12 @@
 For a predicted and a true trajectory of object poses:
 - position error: |p_pred - p_true| of the object centre, % of the object's width;
 - rotation error: angle of q_pred * conj(q_true), degrees;
-- penetration: max(0, floor_z - lowest world vertex z), % of the object's width.
+- penetration: max(0, floor_z - lowest world vertex z), % of the object's width;
+- interpenetration (scenes of several objects): for each pair of objects, the deepest vertex of
+  either inside the other's convex hull (depth = min over the hull's faces of offset - n.x),
+  % of the smaller object's width. A proxy of the convex-convex penetration depth: vertex-face
+  only (an edge crossing an edge with no vertex inside counts 0); exact for convex meshes
+  whose hull is the mesh, as the unit assets are.
 
 Averaging order (see docs/metrics.md): per frame and object -> mean over the frames t >= start
 of each object's trajectory -> mean over all objects of all scenes (each object trajectory
@@ -23,7 +28,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from gns.geometry import pose_to_vertices, rotation_angle
+from gns.geometry import pose_to_vertices, quat_to_matrix, rotation_angle
 
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 DEFAULT_HORIZONS = (1, 5, 10, 20, 50, 100, 200)
@@ -60,6 +65,41 @@ def penetration_pct(positions: np.ndarray, quaternions: np.ndarray, scale, rest_
     if width is None:
         width = object_width(scale, rest_vertices)
     return 100.0 * np.maximum(0.0, floor_z - lowest) / np.asarray(width, np.float64)
+
+
+def _hull(rest_vertices: np.ndarray) -> np.ndarray:
+    """Face planes (F, 4) [n, offset] of the convex hull, n . x <= offset inside."""
+    from scipy.spatial import ConvexHull
+    eq = ConvexHull(np.asarray(rest_vertices, np.float64)).equations   # n . x + c <= 0 inside
+    return np.concatenate([eq[:, :3], -eq[:, 3:]], axis=1)
+
+
+def _depth_inside(points: np.ndarray, position: np.ndarray, quaternion: np.ndarray, scale: float,
+                  planes: np.ndarray) -> np.ndarray:
+    """Deepest of points (T, V, 3) inside the scaled hull at poses (T, 3), (T, 4): (T,), >= 0."""
+    rot = quat_to_matrix(quaternion)                                      # (T, 3, 3)
+    body = np.einsum("tji,tvj->tvi", rot, points - position[:, None]) / scale  # unit body frame
+    depth = (planes[:, 3] - body @ planes[:, :3].T).min(axis=-1) * scale     # (T, V)
+    return np.maximum(depth.max(axis=-1), 0.0)
+
+
+def interpenetration_pct(scene, meshes: Mapping[str, tuple]) -> np.ndarray:
+    """Per frame and object pair (a < b), the deepest vertex of one object inside the other,
+    % of the smaller object's width: (T, P) with P = N (N - 1) / 2 (P = 0 for one object)."""
+    T, N = scene.positions.shape[:2]
+    scale = np.asarray(scene.scale, np.float64)
+    rest = [np.asarray(meshes[s][0], np.float64) for s in scene.shape]
+    verts = [pose_to_vertices(scene.positions[:, n], scene.quaternions[:, n], scale[n], rest[n]) for n in range(N)]
+    planes = {s: _hull(meshes[s][0]) for s in set(scene.shape)}
+    width = [float(object_width(scale[n], rest[n])) for n in range(N)]
+    out = []
+    for a in range(N):   # a few objects per scene; each pair is vectorised over frames and vertices
+        for b in range(a + 1, N):
+            depth = np.maximum(
+                _depth_inside(verts[a], scene.positions[:, b], scene.quaternions[:, b], scale[b], planes[scene.shape[b]]),
+                _depth_inside(verts[b], scene.positions[:, a], scene.quaternions[:, a], scale[a], planes[scene.shape[a]]))
+            out.append(100.0 * depth / min(width[a], width[b]))
+    return np.stack(out, axis=1) if out else np.zeros((T, 0))
 
 
 def _check_pair(pred, true, i: int | None = None) -> None:
@@ -129,6 +169,12 @@ def per_scene_means(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mappin
     return out
 
 
+def _with_objects(pred, true):
+    """pred's poses with true's object properties (a predicted scene may carry none of its own)."""
+    from dataclasses import replace
+    return replace(true, positions=pred.positions, quaternions=pred.quaternions)
+
+
 def _mean(values: list[float]) -> float | None:
     return float(np.mean(values)) if values else None
 
@@ -179,6 +225,16 @@ def evaluate_scenes(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mappin
                     horizon_rows[int(h)].append({k: float(v[t, n]) for k, v in f.items()})
     results = _summary(rows)
     results.update(num_scenes=len(true_scenes), start=int(start), num_given=int(num_given), floor_z=float(floor_z))
+    if any(sc.num_objects > 1 for sc in true_scenes):
+        # mean over object pairs of all scenes of each pair's mean over frames t >= start
+        pairs = {"interpenetration_pct": [], "true_interpenetration_pct": []}
+        for pred, true in zip(pred_scenes, true_scenes):
+            for key, sc in (("interpenetration_pct", pred), ("true_interpenetration_pct", true)):
+                # object properties (shape, scale) are read from the true scene
+                both = sc if sc is true else _with_objects(pred, true)
+                pairs[key] += list(interpenetration_pct(both, meshes)[start:].mean(axis=0))
+        results.update({k: _mean([float(x) for x in v]) for k, v in pairs.items()})
+        results["num_object_pairs"] = len(pairs["interpenetration_pct"])
     results["horizons"] = {str(h): _summary(horizon_rows[h]) for h in sorted(horizon_rows)}
     for key in ("shape", "size", "material"):
         groups = defaultdict(list)

@@ -9,6 +9,10 @@ Message passing convention (pinned by tests/test_gns_network.py):
   InteractionNetwork (graph_nets / jraph) does.
 - Edge residual: E'_k = E_k + m_k; the next block sees E'.
 - The processor holds L blocks with unshared weights and applies the sequence K times.
+- Optional second edge set (collision edges between objects, as MeshGraphNets' world edges):
+  its own encoder and per-block edge function c_k = f_C(C_k, V_r, V_s); then
+  V'_r = V_r + f_V(V_r, sum mesh messages, sum collision messages) and C'_k = C_k + c_k.
+  A network built without it (collision_edge_in = 0) has none of these parameters.
 """
 from __future__ import annotations
 
@@ -37,7 +41,8 @@ class InteractionBlock(nn.Module):
     then gathered per edge, which equals the concatenated form but costs O(N) instead of O(E).
     """
 
-    def __init__(self, latent: int, hidden: int, hidden_layers: int, layer_norm: bool = True):
+    def __init__(self, latent: int, hidden: int, hidden_layers: int, layer_norm: bool = True,
+                 collisions: bool = False):
         super().__init__()
         first = hidden if hidden_layers > 0 else latent
         self.edge_in = nn.Linear(latent, first)                    # acts on E
@@ -51,44 +56,98 @@ class InteractionBlock(nn.Module):
         elif layer_norm:
             rest.append(nn.LayerNorm(latent))
         self.edge_rest = nn.Sequential(*rest)
-        self.node_mlp = MLP(2 * latent, hidden, hidden_layers, latent, layer_norm)
+        self.collision = EdgeFunction(latent, hidden, hidden_layers, layer_norm) if collisions else None
+        self.node_mlp = MLP((3 if collisions else 2) * latent, hidden, hidden_layers, latent, layer_norm)
 
     def forward(self, nodes: torch.Tensor, edges: torch.Tensor, senders: torch.Tensor,
-                receivers: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """nodes (N, D), edges (E, D), senders/receivers (E,) -> new nodes (N, D), edges (E, D)."""
+                receivers: torch.Tensor, collision: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None):
+        """nodes (N, D), edges (E, D), senders/receivers (E,) -> new nodes (N, D), edges (E, D).
+
+        With collision = (edges (C, D), senders (C,), receivers (C,)) (a block built with
+        collisions needs it) -> new nodes, edges and collision edges (C, D).
+        """
         # index_select is the gather x[idx]; its backward (index_add_) is about twice as fast on CPU.
         projected = (self.edge_in(edges) + self.receiver_in(nodes).index_select(0, receivers)
                      + self.sender_in(nodes).index_select(0, senders))
         messages = self.edge_rest(projected)
         summed = torch.zeros_like(nodes).index_add_(0, receivers, messages)
-        new_nodes = nodes + self.node_mlp(torch.cat([nodes, summed], dim=-1))
-        return new_nodes, edges + messages
+        if self.collision is None:
+            new_nodes = nodes + self.node_mlp(torch.cat([nodes, summed], dim=-1))
+            return new_nodes, edges + messages
+        c_edges, c_senders, c_receivers = collision
+        c_messages = self.collision(nodes, c_edges, c_senders, c_receivers)
+        c_summed = torch.zeros_like(nodes).index_add_(0, c_receivers, c_messages)
+        new_nodes = nodes + self.node_mlp(torch.cat([nodes, summed, c_summed], dim=-1))
+        return new_nodes, edges + messages, c_edges + c_messages
+
+
+class EdgeFunction(nn.Module):
+    """f_E(E, V_r, V_s) of a further edge set, first layer split per node as in InteractionBlock."""
+
+    def __init__(self, latent: int, hidden: int, hidden_layers: int, layer_norm: bool = True):
+        super().__init__()
+        first = hidden if hidden_layers > 0 else latent
+        self.edge_in = nn.Linear(latent, first)
+        self.receiver_in = nn.Linear(latent, first, bias=False)
+        self.sender_in = nn.Linear(latent, first, bias=False)
+        rest: list[nn.Module] = []
+        if hidden_layers > 0:
+            rest.append(nn.ReLU())
+            rest.extend(MLP(hidden, hidden, hidden_layers - 1, latent, layer_norm))
+        elif layer_norm:
+            rest.append(nn.LayerNorm(latent))
+        self.edge_rest = nn.Sequential(*rest)
+
+    def forward(self, nodes, edges, senders, receivers) -> torch.Tensor:
+        projected = (self.edge_in(edges) + self.receiver_in(nodes).index_select(0, receivers)
+                     + self.sender_in(nodes).index_select(0, senders))
+        return self.edge_rest(projected)
 
 
 class EncodeProcessDecode(nn.Module):
     """Node and edge encoders (MLP + LayerNorm), L x K interaction blocks, node decoder (MLP)."""
 
     def __init__(self, node_in: int, edge_in: int, out_size: int, latent: int = 128, hidden: int = 128,
-                 hidden_layers: int = 2, message_passing_steps: int = 10, processor_repeats: int = 1):
+                 hidden_layers: int = 2, message_passing_steps: int = 10, processor_repeats: int = 1,
+                 collision_edge_in: int = 0):
         super().__init__()
         self.processor_repeats = processor_repeats
         self.node_encoder = MLP(node_in, hidden, hidden_layers, latent, layer_norm=True)
         self.edge_encoder = MLP(edge_in, hidden, hidden_layers, latent, layer_norm=True)
-        self.blocks = nn.ModuleList(InteractionBlock(latent, hidden, hidden_layers)
+        collisions = collision_edge_in > 0
+        if collisions:
+            self.collision_encoder = MLP(collision_edge_in, hidden, hidden_layers, latent, layer_norm=True)
+        self.blocks = nn.ModuleList(InteractionBlock(latent, hidden, hidden_layers, collisions=collisions)
                                     for _ in range(message_passing_steps))
         self.decoder = MLP(latent, hidden, hidden_layers, out_size, layer_norm=False)
 
+    @property
+    def collisions(self) -> bool:
+        return hasattr(self, "collision_encoder")
+
     def forward(self, nodes: torch.Tensor, edges: torch.Tensor, senders: torch.Tensor,
-                receivers: torch.Tensor) -> torch.Tensor:
-        """nodes (N, node_in), edges (E, edge_in), senders/receivers (E,) int64 -> (N, out_size)."""
+                receivers: torch.Tensor, collision_edges: torch.Tensor | None = None,
+                collision_senders: torch.Tensor | None = None,
+                collision_receivers: torch.Tensor | None = None) -> torch.Tensor:
+        """nodes (N, node_in), edges (E, edge_in), senders/receivers (E,) int64 -> (N, out_size).
+
+        A network with collisions also takes collision_edges (C, collision_edge_in) and their
+        senders/receivers (C,); C may be 0.
+        """
         v = self.node_encoder(nodes)
         e = self.edge_encoder(edges)
+        if not self.collisions:
+            for _ in range(self.processor_repeats):
+                for block in self.blocks:
+                    v, e = block(v, e, senders, receivers)
+            return self.decoder(v)
+        c = self.collision_encoder(collision_edges)
         for _ in range(self.processor_repeats):
             for block in self.blocks:
-                v, e = block(v, e, senders, receivers)
+                v, e, c = block(v, e, senders, receivers, (c, collision_senders, collision_receivers))
         return self.decoder(v)
 
-    def forward_flops(self, num_nodes: int, num_edges: int) -> int:
+    def forward_flops(self, num_nodes: int, num_edges: int, num_collision_edges: int = 0) -> int:
         """Multiply-add FLOPs (2 per MAC) of all Linear layers in one forward pass."""
         def linear_flops(module: nn.Module, rows: int) -> int:
             return sum(2 * rows * m.in_features * m.out_features
@@ -98,5 +157,13 @@ class EncodeProcessDecode(nn.Module):
             linear_flops(b.edge_in, num_edges) + linear_flops(b.edge_rest, num_edges)
             + linear_flops(b.receiver_in, num_nodes) + linear_flops(b.sender_in, num_nodes)
             + linear_flops(b.node_mlp, num_nodes) for b in self.blocks)
-        return (linear_flops(self.node_encoder, num_nodes) + linear_flops(self.edge_encoder, num_edges)
+        if self.collisions:
+            block_flops += sum(
+                linear_flops(b.collision.edge_in, num_collision_edges) + linear_flops(b.collision.edge_rest, num_collision_edges)
+                + linear_flops(b.collision.receiver_in, num_nodes) + linear_flops(b.collision.sender_in, num_nodes)
+                for b in self.blocks)
+        encoders = linear_flops(self.node_encoder, num_nodes) + linear_flops(self.edge_encoder, num_edges)
+        if self.collisions:
+            encoders += linear_flops(self.collision_encoder, num_collision_edges)
+        return (encoders
                 + self.processor_repeats * block_flops + linear_flops(self.decoder, num_nodes))

@@ -1,8 +1,9 @@
 """Batched rollouts of a trained simulator over the scenes of a dataset, and their poses.
 
 Each object track starts from its first 3 true frames and runs on its own predictions to the
-end of its scene. Tracks of equal length are rolled out together as one packed graph, so a
-batch of scenes costs about one network call per step. Vertex positions are integrated in
+end of its scene. All objects of a scene are rolled out together (collision edges between them
+are rebuilt from the predictions every step), and scenes of similar length share one packed
+graph, so a batch of scenes costs about one network call per step. Vertex positions are integrated in
 float64; poses (centre, quaternion) are recovered from the predicted vertices by shape matching
 (with shape matching on, the vertices already are that rigid pose).
 """
@@ -43,7 +44,8 @@ def _angular_velocity(quat: np.ndarray, dt: float) -> np.ndarray:
 @torch.no_grad()
 def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Tensor, length: int,
                    shape_matching: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Roll out tracks `which` (B,), all `length` frames long.
+    """Roll out tracks `which` (B,), all `length` frames long. Tracks of one scene interact
+    (collision edges), so pass every track of the scenes wanted.
 
     Returns centres (length, B, 3) and quaternions (length, B, 4): the first 3 frames are the
     truth, the rest predicted.
@@ -77,10 +79,22 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
     # others are cut. Real tosses have nearly as many lengths as tosses (80-442 frames), and a
     # network call costs about the same for 1 or 100 small graphs, so one batch per length
     # would cost the sum of the lengths in calls instead of the longest.
-    order = torch.argsort(tracks.length, stable=True)
+    # All objects of a scene are rolled out together (one batch), so collision edges between
+    # them are rebuilt from the predicted positions at every step: batches hold whole scenes.
+    scene_length = torch.tensor([sc.num_frames for sc in scenes])
+    order = torch.argsort(scene_length, stable=True).tolist()
+    batches, current = [], []
+    for i in order:
+        current.append(i)
+        if sum(scenes[j].num_objects for j in current) >= batch_tracks:
+            batches.append(current)
+            current = []
+    if current:
+        batches.append(current)
     bar = tqdm(total=B, unit="track", desc="rollout", disable=not progress)
-    for k in range(0, B, batch_tracks):
-        ids = order[k:k + batch_tracks]
+    for batch_scenes in batches:
+        ids = torch.cat([tracks.scene_first_track[i] + torch.arange(int(tracks.scene_num_tracks[i]))
+                         for i in batch_scenes])
         lengths = tracks.length[ids].tolist()
         p, q = rollout_tracks(sim, tracks, ids, max(lengths), shape_matching)
         for j, (i, length) in enumerate(zip(ids.tolist(), lengths)):

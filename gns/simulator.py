@@ -10,9 +10,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_edge_features,
-                          raw_node_features)
-from gns.graph import Graph
+from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_collision_features,
+                          raw_edge_features, raw_node_features)
+from gns.graph import EdgeSet, Graph, collision_edges
 from gns.network import EncodeProcessDecode
 
 
@@ -83,16 +83,26 @@ class LearnedSimulator(nn.Module):
         super().__init__()
         floor = spec.get("floor")
         self.layout: FeatureLayout = make_layout(
-            features_cfg, None if floor is None else float(floor["z"]), bool(spec["materials_vary"]))
+            features_cfg, None if floor is None else float(floor["z"]), bool(spec["materials_vary"]),
+            collisions=bool(spec.get("collision_edges", False)))
         steps = features_cfg.normalizer_steps
         self.node_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.node_groups})
         self.edge_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.edge_groups})
+        if self.layout.collisions:  # absent (not even empty) without collisions: old checkpoints load unchanged
+            self.collision_normalizers = nn.ModuleDict(
+                {n: Normalizer(w, steps) for n, w in self.layout.collision_groups})
         self.target_normalizer = Normalizer(3, steps)
         self.network = EncodeProcessDecode(
             self.layout.node_size, self.layout.edge_size, 3, latent=model_cfg.latent_size,
             hidden=model_cfg.hidden_size, hidden_layers=model_cfg.hidden_layers,
             message_passing_steps=model_cfg.message_passing_steps,
-            processor_repeats=model_cfg.processor_repeats)
+            processor_repeats=model_cfg.processor_repeats, collision_edge_in=self.layout.collision_size)
+
+    def collision_edges(self, x: torch.Tensor, graph: Graph) -> EdgeSet:
+        """The graph's collision edges if given, else built from positions x (N, 3)."""
+        if graph.collision_edges is not None:
+            return graph.collision_edges
+        return collision_edges(x, graph, self.layout.collision_radius)
 
     def _inputs(self, history: torch.Tensor, graph: Graph) -> tuple[torch.Tensor, torch.Tensor]:
         """history (N, 3, 3) float64 -> normalised node (N, Fn) and edge (E, Fe) float32 inputs.
@@ -110,9 +120,20 @@ class LearnedSimulator(nn.Module):
         return nodes, edges
 
     def forward(self, history: torch.Tensor, graph: Graph) -> torch.Tensor:
-        """history (N, 3, 3) float64 positions at t-2, t-1, t -> normalised acceleration (N, 3) float32."""
+        """history (N, 3, 3) float64 positions at t-2, t-1, t -> normalised acceleration (N, 3) float32.
+
+        With collisions, the collision edges are built from x_t here (unless the graph brings
+        them), so a rollout rebuilds them from its own predictions at every step.
+        """
         nodes, edges = self._inputs(history, graph)
-        return self.network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers)
+        if not self.layout.collisions:
+            return self.network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers)
+        c = self.collision_edges(history[:, -1], graph)
+        raw = raw_collision_features(history, c.senders, c.receivers)
+        c_features = torch.cat([self.collision_normalizers[n](raw[n], self.training)
+                                for n, _ in self.layout.collision_groups], -1)
+        return self.network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers,
+                            c_features, c.senders, c.receivers)
 
     def predict_acceleration(self, history: torch.Tensor, graph: Graph) -> torch.Tensor:
         """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2."""

@@ -103,7 +103,8 @@ def load_model(checkpoint_path: str | Path) -> tuple[LearnedSimulator, Config]:
 
 def _with_layout(spec: dict, sim: LearnedSimulator) -> dict:
     return {**spec, "node_features": [n for n, _ in sim.layout.node_groups],
-            "edge_features": [n for n, _ in sim.layout.edge_groups]}
+            "edge_features": [n for n, _ in sim.layout.edge_groups],
+            "collision_features": [n for n, _ in sim.layout.collision_groups]}
 
 
 def _merge_ranges(old: dict, new: dict) -> dict:
@@ -115,8 +116,8 @@ def _merge_ranges(old: dict, new: dict) -> dict:
 
 def _incompatibility(ckpt: dict, cfg: Config, spec: dict) -> str | None:
     diffs = architecture_differences(ckpt["config"], cfg)
-    for key in ("node_features", "edge_features"):
-        if ckpt["spec"][key] != spec[key]:
+    for key in ("node_features", "edge_features", "collision_features"):
+        if ckpt["spec"].get(key, []) != spec[key]:
             diffs.append(f"{key} are {ckpt['spec'][key]} in the checkpoint, {spec[key]} with this data")
     old_floor, new_floor = ckpt["spec"]["floor"], spec["floor"]
     if (old_floor is None) != (new_floor is None) or (old_floor and old_floor["z"] != new_floor["z"]):
@@ -296,7 +297,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
         while step < cfg.train.steps:
             t0 = time.perf_counter()
             lr = learning_rate(cfg, step)
-            batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std).to(device)
+            batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std,
+                                  cfg.augment.vertex_noise, cfg.augment.track_noise).to(device)
             try:
                 loss = train_step(sim, optimizer, batch, lr, cfg.train.grad_clip)
             except FloatingPointError as e:
