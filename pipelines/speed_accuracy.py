@@ -14,6 +14,7 @@ Finished stages are skipped on a rerun.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -131,23 +132,31 @@ def gns_accuracy(runs: list[Path], ref: Dataset, p: dict) -> list[dict]:
 
 def pareto_plot(rows: list[dict], path: Path) -> Path:
     from gns.plots import _figure, _save
-    fig = _figure((7, 4.5))
+    fig = _figure((7.5, 4.8))
     ax = fig.subplots()
-    for family, marker in (("pybullet", "o"), ("gns", "s"), ("gns batched", "^")):  # speed-only rows have no error
+    bullet = [r for r in rows if r["family"] == "pybullet"]
+    for k, it in enumerate(sorted({r["solver_iterations"] for r in bullet})):
+        pts = [r for r in bullet if r["solver_iterations"] == it]
+        ax.plot([r["seconds_per_simulated_second"] for r in pts], [r["position_error_pct"] for r in pts],
+                "o-", color=f"C{k}", alpha=0.8, label=f"PyBullet, {it} solver iterations")
+        if k == 0:  # one label per physics rate is enough
+            for r in pts:
+                ax.annotate(f"{r['physics_rate']} Hz", (r["seconds_per_simulated_second"], r["position_error_pct"]),
+                            fontsize=7, xytext=(-4, -11), textcoords="offset points")
+    for family, marker, color in (("gns", "s", "C5"), ("gns batched", "^", "C6")):
         pts = [r for r in rows if r["family"] == family]
-        if not pts:
-            continue
-        ax.scatter([r["seconds_per_simulated_second"] for r in pts], [r["position_error_pct"] for r in pts],
-                   marker=marker, label=family)
         for r in pts:
-            ax.annotate(r["label"], (r["seconds_per_simulated_second"], r["position_error_pct"]), fontsize=6,
-                        xytext=(3, 3), textcoords="offset points")
+            ax.scatter(r["seconds_per_simulated_second"], r["position_error_pct"], marker=marker, color=color, s=50,
+                       label=f"{r['label']}")
     ax.set_xscale("log")
-    ax.set_yscale("symlog", linthresh=1.0)
-    ax.set_xlabel("wall-clock seconds per simulated second per trajectory (2 CPU cores)")
+    ax.set_yscale("log")
+    ymax = max(r["position_error_pct"] for r in rows if "position_error_pct" in r)
+    ax.set_ylim(top=ymax * 2)
+    ax.set_xlabel("wall-clock seconds per simulated second per trajectory (1 CPU thread)")
     ax.set_ylabel("position error vs fine reference [% of size]")
-    ax.set_title("speed against accuracy")
-    ax.legend(fontsize=8)
+    ax.set_title("speed against accuracy (lower left is better)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     return _save(fig, path, 130)
 
@@ -177,12 +186,18 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", choices=sorted(PRESETS), default="quick")
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--replot", action="store_true", help="only redraw table and plot from results.json")
     ap.add_argument("--runs", type=Path, nargs="*", default=[],
                     help="trained run folders to score against the fine reference (e.g. runs/movi_a_small/run)")
     a = ap.parse_args(argv)
     p = PRESETS[a.preset]
     out = a.out or Path("runs") / f"speed_accuracy_{a.preset}"
     out.mkdir(parents=True, exist_ok=True)
+    if a.replot:
+        rows = json.loads((out / "results.json").read_text())["rows"]
+        pareto_plot(rows, out / "pareto.png")
+        print(table(rows))
+        return 0
     ref = reference(p, out / "reference")
     rows = physics_sweep(p, ref) + gns_speed(p, ref) + gns_accuracy(a.runs, ref, p)
     ratio = throughput_ratio(rows)
