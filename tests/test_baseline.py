@@ -1,0 +1,149 @@
+"""The PyBullet baseline for real cube tosses, on the three real tosses in tests/data."""
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from datagen import baseline
+from datagen.baseline import (BOUNDS, PUBLISHED, BaselineParams, fit_floor, fit_gravity, fit_parameters,
+                              free_flight_frames, initial_state, objective, simulate_toss, toss_errors)
+from datagen.contactnets import read_experiment, read_toss, toss_to_scene
+from datagen.shapes import get_shape
+from datagen.shards import Scene
+from gns.metrics import evaluate_scenes
+
+SRC = Path(__file__).parent / "data" / "contactnets"
+CUBE = get_shape("cube")
+MESHES = {"cube": (CUBE.vertices, CUBE.faces)}
+
+
+@pytest.fixture(scope="module")
+def tosses():
+    consts = read_experiment(SRC)
+    return {i: toss_to_scene(read_toss(SRC / "tosses_processed" / f"{i}.pt"), i, f"{i}.pt", consts)
+            for i in (55, 229, 274)}
+
+
+def synthetic(positions, quaternions):
+    T = len(positions)
+    z = np.zeros((T, 1, 3))
+    return Scene(positions=np.asarray(positions, float).reshape(T, 1, 3),
+                 quaternions=np.asarray(quaternions, float).reshape(T, 1, 4), velocities=z,
+                 angular_velocities=z, shape=["cube"], material=["acrylic"], scale=np.array([2.0]),
+                 mass=np.array([0.37]), friction=np.array([0.18]), restitution=np.array([0.125]))
+
+
+def test_published_constants_are_the_defaults():
+    consts = read_experiment(SRC)
+    assert BaselineParams() == PUBLISHED
+    assert PUBLISHED.friction == consts["mu"] == 0.18 and PUBLISHED.restitution == consts["restitution"] == 0.125
+    assert PUBLISHED.gravity == pytest.approx(consts["g"]) and PUBLISHED.stiffness == 0.0
+    assert baseline.FRAME_RATE == pytest.approx(148.0)
+
+
+def test_initial_state_is_exact_for_a_ballistic_spinning_cube():
+    dt, g = 1 / 148, 183.0
+    v0, w = np.array([3.0, -2.0, 1.5]), np.array([4.0, -7.0, 2.0])
+    t = np.arange(5) * dt
+    pos = np.array([1.0, 2.0, 4.0]) + v0 * t[:, None] - 0.5 * g * t[:, None] ** 2 * np.array([0, 0, 1])
+    rot = Rotation.from_rotvec(w * t[:, None]) * Rotation.from_rotvec([0.3, 0.2, -0.1])
+    quat = rot.as_quat()[:, [3, 0, 1, 2]]
+    p, q, v, omega = initial_state(synthetic(pos, quat), 148.0, g)
+    np.testing.assert_allclose(p, pos[2])
+    np.testing.assert_allclose(q, quat[2])
+    np.testing.assert_allclose(v, v0 - np.array([0, 0, g]) * t[2], atol=1e-9)
+    np.testing.assert_allclose(omega, w, atol=1e-9)
+
+
+def test_free_flight_of_a_real_toss_is_reproduced_within_1_percent_of_the_width(tosses):
+    for i in (229, 274):
+        sc = tosses[i]
+        k = free_flight_frames(sc, margin=0.05)
+        assert k >= 10, f"toss {i}: expected a free flight of at least 10 frames"
+        params = replace(PUBLISHED, gravity=fit_gravity([sc]))
+        pred = simulate_toss(sc, params)
+        np.testing.assert_array_equal(pred.positions[:3], sc.positions[:3])
+        err = 100 * np.linalg.norm(pred.positions[:k, 0] - sc.positions[:k, 0], axis=-1) / 2.0
+        assert err.max() < 1.0, f"toss {i}: free-flight error {err.max():.2f}% of the width"
+
+
+def test_measured_gravity_and_table_height(tosses):
+    g = fit_gravity(list(tosses.values()))
+    assert 0.95 * PUBLISHED.gravity < g < PUBLISHED.gravity  # the data fall ~2% slower than 9.81 m/s^2
+    floor = fit_floor(list(tosses.values()))
+    assert -0.04 < floor < -0.01  # the measured cube rests at z ~ 0.978
+    sc = tosses[55]
+    moving = replace(sc, positions=sc.positions[:20], quaternions=sc.quaternions[:20])  # still in the air
+    assert fit_floor([moving]) is None and fit_gravity([moving], min_frames=50) is None
+
+
+def test_a_cube_dropped_flat_rests_at_its_half_width_above_the_table():
+    T = 150
+    sc = synthetic(np.tile([0.0, 0.0, 1.2], (T, 1)), np.tile([1.0, 0, 0, 0], (T, 1)))
+    pred = simulate_toss(sc, PUBLISHED)
+    assert pred.positions[-1, 0, 2] == pytest.approx(1.0, abs=1e-3)
+    low = simulate_toss(sc, replace(PUBLISHED, floor_z=-0.03))
+    assert low.positions[-1, 0, 2] == pytest.approx(0.97, abs=1e-3)
+    soft = simulate_toss(sc, replace(PUBLISHED, stiffness=1e4, damping_ratio=1.0))
+    assert soft.positions[-1, 0, 2] < pred.positions[-1, 0, 2] - 1e-3  # a soft contact sinks in
+
+
+def test_parameters_change_the_outcome_only_after_contact(tosses):
+    sc = tosses[274]
+    k = free_flight_frames(sc, margin=0.01)
+    dead = simulate_toss(sc, replace(PUBLISHED, restitution=0.0))
+    bouncy = simulate_toss(sc, replace(PUBLISHED, restitution=0.5))
+    np.testing.assert_allclose(dead.positions[:k], bouncy.positions[:k], atol=1e-9)
+    assert np.abs(dead.positions[:, 0, 2] - bouncy.positions[:, 0, 2]).max() > 0.05
+    slippery = simulate_toss(sc, replace(PUBLISHED, friction=0.05))
+    assert np.abs(slippery.positions[-1, 0, :2] - dead.positions[-1, 0, :2]).max() > 0.05
+
+
+def test_simulation_is_deterministic(tosses):
+    sc = tosses[55]
+    a, b = simulate_toss(sc), simulate_toss(sc)
+    np.testing.assert_array_equal(a.positions, b.positions)
+    np.testing.assert_array_equal(a.quaternions, b.quaternions)
+
+
+def test_toss_errors_match_gns_metrics(tosses):
+    sc = tosses[229]
+    pred = simulate_toss(sc, replace(PUBLISHED, friction=0.4))
+    pos, rot = toss_errors(pred, sc)
+    ref = evaluate_scenes([pred], [sc], MESHES)
+    assert pos == pytest.approx(ref["position_error_pct"], rel=1e-12)
+    assert rot == pytest.approx(ref["rotation_error_deg"], rel=1e-9)
+    assert pos > 1 and rot > 1
+
+
+def test_fit_on_two_tosses_stays_in_bounds_and_does_not_get_worse(tosses):
+    train = [tosses[229], tosses[274]]
+    fit = fit_parameters(train, budget=6, seed=0)
+    p = fit["params"]
+    assert fit["evaluations"] <= 6 and len(fit["history"]) == fit["evaluations"]
+    assert math.isfinite(fit["objective"]) and fit["objective"] <= fit["start_objective"]
+    lows, highs = {n: lo for n, lo, _ in BOUNDS}, {n: hi for n, _, hi in BOUNDS}
+    if p.stiffness > 0:
+        assert lows["log10_stiffness"] <= math.log10(p.stiffness) <= highs["log10_stiffness"]
+        assert lows["damping_ratio"] <= p.damping_ratio <= highs["damping_ratio"]
+    assert lows["friction"] <= p.friction <= highs["friction"]
+    assert lows["restitution"] <= p.restitution <= highs["restitution"]
+    assert p.gravity == fit_gravity(train) and p.floor_z == fit_floor(train)
+    assert objective(p, train) == pytest.approx(fit["objective"], rel=1e-12)  # what it reports is what it found
+    again = fit_parameters(train, budget=6, seed=0)
+    assert again["params"] == p and again["objective"] == fit["objective"]
+
+
+def test_bad_input_is_refused(tosses):
+    with pytest.raises(ValueError, match="no training tosses"):
+        fit_parameters([], budget=3)
+    with pytest.raises(ValueError, match="unknown parameter"):
+        fit_parameters([tosses[55]], fit=["friction", "mass"])
+    sc = tosses[55]
+    sphere = Scene(sc.positions, sc.quaternions, sc.velocities, sc.angular_velocities, ["sphere"], ["x"],
+                   sc.scale, sc.mass, sc.friction, sc.restitution)
+    with pytest.raises(ValueError, match="one cube"):
+        simulate_toss(sphere)
