@@ -321,14 +321,17 @@ def plot_bars(labels: Sequence[str], panels: Mapping[str, Sequence[float]], path
         for xi, v in zip(x, values):
             ax.text(xi, 0 if np.isnan(v) else v, "n/a" if np.isnan(v) else f"{v:.3g}", ha="center",
                     va="bottom", fontsize=7)
-        for j, (name, value) in enumerate((references or {}).get(ylabel, {}).items()):
+        refs = (references or {}).get(ylabel, {})
+        for j, (name, value) in enumerate(refs.items()):
             ax.axhline(float(value), ls="--", lw=1.2, color=f"C{len(labels) + j}", label=name)
-        if (references or {}).get(ylabel):
-            ax.legend(fontsize=7)
+        top = np.nanmax(np.concatenate([values, np.asarray(list(refs.values()), np.float64), [0.0]]))
+        # Headroom above the tallest bar for its value label and the legend, so neither hides the other.
+        ax.set_ylim(0, 1.3 * top if top > 0 else 1.0)
+        if refs:
+            ax.legend(fontsize=7, loc="upper left")
         ax.set_xticks(x)
         ax.set_xticklabels(labels, rotation=30, ha="right", fontsize=8)
         ax.set_ylabel(ylabel)
-        ax.set_ylim(bottom=0)
         ax.grid(axis="y", alpha=0.3)
     if title:
         fig.suptitle(title)

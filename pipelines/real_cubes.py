@@ -85,11 +85,11 @@ PRESETS = {
     "quick": Preset(test=96, valid=32, sizes=(8, 32, 128), seeds=(0,), model="cpu", steps=6000,
                     train=_TRAIN + ("train.lr_decay_steps=6000", "valid.every=1000", "train.checkpoint_every=1000"),
                     baseline_budget=40, ablation_size=128, noise_size=32, vertex_noise=(0.02, 0.1),
-                    track_noise=(0.2, 1.0)),
+                    track_noise=(0.02, 0.1)),
     "full": Preset(test=96, valid=32, sizes=(8, 16, 32, 64, 128, 256), seeds=(0, 1, 2), model="cpu", steps=30000,
                    train=_TRAIN + ("train.lr_decay_steps=10000", "valid.every=2000"),
                    baseline_budget=80, ablation_size=256, noise_size=256, vertex_noise=(0.01, 0.03, 0.1),
-                   track_noise=(0.1, 0.3, 1.0)),
+                   track_noise=(0.01, 0.03, 0.1)),
 }
 
 
