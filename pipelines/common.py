@@ -43,6 +43,18 @@ def data_stage(out: Path, scene_sets: list[str], counts: dict[str, int], seed: i
     return Dataset(out)
 
 
+def guarded(stages) -> int:
+    """Run a pipeline's stages; a user error ends it with one `error:` line and exit status 2."""
+    from gns.config import ConfigError
+    from gns.train import CheckpointError, TrainingError
+    try:
+        stages()
+    except (DataError, ConfigError, CheckpointError, TrainingError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def trained_step(run: Path) -> int:
     try:
         return int(read_checkpoint(run / LATEST)["step"])

@@ -20,12 +20,10 @@ import shutil
 import sys
 from pathlib import Path
 
-from datagen.shards import DataError
-from gns.config import ConfigError
 from gns.evaluate import evaluate_run, write_json
 from gns.metrics import format_table
-from gns.train import CheckpointError, TrainingError, read_checkpoint
-from pipelines.common import data_stage, done, say, train_stage
+from gns.train import read_checkpoint
+from pipelines.common import guarded, data_stage, done, say, train_stage
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
@@ -99,12 +97,7 @@ def main(argv=None) -> int:
     out = a.out or Path("runs") / f"movi_a_{a.preset}"
     if a.fresh and out.exists():
         shutil.rmtree(out)
-    try:
-        run(a.preset, out, a.workers, a.seed)
-    except (DataError, ConfigError, CheckpointError, TrainingError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    return 0
+    return guarded(lambda: run(a.preset, out, a.workers, a.seed))
 
 
 if __name__ == "__main__":

@@ -36,10 +36,9 @@ import numpy as np
 from datagen.baseline import PUBLISHED, BaselineParams, fit_parameters
 from datagen.contactnets import import_contactnets, list_toss_ids, read_toss
 from datagen.shards import Dataset, DataError
-from gns.config import ConfigError
 from gns.evaluate import evaluate_baseline, evaluate_run, write_json
-from gns.train import CheckpointError, TrainingError, read_checkpoint
-from pipelines.common import done, say, train_stage, trained_step
+from gns.train import read_checkpoint
+from pipelines.common import guarded, done, say, train_stage, trained_step
 
 SPLIT_SEED = 2022
 DUPLICATE_TOL = 1e-6   # half-widths; the known rotated copies agree to 1e-15
@@ -554,12 +553,7 @@ def main(argv=None) -> int:
         shutil.rmtree(out)
     import torch
     torch.set_num_threads(1)  # rollouts of 8-vertex graphs: a second thread only waits on the first
-    try:
-        run(a.preset, a.src, out, a.test_dir)
-    except (DataError, ConfigError, CheckpointError, TrainingError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    return 0
+    return guarded(lambda: run(a.preset, a.src, out, a.test_dir))
 
 
 if __name__ == "__main__":
