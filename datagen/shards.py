@@ -55,6 +55,13 @@ class Scene:
     def num_objects(self) -> int:
         return self.positions.shape[1]
 
+    def every(self, stride: int) -> "Scene":
+        """Every `stride`-th frame from the first: the scene as if recorded at 1/stride the rate."""
+        if stride == 1:
+            return self
+        return Scene(*(getattr(self, k)[::stride] for k in SCENE_ARRAYS), self.shape, self.material, self.scale,
+                     self.mass, self.friction, self.restitution, {**self.attrs, "frame_stride": stride})
+
 
 def _atomic_path(final: Path):
     fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
@@ -176,9 +183,17 @@ def read_shard(path: str | Path) -> tuple[list[Scene], dict[str, tuple[np.ndarra
 
 
 class Dataset:
-    """A dataset folder: `metadata.json` plus the shards it lists, per split."""
+    """A dataset folder: `metadata.json` plus the shards it lists, per split.
 
-    def __init__(self, root: str | Path):
+    `stride` k reads every k-th recorded frame, so the dataset looks recorded at frame_rate / k:
+    a model's time step is a choice made when reading, not when simulating (finer data serves
+    every coarser step).
+    """
+
+    def __init__(self, root: str | Path, stride: int = 1):
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+            raise DataError(f"frame stride must be a whole number >= 1, got {stride!r}")
+        self.stride = stride
         self.root = Path(root)
         meta_path = self.root / METADATA_FILE
         if not self.root.is_dir():
@@ -200,7 +215,8 @@ class Dataset:
     # Scene-level physical constants, so the trainer never reads the generator's config.
     @property
     def frame_rate(self) -> float:
-        return float(self.meta["frame_rate"])
+        """Frames per second as read (the recorded rate / stride)."""
+        return float(self.meta["frame_rate"]) / self.stride
 
     @property
     def dt(self) -> float:
@@ -230,7 +246,7 @@ class Dataset:
         for p in self.shard_paths(split):
             scenes, meshes = read_shard(p)
             self._remember(meshes)
-            yield from scenes
+            yield from (sc.every(self.stride) for sc in scenes)
 
     def load(self, split: str, limit: int | None = None) -> list[Scene]:
         out = []

@@ -44,14 +44,14 @@ def add_train_parser(sub) -> None:
 def cmd_rollout(args: argparse.Namespace) -> None:
     import time
 
-    from gns.evaluate import check_ranges, checkpoint_of, load_split
+    from gns.evaluate import check_ranges, checkpoint_of, load_split, trained_rate
     from gns.rollout import check_output, rollout_scenes, write_rollouts
     from gns.train import load_model, read_checkpoint
 
     check_output(args.out, args.overwrite)
     ckpt = checkpoint_of(args.run_dir)
     sim, _ = load_model(ckpt)
-    ds, scenes = load_split(args.data, args.split, args.limit)
+    ds, scenes = load_split(args.data, args.split, args.limit, trained_rate(ckpt))
     check_ranges(ckpt, ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=not args.no_shape_matching,

@@ -37,6 +37,7 @@ class FeatureConfig:
     rest_edges: bool = True            # d^U and |d^U| on edges (relative encoding only)
     normalizer_steps: int = 1000       # training steps during which normalisers accumulate
     collision_radius: float = 0.15     # collision edges between objects closer than this, scene units
+    frame_stride: int = 1              # train on every k-th recorded frame: the time step is k / frame_rate
 
 
 @dataclass

@@ -43,7 +43,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     """
     ckpt = checkpoint_of(run)
     sim, _ = load_model(ckpt)
-    ds, scenes = load_split(data, split, limit)
+    ds, scenes = load_split(data, split, limit, trained_rate(ckpt))
     warnings = check_ranges(ckpt, ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
@@ -81,8 +81,20 @@ def evaluate_baseline(data: str | Path, split: str = "test", params=None, limit:
     return results, pred, scenes, ds
 
 
-def load_split(data: str | Path, split: str, limit: int | None) -> tuple[Dataset, list]:
+def trained_rate(ckpt: Path) -> float:
+    """The frame rate (1 / time step) a checkpoint was trained at."""
+    return float(read_checkpoint(ckpt)["spec"]["frame_rate"])
+
+
+def load_split(data: str | Path, split: str, limit: int | None,
+               frame_rate: float | None = None) -> tuple[Dataset, list]:
+    """Scenes of a split. Given a model's `frame_rate`, data recorded at a whole multiple of it
+    are read at that rate (every k-th frame); any other rate is left for check_ranges to flag."""
     ds = Dataset(data)
+    if frame_rate:
+        ratio = ds.frame_rate / frame_rate
+        if round(ratio) > 1 and abs(ratio - round(ratio)) < 1e-6:
+            ds = Dataset(data, stride=round(ratio))
     if split not in ds.splits:
         raise DataError(f"{data}: no scenes in split {split!r}; it has {', '.join(ds.splits) or 'none'}")
     return ds, ds.load(split, limit)

@@ -270,4 +270,8 @@ def format_table(results: dict) -> str:
         text.append("  ".join([row[0].ljust(widths[0])] + [c.rjust(w) for c, w in zip(row[1:], widths[1:])]))
         if j == 0:
             text.append("-" * len(text[0]))
+    if "interpenetration_pct" in results:
+        text.append(f"between objects ({results['num_object_pairs']} object pairs): "
+                    f"interpenetration {_fmt(results['interpenetration_pct'])} % of size, "
+                    f"true {_fmt(results['true_interpenetration_pct'])} %")
     return "\n".join(text)

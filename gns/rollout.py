@@ -142,6 +142,6 @@ def write_rollouts(out: str | Path, scenes: list[Scene], source: Dataset, split:
         write_shard(out / name, scenes[k * per_shard:(k + 1) * per_shard], meshes, attrs={"split": split, "rollout": 1})
         names.append(name)
     meta = {key: v for key, v in source.meta.items() if key not in ("splits", "format_version", "complete")}
-    meta.update(generator="gns rollout", rollout=info,
+    meta.update(generator="gns rollout", rollout=info, frame_rate=source.frame_rate,
                 splits={split: {"num_scenes": len(scenes), "shards": names}})
     write_metadata(out, meta)

@@ -226,7 +226,7 @@ def _set_threads(threads: int, log: Callable[[str], None]) -> None:
 
 def _load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, ObjectTracks | None]:
     """Feature spec, train tracks and (if validating and present) valid tracks of a dataset."""
-    dataset = Dataset(data_dir)
+    dataset = Dataset(data_dir, stride=cfg.features.frame_stride)
     scenes = dataset.load("train")
     try:
         library = MeshLibrary(dataset.meshes)

@@ -29,21 +29,28 @@ from datagen.shards import Dataset
 from datagen.simulate import simulate
 from gns.config import build_config
 from gns.data import feature_spec
-from gns.evaluate import checkpoint_of, evaluate_run, write_json
+from gns.evaluate import checkpoint_of, load_split, trained_rate, write_json
 from gns.metrics import METRICS, evaluate_scenes
 from gns.rollout import rollout_scenes
 from gns.simulator import LearnedSimulator
-from gns.train import load_model
-from pipelines.common import data_stage, say
+from gns.train import load_model, read_checkpoint
+from pipelines.common import CONFIGS, data_stage, say, train_stage
 
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
+# Scenes are scored at 12 fps (MOVi-A's rate); `fine` x 12 fps is the rate the reference and the
+# sweep's training data are recorded at, so that strides 1 .. fine train GNS time steps of
+# 1/(12 fine) .. 1/12 s. `train` holds the trained part of the sweep: each run is the model
+# preset with one knob changed, trained for the same number of steps on the same scenes.
 PRESETS = {
-    "tiny": dict(scenes=2, frames=12, rates=[120, 240], iterations=[10], reference=(1200, 200),
-                 architectures=[(1, 1, 16)], batches=[1, 2], single_scenes=2),
-    "quick": dict(scenes=40, frames=24, rates=[60, 120, 240, 480, 960], iterations=[5, 10, 50],
+    "tiny": dict(scenes=2, frames=12, fine=2, rates=[120, 240], iterations=[10], reference=(1200, 200),
+                 architectures=[(1, 1, 16)], batches=[1, 2], single_scenes=2,
+                 train=dict(scenes=4, model="tiny", steps=20, strides=[1, 2], architectures=[(1, 1, 8)])),
+    "quick": dict(scenes=40, frames=24, fine=4, rates=[60, 120, 240, 480, 960], iterations=[5, 10, 50],
                   reference=(9600, 200), architectures=[(1, 1, 64), (5, 1, 32), (5, 1, 64), (5, 1, 128), (10, 3, 128)],
-                  batches=[1, 8, 40], single_scenes=8),
+                  batches=[1, 8, 40], single_scenes=8,
+                  train=dict(scenes=400, model="cpu", steps=6000, strides=[1, 2, 4],
+                             architectures=[(1, 1, 64), (5, 1, 32), (5, 1, 128)])),
 }
 
 
@@ -56,18 +63,23 @@ def physics_point(cfg_sets: list[str], n: int, seed: int = 0) -> tuple[list, flo
     return scenes, time.perf_counter() - t0
 
 
+def fine_frames(p: dict) -> list[str]:
+    """Scene settings recording p['frames'] frames at 12 fps as (frames - 1) fine + 1 frames at 12 fine fps."""
+    return [f"scene.frame_rate={12 * p['fine']}", f"scene.frames={(p['frames'] - 1) * p['fine'] + 1}"]
+
+
 def reference(p: dict, out: Path) -> Dataset:
-    """The fine reference: the test scenes at 10x the finest rate, written as a dataset."""
+    """The fine reference: the test scenes at 10x the finest rate, recorded at 12 x fine fps
+    (read with stride `fine`, it is the 12 fps truth)."""
     rate, iters = p["reference"]
-    sets = [SHAPES, "scene.frame_rate=12", f"scene.frames={p['frames']}", f"physics.rate={rate}",
-            f"physics.solver_iterations={iters}"]
+    sets = [SHAPES, *fine_frames(p), f"physics.rate={rate}", f"physics.solver_iterations={iters}"]
     say(f"reference: {p['scenes']} scenes at {rate} Hz, {iters} solver iterations")
     return data_stage(out, sets, {"test": p["scenes"]}, seed=0, workers=2)
 
 
 def physics_sweep(p: dict, ref: Dataset) -> list[dict]:
     base = [SHAPES, "scene.frame_rate=12", f"scene.frames={p['frames']}"]
-    true = ref.load("test")
+    true = Dataset(ref.root, stride=p["fine"]).load("test")
     simulated = p["scenes"] * (p["frames"] - 1) / 12.0
     rows = []
     for r in p["rates"]:
@@ -95,6 +107,7 @@ def gns_speed(p: dict, ref: Dataset) -> list[dict]:
     """Rollout cost of each architecture and batch size. The cost of a forward pass does not
     depend on the weights, so untrained models time exactly what trained ones would."""
     torch.set_num_threads(1)
+    ref = Dataset(ref.root, stride=p["fine"])
     scenes = ref.load("test")
     spec = feature_spec(ref, scenes)
     rows = []
@@ -110,23 +123,62 @@ def gns_speed(p: dict, ref: Dataset) -> list[dict]:
     return rows
 
 
-def gns_accuracy(runs: list[Path], ref: Dataset, p: dict) -> list[dict]:
-    """Trained runs scored against the fine reference, timed single and batched."""
+def sweep_runs(p: dict, out: Path) -> list[tuple[str, Path]]:
+    """Train the sweep's runs (each skipped once trained): the model preset at every frame
+    stride, and the other architectures at the 12 fps stride. Returns (knob, run folder)."""
+    t = p["train"]
+    sets = [SHAPES, *fine_frames(p)]
+    data = data_stage(out / "train_data", sets, {"train": t["scenes"], "valid": max(2, t["scenes"] // 20)},
+                      seed=1, workers=2)
+    base = build_config(path=CONFIGS / f"gns_{t['model']}.toml").model
+    runs = []
+    for stride in t["strides"]:
+        runs.append(("frame stride", out / "runs" / f"stride{stride}", [f"features.frame_stride={stride}"]))
+    for L, K, latent in t["architectures"]:
+        runs.append(("architecture", out / "runs" / f"L{L}K{K}_latent{latent}",
+                     [f"features.frame_stride={p['fine']}", f"model.message_passing_steps={L}",
+                      f"model.processor_repeats={K}", f"model.latent_size={latent}", f"model.hidden_size={latent}"]))
+    say(f"sweep: {len(runs)} runs of {t['steps']} steps, base model L{base.message_passing_steps}"
+        f"xK{base.processor_repeats} latent {base.latent_size}")
+    for _, run, overrides in runs:
+        train_stage(data.root, run, t["model"], [f"train.steps={t['steps']}", *overrides])
+    return [(knob, run) for knob, run, _ in runs]
+
+
+def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[dict]:
+    """Trained runs scored against the fine reference at 12 fps, timed single and batched.
+
+    A run at a finer time step rolls out on the reference read at its own rate and is scored
+    on every (12 fine / its rate)-th frame, so every run is judged at the same instants."""
     torch.set_num_threads(1)
-    scenes = ref.load("test")
+    truth = Dataset(ref.root, stride=p["fine"])
+    true = truth.load("test")
     rows = []
-    for run in runs:
-        results, *_ = evaluate_run(run, ref.root, "test", progress=False)
-        sim, cfg = load_model(checkpoint_of(run))
+    for knob, run in runs:
+        ckpt = checkpoint_of(run)
+        sim, cfg = load_model(ckpt)
+        ds, scenes = load_split(ref.root, "test", None, trained_rate(ckpt))
+        keep = round(ds.frame_rate / truth.frame_rate)
         m = cfg.model
         for batch in (1, len(scenes)):
-            cost = _timed_rollout(sim, scenes[:max(batch, p["single_scenes"])], ref, batch)
-            rows.append({"family": "gns" if batch == 1 else "gns batched",
+            t0 = time.perf_counter()
+            pred = []
+            for k in range(0, len(scenes) if batch > 1 else p["single_scenes"], batch):
+                pred += rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, batch_tracks=batch,
+                                       progress=False)
+            cost = (time.perf_counter() - t0) / sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes[:len(pred)])
+            if batch > 1:
+                res = evaluate_scenes([sc.every(keep) for sc in pred], true, ref.meshes, floor_z=0.0)
+            rows.append({"family": "gns" if batch == 1 else "gns batched", "knob": knob,
                          "label": f"{Path(run).name}: L{m.message_passing_steps}xK{m.processor_repeats}, "
-                                  f"latent {m.latent_size}, batch {batch}",
-                         "run": str(run), "batch": batch, "seconds_per_simulated_second": cost,
-                         **{k: results[k] for k in METRICS}})
-            say(f"gns: {rows[-1]['label']}: {rows[-1]['position_error_pct']:.2f}% position, {cost * 1e3:.2f} ms")
+                                  f"latent {m.latent_size}, dt {1e3 / ds.frame_rate:.1f} ms, batch {batch}",
+                         "run": str(run), "batch": batch, "L": m.message_passing_steps, "K": m.processor_repeats,
+                         "latent": m.latent_size, "frame_rate": ds.frame_rate, "steps": int(read_checkpoint(ckpt)["step"]),
+                         "seconds_per_simulated_second": cost})
+        for r in rows[-2:]:
+            r.update({k: res[k] for k in METRICS})
+            say(f"gns: {r['label']}: {r['position_error_pct']:.2f}% position, "
+                f"{r['seconds_per_simulated_second'] * 1e3:.2f} ms")
     return rows
 
 
@@ -143,11 +195,17 @@ def pareto_plot(rows: list[dict], path: Path) -> Path:
             for r in pts:
                 ax.annotate(f"{r['physics_rate']} Hz", (r["seconds_per_simulated_second"], r["position_error_pct"]),
                             fontsize=7, xytext=(-4, -11), textcoords="offset points")
-    for family, marker, color in (("gns", "s", "C5"), ("gns batched", "^", "C6")):
+    for family, marker, color, what in (("gns", "s", "C5", "GNS, one scene at a time"),
+                                        ("gns batched", "^", "C6", "GNS, all test scenes batched")):
         pts = [r for r in rows if r["family"] == family]
-        for r in pts:
-            ax.scatter(r["seconds_per_simulated_second"], r["position_error_pct"], marker=marker, color=color, s=50,
-                       label=f"{r['label']}")
+        if not pts:
+            continue
+        ax.scatter([r["seconds_per_simulated_second"] for r in pts], [r["position_error_pct"] for r in pts],
+                   marker=marker, color=color, s=45, label=what)
+        for r in pts:  # batched and single share a run name: name the batched point only
+            if family == "gns batched":
+                ax.annotate(Path(r["run"]).name, (r["seconds_per_simulated_second"], r["position_error_pct"]),
+                            fontsize=7, xytext=(5, 2), textcoords="offset points")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ymax = max(r["position_error_pct"] for r in rows if "position_error_pct" in r)
@@ -188,7 +246,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path)
     ap.add_argument("--replot", action="store_true", help="only redraw table and plot from results.json")
     ap.add_argument("--runs", type=Path, nargs="*", default=[],
-                    help="trained run folders to score against the fine reference (e.g. runs/movi_a_small/run)")
+                    help="more trained run folders to score against the fine reference (e.g. runs/movi_a_small/run)")
+    ap.add_argument("--no-train", action="store_true", help="skip the trained sweep (frame strides, architectures)")
     a = ap.parse_args(argv)
     p = PRESETS[a.preset]
     out = a.out or Path("runs") / f"speed_accuracy_{a.preset}"
@@ -199,7 +258,8 @@ def main(argv=None) -> int:
         print(table(rows))
         return 0
     ref = reference(p, out / "reference")
-    rows = physics_sweep(p, ref) + gns_speed(p, ref) + gns_accuracy(a.runs, ref, p)
+    trained = [] if a.no_train else sweep_runs(p, out)
+    rows = physics_sweep(p, ref) + gns_speed(p, ref) + gns_accuracy(trained + [("given", r) for r in a.runs], ref, p)
     ratio = throughput_ratio(rows)
     write_json(out / "results.json", {"preset": a.preset, "settings": p, "rows": rows, "throughput_ratio": ratio})
     (out / "table.md").write_text(table(rows) + "\n\n" + ratio + "\n")
