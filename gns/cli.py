@@ -110,11 +110,29 @@ def add_eval_parsers(sub) -> None:
     e.set_defaults(run=cmd_eval)
 
 
+def cmd_export(args: argparse.Namespace) -> None:
+    from gns.evaluate import checkpoint_of
+    from gns.train import export_model
+
+    out = export_model(checkpoint_of(args.run_dir), args.out)
+    print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB): model, config and training ranges, no optimiser state")
+
+
+def add_export_parser(sub) -> None:
+    x = sub.add_parser("export", help="write a trained model without optimiser state, to share or ship",
+                       description="Copy a run's latest checkpoint without the optimiser and random state: "
+                                   "`gns rollout`/`gns eval` read it like a run; training cannot resume from it.")
+    x.add_argument("--run", required=True, dest="run_dir", metavar="RUN", help="run folder or .pt checkpoint")
+    x.add_argument("--out", required=True, metavar="FILE", help="output .pt file")
+    x.set_defaults(run=cmd_export)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gns", description="Graph network simulator for rigid bodies.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add_train_parser(sub)
     add_eval_parsers(sub)
+    add_export_parser(sub)
     return parser
 
 

@@ -87,6 +87,17 @@ def read_checkpoint(path: str | Path) -> dict:
     return ckpt
 
 
+def export_model(checkpoint_path: str | Path, out: str | Path) -> Path:
+    """A checkpoint without the optimiser and random state (about half the size): enough to
+    roll out and evaluate (load_model), not to resume training."""
+    ckpt = read_checkpoint(checkpoint_path)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model")}
+    _atomic_write(out, lambda p: torch.save(slim, p))
+    return out
+
+
 def build_simulator(cfg: Config, spec: dict) -> LearnedSimulator:
     return LearnedSimulator(cfg.model, cfg.features, spec)
 
