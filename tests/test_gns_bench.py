@@ -15,3 +15,17 @@ def test_bench_train_prints_a_row_per_preset(capsys):
     for r in rows:
         steps_per_sec, fraction = float(r[7]), float(r[12].rstrip("%"))
         assert steps_per_sec > 0 and 0 < fraction < 100
+
+
+def test_bench_rollout_compares_variants_with_equal_results(capsys):
+    spec = importlib.util.spec_from_file_location("bench_rollout", BENCH.parent / "bench_rollout.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    bench.main(["--preset", "tiny", "--tracks", "3", "--frames", "6", "--repeats", "1"])
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith(("first edge layer", "batching"))]
+    assert len(rows) == 4
+    for row in rows:
+        diff = float(row.split()[-1])
+        assert diff < 1e-6  # a saving must not change the trajectories beyond rounding
+    assert "network (encode, process, decode)" in out
