@@ -112,12 +112,25 @@ def test_inputs_outside_training_are_named(trained, tmp_path, capsys):
     data, run = trained
     other = tmp_path / "other"
     assert datagen_main(["toss", "--out", str(other), "--scenes", "0", "--test", "2", "--frames", "16",
-                         "--shapes", "cylinder", "--frame-rate", "24", "--set", "materials.metal.friction=0.0",
+                         "--shapes", "cylinder", "--frame-rate", "16", "--set", "materials.metal.friction=0.0",
                          "--materials", "metal", "--quiet"]) == 0
     results, *_ = evaluate_run(run, other, progress=False)
     err = capsys.readouterr().err
     text = " | ".join(results["outside_training"])
-    assert "frame rate 24" in text and "cylinder not seen" in text and "friction" in text
+    assert "frame rate 16" in text and "cylinder not seen" in text and "friction" in text
     assert err.count("warning: outside training:") == len(results["outside_training"])
     inside, *_ = evaluate_run(run, data, progress=False)
     assert inside["outside_training"] == []
+
+
+def test_data_recorded_at_a_multiple_of_the_model_rate_are_read_at_its_rate(trained, tmp_path, capsys):
+    """A 12 fps model on 24 fps data: every 2nd frame is used, and nothing is flagged."""
+    data, run = trained
+    fine = tmp_path / "fine"
+    assert datagen_main(["toss", "--out", str(fine), "--scenes", "0", "--test", "2", "--frames", "31",
+                         "--shapes", "cube,sphere", "--frame-rate", "24", "--quiet"]) == 0
+    results, pred, true, ds = evaluate_run(run, fine, progress=False)
+    assert ds.frame_rate == 12 and ds.stride == 2
+    assert all(sc.num_frames == 16 for sc in true) and results["outside_training"] == []
+    full = Dataset(fine).load("test")
+    np.testing.assert_array_equal(true[0].positions, full[0].positions[::2])

@@ -13,4 +13,29 @@ def test_tiny_sweep_writes_table_plot_and_a_point_per_setting(tmp_path):
     finer = {r["physics_rate"]: r["position_error_pct"] for r in rows if r["family"] == "pybullet"}
     assert finer[240] < finer[120], "a finer physics step must be closer to the fine reference"
     assert all(r["seconds_per_simulated_second"] > 0 for r in rows)
+    # the trained sweep: one run per frame stride and per extra architecture, each scored
+    trained = [r for r in rows if r["family"] == "gns batched"]
+    t = p["train"]
+    assert len(trained) == len(t["strides"]) + len(t["architectures"])
+    rates = sorted(r["frame_rate"] for r in trained if r["knob"] == "frame stride")
+    assert rates == sorted(12.0 * p["fine"] / s for s in t["strides"])
+    assert all(r["steps"] == t["steps"] and r["position_error_pct"] >= 0 for r in trained)
     assert (out / "pareto.png").stat().st_size > 0 and "| pybullet |" in (out / "table.md").read_text()
+
+
+def test_dataset_stride_reads_every_kth_frame_and_refuses_bad_strides(tmp_path):
+    import numpy as np
+    import pytest
+    from datagen.cli import main as datagen_main
+    from datagen.shards import Dataset, DataError
+    out = tmp_path / "d"
+    assert datagen_main(["toss", "--out", str(out), "--scenes", "0", "--test", "1", "--frames", "9",
+                         "--frame-rate", "24", "--quiet"]) == 0
+    full, third = Dataset(out).load("test")[0], Dataset(out, stride=3)
+    assert third.frame_rate == 8.0
+    sc = third.load("test")[0]
+    assert sc.num_frames == 3 and sc.attrs["frame_stride"] == 3
+    np.testing.assert_array_equal(sc.quaternions, full.quaternions[::3])
+    for bad in (0, -1, 1.5):
+        with pytest.raises(DataError, match="frame stride"):
+            Dataset(out, stride=bad)
