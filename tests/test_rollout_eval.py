@@ -80,6 +80,16 @@ def test_movi_a_pipeline_tiny_runs_end_to_end_and_resumes(tmp_path, capsys):
     assert "data: " in err and err.count("skipping") == 3
 
 
+def test_movi_a_multi_object_preset_reports_interpenetration(tmp_path, capsys):
+    out = tmp_path / "m"
+    assert movi_a.main(["--preset", "multi_tiny", "--out", str(out), "--workers", "1"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["num_object_pairs"] >= results["num_scenes"]  # 2-3 objects: at least one pair a scene
+    assert results["interpenetration_pct"] >= 0 and results["true_interpenetration_pct"] >= 0
+    assert "interpenetration between objects" in (out / "report.md").read_text()
+    assert "between objects" in capsys.readouterr().out  # the terminal table names it too
+
+
 def test_gns_eval_and_rollout_commands(trained, tmp_path, capsys):
     from gns.cli import main as gns_main
     data, run = trained
