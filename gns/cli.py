@@ -55,7 +55,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     check_ranges(ckpt, ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=not args.no_shape_matching,
-                          batch_tracks=args.batch)
+                          batch_tracks=args.batch, sleep=_sleep(args))
     seconds = time.perf_counter() - t0
     info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(read_checkpoint(ckpt)["step"]),
             "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
@@ -70,7 +70,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
     results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit,
                                shape_matching=not args.no_shape_matching, plots_dir=args.plots,
-                               batch_tracks=args.batch)
+                               batch_tracks=args.batch, sleep=_sleep(args))
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched")
@@ -79,6 +79,11 @@ def cmd_eval(args: argparse.Namespace) -> None:
         print(f"wrote {args.json}")
     if args.plots:
         print(f"plots in {args.plots}")
+
+
+def _sleep(args: argparse.Namespace):
+    from gns.simulator import Sleep
+    return Sleep(args.sleep_fraction) if args.sleep else None
 
 
 def _add_rollout_args(p) -> None:
@@ -90,6 +95,12 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--batch", type=int, default=256, metavar="B", help="object tracks rolled out together (default 256)")
     p.add_argument("--no-shape-matching", action="store_true",
                    help="feed raw predictions back (the paper's -sm ablation); default projects onto the rigid shape")
+    p.add_argument("--sleep", action="store_true",
+                   help="hold resting objects still until another object touches them, as physics engines "
+                        "deactivate bodies (docs/stability.md); off by default")
+    p.add_argument("--sleep-fraction", type=float, default=0.1, metavar="F",
+                   help="--sleep: an object is at rest when no vertex moved F x |g| dt^2 in either input step "
+                        "(default 0.1)")
 
 
 def add_eval_parsers(sub) -> None:

@@ -1,6 +1,7 @@
 """Judge a trained run on a dataset: rollouts, metrics, plots. Used by `gns eval` and pipelines."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -35,7 +36,7 @@ def write_json(path: str | Path, obj) -> None:
 
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
                  shape_matching: bool = True, plots_dir: str | Path | None = None, progress: bool = True,
-                 batch_tracks: int = 256) -> tuple[dict, list, list, Dataset]:
+                 batch_tracks: int = 256, sleep=None) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it.
 
     Returns (results, predicted scenes, true scenes, dataset). Results hold the metrics of
@@ -47,10 +48,10 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     warnings = check_ranges(ckpt, ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
-                          batch_tracks=batch_tracks, progress=progress)
+                          batch_tracks=batch_tracks, progress=progress, sleep=sleep)
     results = score_predictions(pred, scenes, ds, time.perf_counter() - t0, plots_dir)
     results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
-                   outside_training=warnings)
+                   outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep))
     return results, pred, scenes, ds
 
 

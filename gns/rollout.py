@@ -21,7 +21,7 @@ from datagen.shards import Dataset, DataError, Scene, write_metadata, write_shar
 from gns.geometry import matrix_to_quat
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
-from gns.simulator import HISTORY, LearnedSimulator, shape_match_packed
+from gns.simulator import HISTORY, LearnedSimulator, Sleep, shape_match_packed
 
 
 def _continuous(quat: np.ndarray) -> np.ndarray:
@@ -43,7 +43,7 @@ def _angular_velocity(quat: np.ndarray, dt: float) -> np.ndarray:
 
 @torch.no_grad()
 def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Tensor, length: int,
-                   shape_matching: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                   shape_matching: bool = True, sleep: Sleep | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Roll out tracks `which` (B,), all `length` frames long. Tracks of one scene interact
     (collision edges), so pass every track of the scenes wanted.
 
@@ -51,7 +51,7 @@ def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Ten
     truth, the rest predicted.
     """
     graph, verts, _ = tracks.track_vertices(which, HISTORY)
-    pred = sim.rollout(verts, graph, length - HISTORY, shape_matching=shape_matching)  # (S, N, 3)
+    pred = sim.rollout(verts, graph, length - HISTORY, shape_matching=shape_matching, sleep=sleep)  # (S, N, 3)
     steps = pred.shape[0]
     rot = torch.empty(steps, graph.num_graphs, 3, 3, dtype=torch.float64)
     centre = torch.empty(steps, graph.num_graphs, 3, dtype=torch.float64)
@@ -66,7 +66,8 @@ def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Ten
 
 
 def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, frame_rate: float,
-                   shape_matching: bool = True, batch_tracks: int = 256, progress: bool = True) -> list[Scene]:
+                   shape_matching: bool = True, batch_tracks: int = 256, progress: bool = True,
+                   sleep: Sleep | None = None) -> list[Scene]:
     """Predicted copies of `scenes`: same objects, poses rolled out from the first 3 frames."""
     sim.eval()
     tracks = ObjectTracks(scenes, MeshLibrary(meshes), name="rollout scenes")
@@ -96,7 +97,7 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
         ids = torch.cat([tracks.scene_first_track[i] + torch.arange(int(tracks.scene_num_tracks[i]))
                          for i in batch_scenes])
         lengths = tracks.length[ids].tolist()
-        p, q = rollout_tracks(sim, tracks, ids, max(lengths), shape_matching)
+        p, q = rollout_tracks(sim, tracks, ids, max(lengths), shape_matching, sleep)
         for j, (i, length) in enumerate(zip(ids.tolist(), lengths)):
             positions[:length, i] = p[:length, j]
             quaternions[:length, i] = q[:length, j]

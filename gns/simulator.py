@@ -7,6 +7,8 @@ throughout; the network runs in float32 on normalised features.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import nn
 
@@ -76,11 +78,55 @@ def shape_match_packed(x: torch.Tensor, rest: torch.Tensor, node_graph: torch.Te
     return rot, t, x_proj
 
 
+@dataclass(frozen=True)
+class Sleep:
+    """Deactivation of resting objects in rollouts, as physics engines do it (Bullet's sleeping).
+
+    A learned model's acceleration at rest is never exactly zero (the small cpu model predicts
+    a few % of gravity for an object lying still), and integration turns any such bias into
+    drift (docs/stability.md). An object sleeps, i.e. keeps its pose, while it lies on the
+    floor (lowest vertex within `contact` x its diameter of it) and every vertex moved less than
+    `fraction` x |g| dt^2 in both input steps: a tenth of what gravity alone moves a body in
+    one frame, which a body in flight cannot do twice in a row (its steps differ by |g| dt^2).
+    As in Bullet only a contact wakes it: a collision edge from an object that is awake.
+    Objects resting on other objects do not sleep (not handled). Off by default: a rollout
+    option, not part of the model.
+    """
+
+    fraction: float = 0.1
+    contact: float = 0.01
+
+    def asleep(self, frames: list[torch.Tensor], graph: Graph, step: float, floor_z: float | None,
+               contacts: EdgeSet | None) -> torch.Tensor:
+        """Node mask (N,) of the objects that sleep this step; `step` = |g| dt^2 (units per frame)."""
+        if floor_z is None:
+            return torch.zeros(graph.num_nodes, dtype=torch.bool)
+        x = frames[-1]
+        moved = torch.maximum((x - frames[-2]).norm(dim=-1), (frames[-2] - frames[-3]).norm(dim=-1))
+
+        def per_graph(values: torch.Tensor, reduce: str) -> torch.Tensor:
+            fill = torch.inf if reduce == "amin" else -torch.inf
+            return torch.full((graph.num_graphs,), fill, dtype=values.dtype).scatter_reduce(
+                0, graph.node_graph, values, reduce)
+        size = 2 * per_graph(graph.rest.norm(dim=-1), "amax")  # diameter of the sphere about the centre
+        on_floor = per_graph(x[:, 2], "amin") - floor_z < self.contact * size
+        slow = (per_graph(moved, "amax") < self.fraction * step) & on_floor
+        if contacts is not None and len(contacts.senders):
+            awake_sender = ~slow[graph.node_graph[contacts.senders]]
+            woken = torch.zeros(graph.num_graphs, dtype=torch.bool)
+            woken[graph.node_graph[contacts.receivers[awake_sender]]] = True
+            slow = slow & ~woken
+        return slow[graph.node_graph]
+
+
 class LearnedSimulator(nn.Module):
     """GNS for rigid meshes. `spec` is the dataset's feature spec (see gns.data.feature_spec)."""
 
     def __init__(self, model_cfg, features_cfg, spec: dict):
         super().__init__()
+        # what Sleep's threshold is made of: |g| dt^2, in scene units per frame
+        self.gravity_step = (float(torch.tensor(spec["gravity"]).norm()) / spec["frame_rate"] ** 2
+                             if "gravity" in spec and "frame_rate" in spec else None)
         floor = spec.get("floor")
         self.layout: FeatureLayout = make_layout(
             features_cfg, None if floor is None else float(floor["z"]), bool(spec["materials_vary"]),
@@ -145,16 +191,24 @@ class LearnedSimulator(nn.Module):
         return integrate(x_tm1, x_t, self.predict_acceleration(history, graph))
 
     @torch.no_grad()
-    def rollout(self, history: torch.Tensor, graph: Graph, steps: int, shape_matching: bool = True) -> torch.Tensor:
+    def rollout(self, history: torch.Tensor, graph: Graph, steps: int, shape_matching: bool = True,
+                sleep: Sleep | None = None) -> torch.Tensor:
         """Run on its own predictions from history (N, 3, 3) float64 -> positions (steps, N, 3).
 
         With shape_matching, each prediction is replaced by the rigid projection of the rest mesh
-        before it enters the history (paper, rollouts only).
+        before it enters the history (paper, rollouts only). With `sleep`, objects at rest keep
+        their pose until the model predicts a real acceleration (see Sleep).
         """
+        if sleep is not None and not self.gravity_step:
+            raise ValueError("sleeping needs the model's gravity and frame rate (spec)")
         frames = list(history.unbind(1))
         out = []
         for _ in range(steps):
             x = self.predict_next(*frames[-HISTORY:], graph)
+            if sleep is not None:
+                contacts = self.collision_edges(frames[-1], graph) if self.layout.collisions else None
+                sleeping = sleep.asleep(frames, graph, self.gravity_step, self.layout.floor_z, contacts)
+                x = torch.where(sleeping[:, None], frames[-1], x)
             if shape_matching:
                 x = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)[2]
             frames.append(x)

@@ -20,7 +20,7 @@ from datagen.shards import Scene
 from gns.data import ObjectTracks, _graph_sizes, feature_spec
 from gns.graph import MeshLibrary
 from gns.ranges import outside_training
-from gns.simulator import HISTORY, LearnedSimulator
+from gns.simulator import HISTORY, LearnedSimulator, Sleep
 
 # Criteria. Rigidity: shape matching makes every predicted frame an exact rigid pose, so any
 # distortion beyond float64 rounding is a bug. At rest: the issue's 0.1% of the size over 1000
@@ -31,12 +31,12 @@ SAME_PCT = 0.1
 
 
 @torch.no_grad()
-def _roll(sim: LearnedSimulator, scenes: list[Scene], library: MeshLibrary, steps: int):
+def _roll(sim: LearnedSimulator, scenes: list[Scene], library: MeshLibrary, steps: int, sleep: Sleep | None = None):
     """Rollout of every object of `scenes` from its first 3 frames: (graph, predicted vertices
     (steps, N, 3), sizes (G,))."""
     tracks = ObjectTracks(scenes, library, name="stability scenes")
     graph, verts, _ = tracks.track_vertices(torch.arange(tracks.num_tracks), HISTORY)
-    pred = sim.rollout(verts, graph, steps)
+    pred = sim.rollout(verts, graph, steps, sleep=sleep)
     return graph, pred, _graph_sizes(graph)
 
 
@@ -85,9 +85,10 @@ def resting_scene(shape: str, scale: float, meshes: dict, floor_z: float, frames
                  np.array([scale]), np.array([1.0]), np.array([friction]), np.array([restitution]))
 
 
-def at_rest(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, steps: int = 1000) -> list[dict]:
+def at_rest(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, steps: int = 1000,
+            sleep: Sleep | None = None) -> list[dict]:
     """Drift of each resting scene's object centre after `steps` (% of its size)."""
-    graph, pred, size = _roll(sim, scenes, MeshLibrary(meshes), steps)
+    graph, pred, size = _roll(sim, scenes, MeshLibrary(meshes), steps, sleep)
     centre = torch.stack([_centres(pred[k], graph) for k in (0, steps // 10 - 1, steps - 1)])
     start = _centres(_roll_start(scenes, meshes), graph)
     drift = (centre - start).norm(dim=-1) / size * 100

@@ -12,11 +12,13 @@ says PASS or FAIL; the exit status is 0 either way, since a failing model is a f
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
 import torch
 
+from gns.simulator import Sleep
 from gns.evaluate import checkpoint_of, load_split, trained_rate, write_json
 from gns.stability import REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene
 from gns.train import load_model, read_checkpoint
@@ -40,10 +42,12 @@ def run(run_dir: Path, data: Path, out: Path, limit: int, factor: int, rest_step
     scale = float(max(spec["ranges"]["scale"]))
     resting = [resting_scene(shape, scale, ds.meshes, floor_z or 0.0) for shape in spec["shapes"]]
     rest = at_rest(sim, resting, ds.meshes, rest_steps)
+    rest_sleeping = at_rest(sim, resting, ds.meshes, rest_steps, sleep=Sleep())
     say("extreme inputs")
     extreme = extremes(sim, spec, scenes, ds)
     results = {"run": str(run_dir), "checkpoint": str(ckpt), "checkpoint_step": int(read_checkpoint(ckpt)["step"]),
-               "data": str(data), "long_rollouts": long, "at_rest": rest, "extremes": extreme}
+               "data": str(data), "long_rollouts": long, "at_rest": rest,
+               "at_rest_sleeping": {"sleep": dataclasses.asdict(Sleep()), "rows": rest_sleeping}, "extremes": extreme}
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "results.json", results)
     (out / "report.md").write_text(report(results, factor) + "\n")
@@ -67,9 +71,15 @@ def report(r: dict, factor: int) -> str:
     lines += ["", f"## At rest ({steps} steps on the floor; criterion: drift below {REST_DRIFT_PCT}% of the size)", "",
               f"| shape | scale | drift after {steps // 10} steps, % of size | drift after {steps} steps | verdict |",
               "|---|---|---|---|---|"]
+    sleeping = r["at_rest_sleeping"]
     for x in r["at_rest"]:
         lines.append(f"| {x['shape']} | {x['scale']:g} | {x[f'drift_pct_after_{steps // 10}']:.3g} | "
                      f"{x['drift_pct']:.3g} | {_verdict(x['passed'])} |")
+    for x in sleeping["rows"]:
+        lines.append(f"| {x['shape']}, rollout with sleeping | {x['scale']:g} | "
+                     f"{x[f'drift_pct_after_{steps // 10}']:.3g} | {x['drift_pct']:.3g} | {_verdict(x['passed'])} |")
+    lines += ["", f"Sleeping (`gns eval --sleep`, gns.simulator.Sleep): an object sleeps while no vertex moved "
+                  f"{sleeping['sleep']['fraction']} x |g| dt^2 in either input step, until an awake object touches it."]
     lines += ["", "## Extreme inputs (handled, or warned as outside training)", "",
               "| input | rollout finite | same as the original, % of size | warnings | verdict |", "|---|---|---|---|---|"]
     for x in r["extremes"]:

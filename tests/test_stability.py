@@ -17,7 +17,8 @@ from gns.config import build_config
 from gns.data import ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
 from gns.ranges import outside_training
-from gns.simulator import LearnedSimulator, shape_match
+from gns.graph import EdgeSet
+from gns.simulator import LearnedSimulator, Sleep, shape_match
 from gns.stability import (REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene)
 from gns.train import load_model, read_checkpoint
 from pipelines import stability as stability_pipeline
@@ -103,6 +104,51 @@ def test_trained_model_at_rest_stays_at_rest(movi, trained):
     resting = [resting_scene(s, 1.4, ds.meshes, 0.0) for s in spec["shapes"]]
     rows = at_rest(sim, resting, ds.meshes, steps=1000)
     assert all(r["drift_pct"] < REST_DRIFT_PCT for r in rows), rows
+
+
+def test_trained_model_at_rest_stays_at_rest_when_rollouts_sleep(movi, trained):
+    ds, _ = movi
+    sim, spec = trained
+    resting = [resting_scene(s, 1.4, ds.meshes, 0.0) for s in spec["shapes"]]
+    rows = at_rest(sim, resting, ds.meshes, steps=1000, sleep=Sleep())
+    assert all(r["drift_pct"] < REST_DRIFT_PCT for r in rows), rows
+
+
+def test_sleeping_never_freezes_an_object_in_flight(movi):
+    """Dropped from rest in mid-air (3 equal given frames): the object must fall exactly as
+    without sleeping; only support by the floor lets a slow object sleep."""
+    ds, scenes = movi
+    dt = 1.0 / ds.frame_rate
+    sim = constructed(ds, scenes, acceleration=(0.0, 0.0, -10.0 * dt * dt))
+    sc = resting_scene("sphere", 1.4, ds.meshes, floor_z=0.0)
+    sc.positions[..., 2] += 3.0
+    graph, verts, _ = ObjectTracks([sc], MeshLibrary(ds.meshes)).track_vertices(torch.arange(1), 3)
+    plain = sim.rollout(verts, graph, 10)
+    sleeping = sim.rollout(verts, graph, 10, sleep=Sleep())
+    assert torch.equal(plain, sleeping)
+    assert float(verts[:, -1, 2].mean() - sleeping[-1, :, 2].mean()) > 0.5 * 10.0 * (10 * dt) ** 2 * 0.9
+
+
+def test_sleep_wakes_an_object_only_when_an_awake_object_touches_it():
+    lib = MeshLibrary({"cube": (np.array([[-.5, -.5, -.5], [.5, -.5, -.5], [-.5, .5, -.5], [.5, .5, -.5],
+                                          [-.5, -.5, .5], [.5, -.5, .5], [-.5, .5, .5], [.5, .5, .5]]),
+                                np.array([[0, 1, 2]]))})
+    graph = lib.pack(lib.shape_ids(["cube", "cube"]), torch.ones(2, dtype=torch.float64), torch.full((2,), .5),
+                     torch.full((2,), .5))
+    still = graph.rest + torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64) + \
+        torch.tensor([[0.0, 0, 0]] * 8 + [[3.0, 0, 0]] * 8, dtype=torch.float64)
+    moving = still.clone()
+    moving[8:] += torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64)  # object 1 slides: awake
+    frames = [still, still, still]
+    step = 10.0 / 144
+    assert Sleep().asleep(frames, graph, step, 0.0, None).all()
+    frames = [moving, still, still]
+    alone = Sleep().asleep(frames, graph, step, 0.0, None)
+    assert alone[:8].all() and not alone[8:].any()
+    touching = EdgeSet(torch.tensor([8]), torch.tensor([0]))  # object 1's vertex near object 0's
+    woken = Sleep().asleep(frames, graph, step, 0.0, touching)
+    assert not woken.any()
+    assert not Sleep().asleep([still, still, still], graph, step, None, None).any()  # no floor, no sleep
 
 
 def test_extreme_inputs_are_handled_or_named_as_outside_training(movi, trained):
