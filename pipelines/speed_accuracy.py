@@ -19,7 +19,6 @@ import sys
 import time
 from pathlib import Path
 
-
 import torch
 
 from datagen.config import load_config as scene_config
