@@ -29,3 +29,13 @@ def test_bench_rollout_compares_variants_with_equal_results(capsys):
         diff = float(row.split()[-1])
         assert diff < 1e-6  # a saving must not change the trajectories beyond rounding
     assert "network (encode, process, decode)" in out
+
+
+def test_bench_collision_edges_matches_the_brute_force(capsys):
+    spec = importlib.util.spec_from_file_location("bench_ce", BENCH.parent / "bench_collision_edges.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    rows = bench.main(["--objects", "2,5", "--repeats", "1"])  # exits if any row differs from the brute force
+    assert [r["edges"] for r in rows if r["layout"] == "apart"] == [0, 0]
+    touching = [r["edges"] for r in rows if r["layout"] == "touching"]
+    assert 0 < touching[0] < touching[1]  # more contacts, more edges
