@@ -48,7 +48,8 @@ def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:
             ("penetration, % of size", "penetration_pct")]
     lines = [f"# MOVi-A-style evaluation, preset `{preset}`", "",
              f"Made by `python -m pipelines.movi_a --preset {preset} --out {out}`. "
-             f"{results['num_scenes']} held-out single-object scenes, rolled out from their first 3 frames "
+             f"{results['num_scenes']} held-out {'multi' if 'interpenetration_pct' in results else 'single'}-object "
+             "scenes, rolled out from their first 3 frames "
              f"{'with' if results['shape_matching'] else 'without'} shape matching; metrics averaged over all frames, "
              "then over scenes (docs/metrics.md).", "",
              "| metric | this run | paper (Allen et al. 2022, MOVi-A) |", "|---|---|---|"]
