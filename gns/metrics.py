@@ -83,6 +83,11 @@ def _depth_inside(points: np.ndarray, position: np.ndarray, quaternion: np.ndarr
     return np.maximum(depth.max(axis=-1), 0.0)
 
 
+# An object pair "passes through" when one's vertex gets this deep inside the other (% of the
+# smaller width) at some frame: far beyond contact (PyBullet's own stays below 0.1%).
+PASS_THROUGH_PCT = 10.0
+
+
 def interpenetration_pct(scene, meshes: Mapping[str, tuple]) -> np.ndarray:
     """Per frame and object pair (a < b), the deepest vertex of one object inside the other,
     % of the smaller object's width: (T, P) with P = N (N - 1) / 2 (P = 0 for one object)."""
@@ -227,14 +232,21 @@ def evaluate_scenes(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mappin
     results.update(num_scenes=len(true_scenes), start=int(start), num_given=int(num_given), floor_z=float(floor_z))
     if any(sc.num_objects > 1 for sc in true_scenes):
         # mean over object pairs of all scenes of each pair's mean over frames t >= start
-        pairs = {"interpenetration_pct": [], "true_interpenetration_pct": []}
+        # and, per pair, its deepest frame: a mean over frames hides a pass-through in a few of them
+        pairs = {k: [] for k in ("interpenetration_pct", "true_interpenetration_pct",
+                                 "interpenetration_max_pct", "true_interpenetration_max_pct")}
         for pred, true in zip(pred_scenes, true_scenes):
-            for key, sc in (("interpenetration_pct", pred), ("true_interpenetration_pct", true)):
+            for prefix, sc in (("", pred), ("true_", true)):
                 # object properties (shape, scale) are read from the true scene
                 both = sc if sc is true else _with_objects(pred, true)
-                pairs[key] += list(interpenetration_pct(both, meshes)[start:].mean(axis=0))
+                depth = interpenetration_pct(both, meshes)[start:]
+                pairs[f"{prefix}interpenetration_pct"] += list(depth.mean(axis=0))
+                pairs[f"{prefix}interpenetration_max_pct"] += list(depth.max(axis=0))
         results.update({k: _mean([float(x) for x in v]) for k, v in pairs.items()})
         results["num_object_pairs"] = len(pairs["interpenetration_pct"])
+        for prefix in ("", "true_"):
+            deep = [x > PASS_THROUGH_PCT for x in pairs[f"{prefix}interpenetration_max_pct"]]
+            results[f"{prefix}pairs_passing_through_pct"] = 100.0 * sum(deep) / max(len(deep), 1)
     results["horizons"] = {str(h): _summary(horizon_rows[h]) for h in sorted(horizon_rows)}
     for key in ("shape", "size", "material"):
         groups = defaultdict(list)
@@ -272,6 +284,9 @@ def format_table(results: dict) -> str:
             text.append("-" * len(text[0]))
     if "interpenetration_pct" in results:
         text.append(f"between objects ({results['num_object_pairs']} object pairs): "
-                    f"interpenetration {_fmt(results['interpenetration_pct'])} % of size, "
-                    f"true {_fmt(results['true_interpenetration_pct'])} %")
+                    f"interpenetration {_fmt(results['interpenetration_pct'])} % of size "
+                    f"(true {_fmt(results['true_interpenetration_pct'])}), deepest frame "
+                    f"{_fmt(results['interpenetration_max_pct'])} (true {_fmt(results['true_interpenetration_max_pct'])}), "
+                    f"pairs deeper than {PASS_THROUGH_PCT:g}%: {_fmt(results['pairs_passing_through_pct'])}% "
+                    f"(true {_fmt(results['true_pairs_passing_through_pct'])}%)")
     return "\n".join(text)

@@ -59,7 +59,10 @@ def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:
         lines.append(f"| interpenetration between objects, % of size | {results['interpenetration_pct']:.3g} | - |")
         lines += ["", f"Interpenetration: the deepest vertex of each object inside another object, averaged over "
                       f"frames and {results['num_object_pairs']} object pairs; the ground truth's own: "
-                      f"{results['true_interpenetration_pct']:.3g}%."]
+                      f"{results['true_interpenetration_pct']:.3g}%. At each pair's deepest frame: "
+                      f"{results['interpenetration_max_pct']:.3g}% (truth {results['true_interpenetration_max_pct']:.3g}%); "
+                      f"pairs deeper than 10% at some frame: {results['pairs_passing_through_pct']:.3g}% "
+                      f"(truth {results['true_pairs_passing_through_pct']:.3g}%)."]
     lines += ["", f"Ground truth's own penetration: {results['true_penetration_pct']:.3g}% (the metric's floor).", "",
               f"Model: {train_info['model']} preset, {train_info['step']} training steps "
               f"({train_info['parameters']} parameters, L={train_info['L']}, K={train_info['K']}, "
