@@ -37,6 +37,7 @@ class FeatureConfig:
     rest_edges: bool = True            # d^U and |d^U| on edges (relative encoding only)
     normalizer_steps: int = 1000       # training steps during which normalisers accumulate
     collision_radius: float = 0.15     # collision edges between objects closer than this, scene units
+    collision_mode: str = "vertex"     # collision edges vertex-vertex, or vertex-to-surface (gns.contacts)
     frame_stride: int = 1              # train on every k-th recorded frame: the time step is k / frame_rate
 
 
@@ -185,6 +186,8 @@ def validate(cfg: Config) -> None:
          "model.message_passing_steps and model.processor_repeats must be >= 1"),
         (cfg.features.floor_clip > 0, "features.floor_clip must be > 0"),
         (cfg.features.collision_radius > 0, "features.collision_radius must be > 0"),
+        (cfg.features.collision_mode in ("vertex", "surface"), "features.collision_mode must be 'vertex' or 'surface'"),
+        (cfg.features.frame_stride >= 1, "features.frame_stride must be >= 1"),
         (cfg.augment.noise_std >= 0, "augment.noise_std must be >= 0"),
         (cfg.augment.vertex_noise >= 0, "augment.vertex_noise must be >= 0"),
         (cfg.augment.track_noise >= 0, "augment.track_noise must be >= 0"),

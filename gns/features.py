@@ -170,9 +170,14 @@ def raw_edge_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
     return {k: v.to(torch.float32) for k, v in out.items()}
 
 
-def raw_collision_features(history: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> dict[str, torch.Tensor]:
-    """history (N, 3, 3) float64 -> {group: (C, width) float32} for collision edges s -> r."""
+def raw_collision_features(history: torch.Tensor, edges) -> dict[str, torch.Tensor]:
+    """history (N, 3, 3) float64, collision edges s -> r (a gns.graph.EdgeSet) -> {group:
+    (C, width) float32}: d = x_r - x_s and |d|, or for surface edges (gns.contacts) the vertex
+    minus its closest surface point and the signed distance, in the same two groups."""
+    if edges.vectors is not None:
+        return {"collision_relative": edges.vectors.to(torch.float32),
+                "collision_relative_norm": edges.signed.to(torch.float32)}
     x_t = history[:, -1]
-    d = x_t[receivers] - x_t[senders]
+    d = x_t[edges.receivers] - x_t[edges.senders]
     return {"collision_relative": d.to(torch.float32),
             "collision_relative_norm": d.norm(dim=-1, keepdim=True).to(torch.float32)}

@@ -32,9 +32,12 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
 class EdgeSet:
     senders: torch.Tensor    # (E,) int64 node index
     receivers: torch.Tensor  # (E,) int64 node index
+    vectors: torch.Tensor | None = None  # (E, 3) edge geometry when it is not x_r - x_s (gns.contacts)
+    signed: torch.Tensor | None = None   # (E, 1) signed distance, with `vectors`
 
     def to(self, device) -> "EdgeSet":
-        return EdgeSet(self.senders.to(device), self.receivers.to(device))
+        return EdgeSet(*(None if t is None else t.to(device)
+                         for t in (self.senders, self.receivers, self.vectors, self.signed)))
 
 
 @dataclass
@@ -48,6 +51,7 @@ class Graph:
     num_graphs: int
     graph_scene: torch.Tensor | None = None       # (G,) int64 scene (within the batch) of each graph
     collision_edges: EdgeSet | None = None        # between objects of a scene; see `collision_edges`
+    faces: torch.Tensor | None = None             # (F, 3) int64 node indices of each object's triangles
 
     @property
     def num_nodes(self) -> int:
@@ -92,6 +96,10 @@ class MeshLibrary:
         self._edge_start = torch.cumsum(self.num_edges, 0) - self.num_edges
         self._vertices = torch.from_numpy(np.concatenate(verts))
         self._edges = torch.from_numpy(np.concatenate(edges))
+        faces = [np.asarray(meshes[n][1], np.int64).reshape(-1, 3) for n in self.names]
+        self.num_faces = torch.tensor([len(f) for f in faces])
+        self._face_start = torch.cumsum(self.num_faces, 0) - self.num_faces
+        self._faces = torch.from_numpy(np.concatenate(faces))
 
     def shape_ids(self, names: list[str]) -> torch.Tensor:
         missing = [n for n in names if n not in self.index]
@@ -117,9 +125,12 @@ class MeshLibrary:
         node_offset = torch.cumsum(n_vert, 0) - n_vert
         edges = self._edges[library_edge] + node_offset[edge_graph, None]
 
+        face_graph, local_face = _ragged_arange(self.num_faces[shape_ids])
+        faces = self._faces[self._face_start[shape_ids][face_graph] + local_face] + node_offset[face_graph, None]
+
         material = torch.stack([friction, restitution], dim=1).to(torch.float32)[node_graph]
         return Graph(EdgeSet(edges[:, 0].contiguous(), edges[:, 1].contiguous()), rest, material,
-                     node_graph, len(shape_ids), graph_scene)
+                     node_graph, len(shape_ids), graph_scene, faces=faces)
 
 
 def _candidate_pairs(graph: Graph) -> tuple[torch.Tensor, torch.Tensor]:
@@ -143,6 +154,22 @@ def _ragged_take(counts: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tenso
     return owner, start[owner] + local
 
 
+def _near_pairs(x: torch.Tensor, graph: Graph, radius: float):
+    """Broad phase: object pairs (a < b) of a scene whose bounds, one expanded by `radius`,
+    overlap; returns (a, b, low, high) with every graph's bounds (G, 3), or None if none."""
+    if graph.graph_scene is None or graph.num_graphs < 2:
+        return None
+    g = graph.num_graphs
+    idx = graph.node_graph[:, None].expand(-1, 3)
+    high = torch.full((g, 3), -torch.inf, dtype=x.dtype, device=x.device).scatter_reduce(0, idx, x, "amax")
+    low = torch.full((g, 3), torch.inf, dtype=x.dtype, device=x.device).scatter_reduce(0, idx, x, "amin")
+    a, b = _candidate_pairs(graph)
+    near = ((low[a] - high[b] <= radius) & (low[b] - high[a] <= radius)).all(dim=1)
+    if not near.any():
+        return None
+    return a[near], b[near], low, high
+
+
 @torch.no_grad()
 def collision_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     """Edges between vertices of different objects of the same scene closer than `radius`.
@@ -157,17 +184,11 @@ def collision_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     """
     empty = EdgeSet(torch.zeros(0, dtype=torch.int64, device=x.device),
                     torch.zeros(0, dtype=torch.int64, device=x.device))
-    if graph.graph_scene is None or graph.num_graphs < 2:
+    near = _near_pairs(x, graph, radius)
+    if near is None:
         return empty
+    a, b, low, high = near
     g = graph.num_graphs
-    idx = graph.node_graph[:, None].expand(-1, 3)
-    high = torch.full((g, 3), -torch.inf, dtype=x.dtype, device=x.device).scatter_reduce(0, idx, x, "amax")
-    low = torch.full((g, 3), torch.inf, dtype=x.dtype, device=x.device).scatter_reduce(0, idx, x, "amin")
-    a, b = _candidate_pairs(graph)
-    near = ((low[a] - high[b] <= radius) & (low[b] - high[a] <= radius)).all(dim=1)
-    a, b = a[near], b[near]
-    if len(a) == 0:
-        return empty
     counts = torch.bincount(graph.node_graph, minlength=g)
     node_start = torch.cumsum(counts, 0) - counts
 

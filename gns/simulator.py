@@ -14,6 +14,7 @@ from torch import nn
 
 from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_collision_features,
                           raw_edge_features, raw_node_features)
+from gns.contacts import surface_edges
 from gns.graph import EdgeSet, Graph, collision_edges
 from gns.network import EncodeProcessDecode
 
@@ -127,6 +128,9 @@ class LearnedSimulator(nn.Module):
         # what Sleep's threshold is made of: |g| dt^2, in scene units per frame
         self.gravity_step = (float(torch.tensor(spec["gravity"]).norm()) / spec["frame_rate"] ** 2
                              if "gravity" in spec and "frame_rate" in spec else None)
+        if features_cfg.collision_mode not in ("vertex", "surface"):
+            raise ValueError(f"features.collision_mode must be 'vertex' or 'surface', got {features_cfg.collision_mode!r}")
+        self.collision_mode = features_cfg.collision_mode
         floor = spec.get("floor")
         self.layout: FeatureLayout = make_layout(
             features_cfg, None if floor is None else float(floor["z"]), bool(spec["materials_vary"]),
@@ -148,6 +152,8 @@ class LearnedSimulator(nn.Module):
         """The graph's collision edges if given, else built from positions x (N, 3)."""
         if graph.collision_edges is not None:
             return graph.collision_edges
+        if self.collision_mode == "surface":
+            return surface_edges(x, graph, self.layout.collision_radius)
         return collision_edges(x, graph, self.layout.collision_radius)
 
     def _inputs(self, history: torch.Tensor, graph: Graph) -> tuple[torch.Tensor, torch.Tensor]:
@@ -175,7 +181,7 @@ class LearnedSimulator(nn.Module):
         if not self.layout.collisions:
             return self.network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers)
         c = self.collision_edges(history[:, -1], graph)
-        raw = raw_collision_features(history, c.senders, c.receivers)
+        raw = raw_collision_features(history, c)
         c_features = torch.cat([self.collision_normalizers[n](raw[n], self.training)
                                 for n, _ in self.layout.collision_groups], -1)
         return self.network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers,

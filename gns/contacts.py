@@ -1,0 +1,100 @@
+"""Vertex-to-surface collision edges (`features.collision_mode = "surface"`).
+
+Vertex-vertex edges (gns.graph.collision_edges) see a contact only when two *vertices* come
+within the radius; on coarse meshes two surfaces touch long before that (docs/gns.md). Here
+each vertex of an object near another object is joined to that object's *surface*: the
+closest point on its triangles. The edge goes from the triangle's vertex nearest that point
+(a node, whose latent sends the message) to the query vertex, and carries the exact geometry:
+d = x_vertex - closest point, and the signed distance (negative inside the other object,
+whose faces are oriented outward from its vertex mean: the meshes are convex). As FIGNet's
+face-face edges, it needs faces in the graph (`Graph.faces`); unlike them it stays a vertex
+graph. Every vertex of each near object pair queries the other object, so a contact gets
+edges in both directions. Phases and cost as collision_edges: bounds of object pairs, then
+only the vertices inside the other's expanded bounds, each against the other's faces.
+"""
+from __future__ import annotations
+
+import torch
+
+from gns.graph import EdgeSet, Graph, _near_pairs, _ragged_arange, _ragged_take
+
+
+def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """Closest points (M, 3) of triangles (a, b, c) to points p, all (M, 3): the Voronoi-region
+    test of Ericson, Real-Time Collision Detection, 5.1.5, vectorised with where."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    bp = p - b
+    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    cp = p - c
+    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    tiny = torch.finfo(p.dtype).tiny
+    # inside the face, by barycentric coordinates
+    denom = (va + vb + vc).clamp(min=tiny)
+    out = a + ab * (vb / denom)[:, None] + ac * (vc / denom)[:, None]
+    # edge regions (bc, ac, ab), then vertex regions (c, b, a): later assignments win
+    w = ((d4 - d3) / ((d4 - d3) + (d5 - d6)).clamp(min=tiny))[:, None]
+    out = torch.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[:, None], b + w * (c - b), out)
+    w = (d2 / (d2 - d6).clamp(min=tiny))[:, None]
+    out = torch.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[:, None], a + w * ac, out)
+    w = (d1 / (d1 - d3).clamp(min=tiny))[:, None]
+    out = torch.where(((vc <= 0) & (d1 >= 0) & (d3 <= 0))[:, None], a + w * ab, out)
+    out = torch.where(((d6 >= 0) & (d5 <= d6))[:, None], c, out)
+    out = torch.where(((d3 >= 0) & (d4 <= d3))[:, None], b, out)
+    return torch.where(((d1 <= 0) & (d2 <= 0))[:, None], a, out)
+
+
+@torch.no_grad()
+def surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
+    """Edges from the surface of one object to the vertices of another within `radius` of it
+    (or inside it); `vectors` (E, 3) = x_r - closest point, `signed` (E, 1) signed distance."""
+    empty = EdgeSet(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64),
+                    torch.zeros(0, 3, dtype=x.dtype), torch.zeros(0, 1, dtype=x.dtype))
+    if graph.faces is None:
+        raise ValueError("surface collision edges need the graph's faces")
+    near = _near_pairs(x, graph, radius)
+    if near is None:
+        return empty
+    a, b, low, high = near
+    g = graph.num_graphs
+    counts = torch.bincount(graph.node_graph, minlength=g)
+    node_start = torch.cumsum(counts, 0) - counts
+    face_graph = graph.node_graph[graph.faces[:, 0]]
+    face_counts = torch.bincount(face_graph, minlength=g)
+    face_start = torch.cumsum(face_counts, 0) - face_counts
+    centre = x.new_zeros(g, 3).index_add(0, graph.node_graph, x) / counts[:, None].to(x.dtype)
+    own = torch.cat([a, b])
+    other = torch.cat([b, a])
+    # query vertices of `own` inside the expanded bounds of `other`
+    pair, node = _ragged_take(counts[own], node_start[own])
+    p = x[node]
+    ok = ((p >= low[other][pair] - radius) & (p <= high[other][pair] + radius)).all(dim=1)
+    pair, node = pair[ok], node[ok]
+    if len(node) == 0:
+        return empty
+    # every query vertex against every face of the other object
+    query, k = _ragged_arange(face_counts[other[pair]])
+    face = face_start[other[pair[query]]] + k
+    tri = graph.faces[face]
+    q = x[node[query]]
+    v0, v1, v2 = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
+    closest = closest_point_on_triangle(q, v0, v1, v2)
+    dist = (q - closest).norm(dim=-1)
+    # the nearest face of each query vertex: sort by distance, then stably by query
+    order = torch.argsort(dist)
+    order = order[torch.argsort(query[order], stable=True)]
+    first = torch.ones(len(order), dtype=torch.bool)
+    first[1:] = query[order][1:] != query[order][:-1]
+    best = order[first]
+    normal = torch.linalg.cross(v1[best] - v0[best], v2[best] - v0[best])
+    outward = ((v0[best] - centre[other[pair[query[best]]]]) * normal).sum(-1, keepdim=True)
+    normal = normal * torch.where(outward < 0, -1.0, 1.0).to(x.dtype)
+    d = q[best] - closest[best]
+    signed = torch.where((d * normal).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(x.dtype) * dist[best, None]
+    keep = signed[:, 0] < radius
+    best, d, signed = best[keep], d[keep], signed[keep]
+    tri = tri[best]
+    corner = (x[tri] - closest[best][:, None]).norm(dim=-1).argmin(dim=1)
+    sender = tri.gather(1, corner[:, None])[:, 0]
+    return EdgeSet(sender, node[query[best]], d, signed)

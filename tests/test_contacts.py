@@ -1,0 +1,91 @@
+"""Vertex-to-surface collision edges (gns.contacts, features.collision_mode = "surface")."""
+import numpy as np
+import pytest
+import torch
+from gns_fixtures import cube_meshes
+
+from gns.config import ConfigError, build_config
+from gns.contacts import closest_point_on_triangle, surface_edges
+from gns.data import vertices_from_poses
+from gns.graph import MeshLibrary, collision_edges
+
+DTYPE = torch.float64
+
+
+def test_closest_point_on_triangle_is_the_nearest_of_dense_samples():
+    rng = np.random.default_rng(0)
+    m = 300
+    a, b, c, p = (torch.from_numpy(rng.normal(size=(m, 3))) for _ in range(4))
+    got = closest_point_on_triangle(p, a, b, c)
+    u = torch.from_numpy(rng.uniform(size=(m, 3000, 2)))
+    u = torch.where((u.sum(-1, keepdim=True) > 1), 1 - u, u)
+    samples = a[:, None] + u[..., :1] * (b - a)[:, None] + u[..., 1:] * (c - a)[:, None]
+    brute = (samples - p[:, None]).norm(dim=-1).min(dim=1).values
+    mine = (got - p).norm(dim=-1)
+    assert (mine <= brute + 1e-9).all()          # never farther than any point of the triangle
+    assert (brute - mine).max() < 0.1            # and the samples come close to it
+
+
+def test_closest_point_regions():
+    a, b, c = (torch.tensor([v], dtype=DTYPE) for v in ([0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0]))
+    cases = {(0.2, 0.2, 3.0): (0.2, 0.2, 0.0),   # above the face
+             (-1.0, -1.0, 0.5): (0.0, 0.0, 0.0),  # beyond vertex a
+             (0.5, -2.0, 0.0): (0.5, 0.0, 0.0),   # beyond edge ab
+             (1.0, 1.0, 0.0): (0.5, 0.5, 0.0)}    # beyond edge bc
+    for p, want in cases.items():
+        got = closest_point_on_triangle(torch.tensor([p], dtype=DTYPE), a, b, c)
+        assert torch.allclose(got, torch.tensor([want], dtype=DTYPE), atol=1e-12), (p, got)
+
+
+def cubes(offset):
+    """Two unit 8-vertex cubes in one scene, the second at `offset` (x, y, z) from the first."""
+    lib = MeshLibrary(cube_meshes())
+    graph = lib.pack(lib.shape_ids(["cube", "cube"]), torch.ones(2, dtype=DTYPE), torch.full((2,), 0.4),
+                     torch.full((2,), 0.3), torch.zeros(2, dtype=torch.int64))
+    pos = torch.tensor([[[0.0, 0.0, 0.0]], [offset]], dtype=DTYPE)
+    rot = torch.eye(3, dtype=DTYPE).repeat(2, 1, 1)[:, None]
+    return graph, vertices_from_poses(graph, pos, rot)[:, 0]
+
+
+@pytest.mark.parametrize("gap", [0.05, 0.0, -0.05])
+def test_face_contact_of_coarse_cubes_gets_edges_both_ways_with_the_true_gap(gap):
+    # a cube on another's face, shifted by 0.5: no vertex pair is within the radius
+    graph, x = cubes([1.0 + gap, 0.5, 0.1])
+    assert len(collision_edges(x, graph, 0.15).senders) == 0
+    e = surface_edges(x, graph, 0.15)
+    objects = {(int(graph.node_graph[s]), int(graph.node_graph[r])) for s, r in zip(e.senders, e.receivers)}
+    assert objects == {(0, 1), (1, 0)}
+    assert torch.allclose(e.signed.min(), torch.tensor(gap, dtype=DTYPE), atol=1e-12)
+    # the vector is the receiver minus its closest surface point, |vector| = |signed distance|
+    assert torch.allclose(e.vectors.norm(dim=-1), e.signed[:, 0].abs(), atol=1e-12)
+
+
+def test_objects_apart_get_no_surface_edges_and_translation_changes_nothing():
+    graph, x = cubes([1.3, 0.0, 0.0])
+    assert len(surface_edges(x, graph, 0.15).senders) == 0
+    graph, x = cubes([1.02, 0.3, 0.1])
+    e0 = surface_edges(x, graph, 0.15)
+    e1 = surface_edges(x + torch.tensor([1e4, -1e4, 5.0], dtype=DTYPE), graph, 0.15)
+    assert torch.equal(e0.senders, e1.senders) and torch.equal(e0.receivers, e1.receivers)
+    assert torch.allclose(e0.vectors, e1.vectors, atol=1e-9) and torch.allclose(e0.signed, e1.signed, atol=1e-9)
+
+
+def test_collision_mode_is_checked():
+    with pytest.raises(ConfigError, match="collision_mode"):
+        build_config(overrides=["features.collision_mode=faces"])
+    assert build_config(overrides=["features.collision_mode=surface"]).features.collision_mode == "surface"
+
+
+def test_tiny_model_trains_and_rolls_out_with_surface_edges(tmp_path):
+    from datagen.cli import main as datagen_main
+    from gns.evaluate import evaluate_run
+    from gns.train import train
+    data = tmp_path / "d"
+    assert datagen_main(["toss", "--out", str(data), "--objects", "2-3", "--scenes", "4", "--test", "2",
+                         "--frames", "10", "--shapes", "cube,cylinder", "--quiet"]) == 0
+    cfg = build_config(path="configs/gns_tiny.toml",
+                       overrides=["train.steps=10", "valid.every=0", "features.collision_mode=surface"])
+    train(data, tmp_path / "run", cfg, log=lambda s: None)
+    results, pred, *_ = evaluate_run(tmp_path / "run", data, progress=False)
+    assert all(np.isfinite(sc.positions).all() for sc in pred)
+    assert results["num_object_pairs"] >= 2 and results["interpenetration_pct"] >= 0
