@@ -4,7 +4,8 @@ For scenes of N MOVi-A spheres (62 vertices each), laid out either apart (a grid
 within the radius) or touching in a row (each neighbour pair in contact), times
 gns.graph.collision_edges (broad phase on object bounds, then only vertices near a contact)
 against the brute force (all vertex pairs of different objects, one cdist), both in the same
-run, and checks that both find the same edges.
+run, and checks that both find the same edges. The last columns time vertex-to-surface edges
+(gns.contacts, `features.collision_mode = "surface"`) on the same scenes.
 
     python benchmarks/bench_collision_edges.py [--objects 3,10,30,100]
 """
@@ -16,6 +17,7 @@ import time
 import torch
 
 from datagen.shapes import get_shape
+from gns.contacts import surface_edges
 from gns.graph import MeshLibrary, collision_edges
 
 RADIUS = 0.15
@@ -57,7 +59,8 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--repeats", type=int, default=5)
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
-    header = f"{'objects':>8}{'vertices':>10}{'layout':>10}{'edges':>8}{'ours ms':>10}{'brute ms':>10}{'brute/ours':>12}"
+    header = (f"{'objects':>8}{'vertices':>10}{'layout':>10}{'edges':>8}{'ours ms':>10}{'brute ms':>10}{'brute/ours':>12}"
+              f"{'surface edges':>15}{'surface ms':>12}")
     print(header)
     print("-" * len(header))
     rows = []
@@ -71,11 +74,13 @@ def main(argv=None) -> list[dict]:
                 raise SystemExit(f"collision edges differ from the brute force at {n} objects")
             t_ours = best_ms(lambda: collision_edges(x, graph, RADIUS), a.repeats)
             t_brute = best_ms(lambda: brute_force(x, graph, RADIUS), a.repeats)
+            t_surface = best_ms(lambda: surface_edges(x, graph, RADIUS), a.repeats)
             row = {"objects": n, "vertices": graph.num_nodes, "layout": "touching" if touching else "apart",
-                   "edges": len(ours.senders), "ours_ms": t_ours, "brute_ms": t_brute}
+                   "edges": len(ours.senders), "ours_ms": t_ours, "brute_ms": t_brute,
+                   "surface_edges": len(surface_edges(x, graph, RADIUS).senders), "surface_ms": t_surface}
             rows.append(row)
             print(f"{n:>8}{graph.num_nodes:>10}{row['layout']:>10}{row['edges']:>8}{t_ours:>10.2f}{t_brute:>10.2f}"
-                  f"{t_brute / t_ours:>11.1f}x")
+                  f"{t_brute / t_ours:>11.1f}x{row['surface_edges']:>15}{t_surface:>12.2f}")
     print(f"\nradius {RADIUS}; best of {a.repeats}; 1 thread; edges identical to the brute force in every row")
     return rows
 
