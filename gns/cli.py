@@ -59,7 +59,8 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     seconds = time.perf_counter() - t0
     info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(read_checkpoint(ckpt)["step"]),
             "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
-            "given_frames": 3, "seconds": seconds}
+            "given_frames": 3, "seconds": seconds,
+            "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}}
     write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
     print(f"rolled out {len(pred)} scenes in {seconds:.2f} s; wrote {args.out}")
 
