@@ -44,20 +44,21 @@ def add_train_parser(sub) -> None:
 def cmd_rollout(args: argparse.Namespace) -> None:
     import time
 
-    from gns.evaluate import check_ranges, checkpoint_of, load_split, trained_rate
+    from gns.evaluate import check_ranges, checkpoint_of, load_split
     from gns.rollout import check_output, rollout_scenes, write_rollouts
     from gns.train import load_model, read_checkpoint
 
     check_output(args.out, args.overwrite)
     ckpt = checkpoint_of(args.run_dir)
-    sim, _ = load_model(ckpt)
-    ds, scenes = load_split(args.data, args.split, args.limit, trained_rate(ckpt))
-    check_ranges(ckpt, ds, scenes)
+    saved = read_checkpoint(ckpt)
+    sim, _ = load_model(saved)
+    ds, scenes = load_split(args.data, args.split, args.limit, saved["spec"]["frame_rate"])
+    check_ranges(saved["spec"], ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=not args.no_shape_matching,
                           batch_tracks=args.batch, sleep=_sleep(args))
     seconds = time.perf_counter() - t0
-    info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(read_checkpoint(ckpt)["step"]),
+    info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]),
             "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
             "given_frames": 3, "seconds": seconds,
             "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}}

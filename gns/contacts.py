@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-from gns.graph import EdgeSet, Graph, _near_pairs, _ragged_arange, _ragged_take
+from gns.graph import EdgeSet, Graph, _near_pairs, _ragged_arange, _vertices_near, graph_centres
 
 
 def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
@@ -57,20 +57,13 @@ def surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     if near is None:
         return empty
     a, b, low, high = near
-    g = graph.num_graphs
-    counts = torch.bincount(graph.node_graph, minlength=g)
-    node_start = torch.cumsum(counts, 0) - counts
     face_graph = graph.node_graph[graph.faces[:, 0]]
-    face_counts = torch.bincount(face_graph, minlength=g)
+    face_counts = torch.bincount(face_graph, minlength=graph.num_graphs)
     face_start = torch.cumsum(face_counts, 0) - face_counts
-    centre = x.new_zeros(g, 3).index_add(0, graph.node_graph, x) / counts[:, None].to(x.dtype)
+    centre = graph_centres(x, graph)
     own = torch.cat([a, b])
     other = torch.cat([b, a])
-    # query vertices of `own` inside the expanded bounds of `other`
-    pair, node = _ragged_take(counts[own], node_start[own])
-    p = x[node]
-    ok = ((p >= low[other][pair] - radius) & (p <= high[other][pair] + radius)).all(dim=1)
-    pair, node = pair[ok], node[ok]
+    pair, node = _vertices_near(x, graph, own, other, low, high, radius)
     if len(node) == 0:
         return empty
     # every query vertex against every face of the other object

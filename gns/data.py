@@ -34,7 +34,7 @@ import torch
 from datagen.shards import Dataset, DataError, Scene
 from gns.features import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
-from gns.graph import Graph, MeshLibrary, _ragged_arange
+from gns.graph import Graph, MeshLibrary, _ragged_arange, graph_sizes
 
 WINDOW = HISTORY + 1
 
@@ -162,7 +162,7 @@ class ObjectTracks:
         graph = self.graph(tracks, window_of)
         x = vertices_from_poses(graph, pos, rot)                  # (N, 4, 3)
         if vertex_noise > 0:
-            size = _graph_sizes(graph)[graph.node_graph]           # (N,)
+            size = graph_sizes(graph)[graph.node_graph]           # (N,)
             offset = torch.from_numpy(rng.normal(0.0, 1.0, (graph.num_nodes, 3))) * (vertex_noise * size)[:, None]
             x = x + torch.einsum("ntij,nj->nti", rot[graph.node_graph], offset)
         history, target = x[:, :HISTORY], x[:, HISTORY]
@@ -185,14 +185,6 @@ class ObjectTracks:
         pos, rot = self.poses(tracks, torch.zeros_like(tracks), frames)
         graph = self.graph(tracks)
         return graph, vertices_from_poses(graph, pos, rot), pos
-
-
-def _graph_sizes(graph: Graph) -> torch.Tensor:
-    """Largest axis extent of each graph's scaled rest mesh (G,): the object's size."""
-    idx = graph.node_graph[:, None].expand(-1, 3)
-    high = torch.full((graph.num_graphs, 3), -torch.inf, dtype=graph.rest.dtype).scatter_reduce(0, idx, graph.rest, "amax")
-    low = torch.full((graph.num_graphs, 3), torch.inf, dtype=graph.rest.dtype).scatter_reduce(0, idx, graph.rest, "amin")
-    return (high - low).max(dim=1).values
 
 
 def _range(values: list[np.ndarray]) -> list[float]:

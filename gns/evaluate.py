@@ -43,9 +43,10 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     gns.metrics.evaluate_scenes plus where they came from and what the rollouts cost.
     """
     ckpt = checkpoint_of(run)
-    sim, _ = load_model(ckpt)
-    ds, scenes = load_split(data, split, limit, trained_rate(ckpt))
-    warnings = check_ranges(ckpt, ds, scenes)
+    saved = read_checkpoint(ckpt)
+    sim, _ = load_model(saved)
+    ds, scenes = load_split(data, split, limit, saved["spec"]["frame_rate"])
+    warnings = check_ranges(saved["spec"], ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
                           batch_tracks=batch_tracks, progress=progress, sleep=sleep)
@@ -55,10 +56,11 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     return results, pred, scenes, ds
 
 
-def check_ranges(ckpt: Path, ds: Dataset, scenes: list, warn=None) -> list[str]:
-    """Warn (stderr, one line each) where the scenes leave the checkpoint's training ranges."""
+def check_ranges(trained_spec: dict, ds: Dataset, scenes: list, warn=None) -> list[str]:
+    """Warn (stderr, one line each) where the scenes leave a checkpoint's training ranges
+    (its `spec`)."""
     import sys
-    problems = outside_training(read_checkpoint(ckpt)["spec"], feature_spec(ds, scenes))
+    problems = outside_training(trained_spec, feature_spec(ds, scenes))
     for p in problems:
         (warn or (lambda m: print(m, file=sys.stderr)))(f"warning: outside training: {p}")
     return problems
@@ -80,11 +82,6 @@ def evaluate_baseline(data: str | Path, split: str = "test", params=None, limit:
     results = score_predictions(pred, scenes, ds, time.perf_counter() - t0, plots_dir)
     results.update(baseline="pybullet", params=params.to_dict(), data=str(data), split=split)
     return results, pred, scenes, ds
-
-
-def trained_rate(ckpt: Path) -> float:
-    """The frame rate (1 / time step) a checkpoint was trained at."""
-    return float(read_checkpoint(ckpt)["spec"]["frame_rate"])
 
 
 def load_split(data: str | Path, split: str, limit: int | None,

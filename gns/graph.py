@@ -154,20 +154,49 @@ def _ragged_take(counts: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tenso
     return owner, start[owner] + local
 
 
+def per_graph(values: torch.Tensor, graph: Graph, reduce: str, owner: torch.Tensor | None = None) -> torch.Tensor:
+    """Node values (N, ...) reduced over each graph's nodes -> (G, ...); reduce is "amax",
+    "amin" or "sum". Values of other items (edges) need their `owner` graph (len(values),)."""
+    fill = {"amax": -torch.inf, "amin": torch.inf, "sum": 0.0}[reduce]
+    owner = graph.node_graph if owner is None else owner
+    index = owner.view(-1, *[1] * (values.dim() - 1)).expand_as(values)
+    out = torch.full((graph.num_graphs, *values.shape[1:]), fill, dtype=values.dtype, device=values.device)
+    return out.scatter_reduce(0, index, values, reduce)
+
+
+def graph_centres(x: torch.Tensor, graph: Graph) -> torch.Tensor:
+    """Mean vertex position of each graph (G, 3) from positions x (N, 3)."""
+    count = torch.bincount(graph.node_graph, minlength=graph.num_graphs).to(x.dtype)
+    return per_graph(x, graph, "sum") / count[:, None]
+
+
+def graph_sizes(graph: Graph) -> torch.Tensor:
+    """Largest axis extent of each graph's scaled rest mesh (G,): the object's size."""
+    return (per_graph(graph.rest, graph, "amax") - per_graph(graph.rest, graph, "amin")).max(dim=1).values
+
+
 def _near_pairs(x: torch.Tensor, graph: Graph, radius: float):
     """Broad phase: object pairs (a < b) of a scene whose bounds, one expanded by `radius`,
     overlap; returns (a, b, low, high) with every graph's bounds (G, 3), or None if none."""
     if graph.graph_scene is None or graph.num_graphs < 2:
         return None
-    g = graph.num_graphs
-    idx = graph.node_graph[:, None].expand(-1, 3)
-    high = torch.full((g, 3), -torch.inf, dtype=x.dtype, device=x.device).scatter_reduce(0, idx, x, "amax")
-    low = torch.full((g, 3), torch.inf, dtype=x.dtype, device=x.device).scatter_reduce(0, idx, x, "amin")
+    high, low = per_graph(x, graph, "amax"), per_graph(x, graph, "amin")
     a, b = _candidate_pairs(graph)
     near = ((low[a] - high[b] <= radius) & (low[b] - high[a] <= radius)).all(dim=1)
     if not near.any():
         return None
     return a[near], b[near], low, high
+
+
+def _vertices_near(x: torch.Tensor, graph: Graph, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
+                   high: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mid phase: the vertices of graphs `own` (P,) inside the bounds of `other` (P,) expanded
+    by `radius`; returns (pair, node), pair indexing own/other."""
+    counts = torch.bincount(graph.node_graph, minlength=graph.num_graphs)
+    pair, node = _ragged_take(counts[own], torch.cumsum(counts, 0)[own] - counts[own])
+    p = x[node]
+    ok = ((p >= low[other][pair] - radius) & (p <= high[other][pair] + radius)).all(dim=1)
+    return pair[ok], node[ok]
 
 
 @torch.no_grad()
@@ -188,16 +217,11 @@ def collision_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     if near is None:
         return empty
     a, b, low, high = near
-    g = graph.num_graphs
-    counts = torch.bincount(graph.node_graph, minlength=g)
-    node_start = torch.cumsum(counts, 0) - counts
 
     def inside(own: torch.Tensor, other: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Vertices of graphs `own` (P,) inside the expanded bounds of `other` (P,), per pair."""
-        pair, node = _ragged_take(counts[own], node_start[own])
-        p = x[node]
-        ok = ((p >= low[other][pair] - radius) & (p <= high[other][pair] + radius)).all(dim=1)
-        return torch.bincount(pair[ok], minlength=len(own)), node[ok]
+        """Per pair, how many vertices of `own` are inside `other`'s expanded bounds, and which."""
+        pair, node = _vertices_near(x, graph, own, other, low, high, radius)
+        return torch.bincount(pair, minlength=len(own)), node
 
     count_a, nodes_a = inside(a, b)
     count_b, nodes_b = inside(b, a)

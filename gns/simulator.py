@@ -7,7 +7,7 @@ throughout; the network runs in float32 on normalised features.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import nn
@@ -15,7 +15,7 @@ from torch import nn
 from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_collision_features,
                           raw_edge_features, raw_node_features)
 from gns.contacts import surface_edges
-from gns.graph import EdgeSet, Graph, collision_edges
+from gns.graph import EdgeSet, Graph, collision_edges, per_graph
 from gns.network import EncodeProcessDecode
 
 
@@ -104,14 +104,9 @@ class Sleep:
             return torch.zeros(graph.num_nodes, dtype=torch.bool)
         x = frames[-1]
         moved = torch.maximum((x - frames[-2]).norm(dim=-1), (frames[-2] - frames[-3]).norm(dim=-1))
-
-        def per_graph(values: torch.Tensor, reduce: str) -> torch.Tensor:
-            fill = torch.inf if reduce == "amin" else -torch.inf
-            return torch.full((graph.num_graphs,), fill, dtype=values.dtype).scatter_reduce(
-                0, graph.node_graph, values, reduce)
-        size = 2 * per_graph(graph.rest.norm(dim=-1), "amax")  # diameter of the sphere about the centre
-        on_floor = per_graph(x[:, 2], "amin") - floor_z < self.contact * size
-        slow = (per_graph(moved, "amax") < self.fraction * step) & on_floor
+        size = 2 * per_graph(graph.rest.norm(dim=-1), graph, "amax")  # diameter of the sphere about the centre
+        on_floor = per_graph(x[:, 2], graph, "amin") - floor_z < self.contact * size
+        slow = (per_graph(moved, graph, "amax") < self.fraction * step) & on_floor
         if contacts is not None and len(contacts.senders):
             awake_sender = ~slow[graph.node_graph[contacts.senders]]
             woken = torch.zeros(graph.num_graphs, dtype=torch.bool)
@@ -128,9 +123,7 @@ class LearnedSimulator(nn.Module):
         # what Sleep's threshold is made of: |g| dt^2, in scene units per frame
         self.gravity_step = (float(torch.tensor(spec["gravity"]).norm()) / spec["frame_rate"] ** 2
                              if "gravity" in spec and "frame_rate" in spec else None)
-        if features_cfg.collision_mode not in ("vertex", "surface"):
-            raise ValueError(f"features.collision_mode must be 'vertex' or 'surface', got {features_cfg.collision_mode!r}")
-        self.collision_mode = features_cfg.collision_mode
+        self.collision_mode = features_cfg.collision_mode  # "vertex" or "surface", checked by gns.config
         floor = spec.get("floor")
         self.layout: FeatureLayout = make_layout(
             features_cfg, None if floor is None else float(floor["z"]), bool(spec["materials_vary"]),
@@ -210,9 +203,13 @@ class LearnedSimulator(nn.Module):
         frames = list(history.unbind(1))
         out = []
         for _ in range(steps):
-            x = self.predict_next(*frames[-HISTORY:], graph)
+            step_graph, contacts = graph, None
+            if sleep is not None and self.layout.collisions:
+                # built once from x_t: the network and the wake-up test share them
+                contacts = self.collision_edges(frames[-1], graph)
+                step_graph = replace(graph, collision_edges=contacts)
+            x = self.predict_next(*frames[-HISTORY:], step_graph)
             if sleep is not None:
-                contacts = self.collision_edges(frames[-1], graph) if self.layout.collisions else None
                 sleeping = sleep.asleep(frames, graph, self.gravity_step, self.layout.floor_z, contacts)
                 x = torch.where(sleeping[:, None], frames[-1], x)
             if shape_matching:

@@ -17,8 +17,8 @@ import numpy as np
 import torch
 
 from datagen.shards import Scene
-from gns.data import ObjectTracks, _graph_sizes, feature_spec
-from gns.graph import MeshLibrary
+from gns.data import ObjectTracks, feature_spec
+from gns.graph import MeshLibrary, graph_centres, graph_sizes, per_graph
 from gns.ranges import outside_training
 from gns.simulator import HISTORY, LearnedSimulator, Sleep
 
@@ -32,19 +32,17 @@ SAME_PCT = 0.1
 
 @torch.no_grad()
 def _roll(sim: LearnedSimulator, scenes: list[Scene], library: MeshLibrary, steps: int, sleep: Sleep | None = None):
-    """Rollout of every object of `scenes` from its first 3 frames: (graph, predicted vertices
-    (steps, N, 3), sizes (G,))."""
+    """Rollout of every object of `scenes` from its first 3 frames: (graph, given vertices
+    (N, 3, 3), predicted vertices (steps, N, 3), sizes (G,))."""
     tracks = ObjectTracks(scenes, library, name="stability scenes")
     graph, verts, _ = tracks.track_vertices(torch.arange(tracks.num_tracks), HISTORY)
     pred = sim.rollout(verts, graph, steps, sleep=sleep)
-    return graph, pred, _graph_sizes(graph)
+    return graph, verts, pred, graph_sizes(graph)
 
 
-def _per_graph(values: torch.Tensor, graph, reduce: str) -> torch.Tensor:
-    """Reduce node values (S, N) to graphs (S, G)."""
-    fill = torch.inf if reduce == "amin" else -torch.inf
-    out = torch.full((values.shape[0], graph.num_graphs), fill, dtype=values.dtype)
-    return out.scatter_reduce(1, graph.node_graph.expand(values.shape[0], -1), values, reduce)
+def _per_graph(values: torch.Tensor, graph, reduce: str, owner: torch.Tensor | None = None) -> torch.Tensor:
+    """Reduce node (or, with their `owner` graphs, edge) values per step (S, N) to graphs (S, G)."""
+    return per_graph(values.T, graph, reduce, owner).T
 
 
 def long_rollouts(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, floor_z: float | None,
@@ -52,26 +50,19 @@ def long_rollouts(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, floo
     """Roll the scenes out `factor` times their length. Distortion is the largest change of a
     mesh edge's length (% of the object's size); penetration the deepest vertex below the floor."""
     steps = factor * max(sc.num_frames for sc in scenes)
-    graph, pred, size = _roll(sim, scenes, MeshLibrary(meshes), steps)
+    graph, _, pred, size = _roll(sim, scenes, MeshLibrary(meshes), steps)
     s, r = graph.mesh_edges.senders, graph.mesh_edges.receivers
     rest_len = (graph.rest[s] - graph.rest[r]).norm(dim=-1)
     distortion = ((pred[:, s] - pred[:, r]).norm(dim=-1) - rest_len).abs()
-    distortion_pct = float((_per_graph(distortion, graph, "amax") / size * 100).max())
+    distortion_pct = float((_per_graph(distortion, graph, "amax", graph.node_graph[s]) / size * 100).max())
     out = {"steps": steps, "objects": graph.num_graphs, "finite": bool(torch.isfinite(pred).all()),
            "distortion_pct": distortion_pct, "rigid": distortion_pct < RIGID_PCT}
     if floor_z is not None:
         depth = _per_graph(floor_z - pred[..., 2], graph, "amax").clamp(min=0) / size * 100
-        centre_z = torch.stack([_centres(x, graph)[:, 2] for x in pred])
+        centre_z = torch.stack([graph_centres(x, graph)[:, 2] for x in pred])
         out.update(max_penetration_pct=float(depth.max()), mean_penetration_pct=float(depth.mean()),
                    min_centre_height=float(centre_z.min() - floor_z), above_floor=bool((centre_z > floor_z).all()))
     return out
-
-
-def _centres(x: torch.Tensor, graph) -> torch.Tensor:
-    """Mean vertex position of each graph (G, 3). It is the centre of mass only up to how evenly
-    the mesh's vertices spread, but when it is below the floor the object has gone through."""
-    count = torch.bincount(graph.node_graph, minlength=graph.num_graphs).to(x.dtype)
-    return x.new_zeros(graph.num_graphs, 3).index_add(0, graph.node_graph, x) / count[:, None]
 
 
 def resting_scene(shape: str, scale: float, meshes: dict, floor_z: float, frames: int = HISTORY + 1,
@@ -88,18 +79,13 @@ def resting_scene(shape: str, scale: float, meshes: dict, floor_z: float, frames
 def at_rest(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, steps: int = 1000,
             sleep: Sleep | None = None) -> list[dict]:
     """Drift of each resting scene's object centre after `steps` (% of its size)."""
-    graph, pred, size = _roll(sim, scenes, MeshLibrary(meshes), steps, sleep)
-    centre = torch.stack([_centres(pred[k], graph) for k in (0, steps // 10 - 1, steps - 1)])
-    start = _centres(_roll_start(scenes, meshes), graph)
+    graph, given, pred, size = _roll(sim, scenes, MeshLibrary(meshes), steps, sleep)
+    centre = torch.stack([graph_centres(pred[k], graph) for k in (0, steps // 10 - 1, steps - 1)])
+    start = graph_centres(given[:, -1], graph)
     drift = (centre - start).norm(dim=-1) / size * 100
     return [{"shape": sc.shape[0], "scale": float(sc.scale[0]), "steps": steps,
              f"drift_pct_after_{steps // 10}": float(drift[1, i]), "drift_pct": float(drift[2, i]),
              "passed": bool(drift[2, i] < REST_DRIFT_PCT)} for i, sc in enumerate(scenes)]
-
-
-def _roll_start(scenes: list[Scene], meshes: dict) -> torch.Tensor:
-    tracks = ObjectTracks(scenes, MeshLibrary(meshes), name="stability scenes")
-    return tracks.track_vertices(torch.arange(tracks.num_tracks), HISTORY)[1][:, -1]
 
 
 def _changed(sc: Scene, **arrays) -> Scene:
@@ -150,12 +136,12 @@ def extremes(sim: LearnedSimulator, trained_spec: dict, scenes: list[Scene], ds,
     shifted or unchanged) equal to the original within SAME_PCT of the object size."""
     steps = steps or max(sc.num_frames for sc in scenes) - HISTORY
     library = MeshLibrary(ds.meshes)
-    _, base, size = _roll(sim, scenes, library, steps)
+    _, _, base, size = _roll(sim, scenes, library, steps)
     rows = []
     for name, change in extreme_variants().items():
         changed = [change(sc) for sc in scenes]
         warnings = outside_training(trained_spec, feature_spec(_DatasetView(ds), changed))
-        graph, pred, _ = _roll(sim, changed, library, steps)
+        graph, _, pred, _ = _roll(sim, changed, library, steps)
         row = {"case": name, "warnings": warnings, "finite": bool(torch.isfinite(pred).all())}
         if "origin" in name or "float32" in name:
             shift = torch.from_numpy(changed[0].positions[0, 0] - scenes[0].positions[0, 0]).to(pred.dtype)

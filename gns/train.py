@@ -102,9 +102,10 @@ def build_simulator(cfg: Config, spec: dict) -> LearnedSimulator:
     return LearnedSimulator(cfg.model, cfg.features, spec)
 
 
-def load_model(checkpoint_path: str | Path) -> tuple[LearnedSimulator, Config]:
-    """Rebuild a trained simulator (in eval mode, on the CPU) and its config from a checkpoint."""
-    ckpt = read_checkpoint(checkpoint_path)
+def load_model(checkpoint: str | Path | dict) -> tuple[LearnedSimulator, Config]:
+    """Rebuild a trained simulator (in eval mode, on the CPU) and its config from a checkpoint
+    file, or from one already read with read_checkpoint (its spec and step need no second read)."""
+    ckpt = checkpoint if isinstance(checkpoint, dict) else read_checkpoint(checkpoint)
     cfg = build_config(base=ckpt["config"])
     sim = build_simulator(cfg, ckpt["spec"])
     sim.load_state_dict(ckpt["model"])

@@ -27,7 +27,7 @@ from datagen.shards import Dataset
 from datagen.simulate import simulate
 from gns.config import build_config
 from gns.data import feature_spec
-from gns.evaluate import checkpoint_of, load_split, trained_rate, write_json
+from gns.evaluate import checkpoint_of, load_split, write_json
 from gns.metrics import METRICS, evaluate_scenes
 from gns.rollout import rollout_scenes
 from gns.simulator import LearnedSimulator
@@ -153,9 +153,9 @@ def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[di
     true = truth.load("test")
     rows = []
     for knob, run in runs:
-        ckpt = checkpoint_of(run)
-        sim, cfg = load_model(ckpt)
-        ds, scenes = load_split(ref.root, "test", None, trained_rate(ckpt))
+        saved = read_checkpoint(checkpoint_of(run))
+        sim, cfg = load_model(saved)
+        ds, scenes = load_split(ref.root, "test", None, saved["spec"]["frame_rate"])
         keep = round(ds.frame_rate / truth.frame_rate)
         m = cfg.model
         for batch in (1, len(scenes)):
@@ -171,7 +171,7 @@ def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[di
                          "label": f"{run_name(run)}: L{m.message_passing_steps}xK{m.processor_repeats}, "
                                   f"latent {m.latent_size}, dt {1e3 / ds.frame_rate:.1f} ms, batch {batch}",
                          "run": str(run), "batch": batch, "L": m.message_passing_steps, "K": m.processor_repeats,
-                         "latent": m.latent_size, "frame_rate": ds.frame_rate, "steps": int(read_checkpoint(ckpt)["step"]),
+                         "latent": m.latent_size, "frame_rate": ds.frame_rate, "steps": int(saved["step"]),
                          "seconds_per_simulated_second": cost})
         for r in rows[-2:]:
             r.update({k: res[k] for k in METRICS})

@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from gns.simulator import Sleep
-from gns.evaluate import checkpoint_of, load_split, trained_rate, write_json
+from gns.evaluate import checkpoint_of, load_split, write_json
 from gns.stability import REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene
 from gns.train import load_model, read_checkpoint
 from pipelines.common import guarded, say
@@ -32,9 +32,10 @@ def _verdict(ok: bool) -> str:
 def run(run_dir: Path, data: Path, out: Path, limit: int, factor: int, rest_steps: int) -> dict:
     torch.set_num_threads(1)
     ckpt = checkpoint_of(run_dir)
-    sim, _ = load_model(ckpt)
-    spec = read_checkpoint(ckpt)["spec"]
-    ds, scenes = load_split(data, "test", limit, trained_rate(ckpt))
+    saved = read_checkpoint(ckpt)
+    sim, _ = load_model(saved)
+    spec = saved["spec"]
+    ds, scenes = load_split(data, "test", limit, spec["frame_rate"])
     floor_z = float(ds.floor["z"]) if ds.floor else None
     say(f"long rollouts: {len(scenes)} scenes, {factor}x their length")
     long = long_rollouts(sim, scenes, ds.meshes, floor_z, factor)
@@ -45,7 +46,7 @@ def run(run_dir: Path, data: Path, out: Path, limit: int, factor: int, rest_step
     rest_sleeping = at_rest(sim, resting, ds.meshes, rest_steps, sleep=Sleep())
     say("extreme inputs")
     extreme = extremes(sim, spec, scenes, ds)
-    results = {"run": str(run_dir), "checkpoint": str(ckpt), "checkpoint_step": int(read_checkpoint(ckpt)["step"]),
+    results = {"run": str(run_dir), "checkpoint": str(ckpt), "checkpoint_step": int(saved["step"]),
                "data": str(data), "long_rollouts": long, "at_rest": rest,
                "at_rest_sleeping": {"sleep": dataclasses.asdict(Sleep()), "rows": rest_sleeping}, "extremes": extreme}
     out.mkdir(parents=True, exist_ok=True)
