@@ -63,6 +63,13 @@ class TrainConfig:
     log_every: int = 100
     checkpoint_every: int = 1000
     keep_checkpoints: int = 3          # numbered checkpoints kept besides latest.pt; 0 keeps all
+    # Windows in contact (some centre acceleration differs from free fall by more than
+    # contact_threshold x |g| dt^2) make up this share of each batch; 0 samples all windows alike.
+    contact_fraction: float = 0.0
+    contact_threshold: float = 0.5
+    # Steps of pushforward training: the model predicts unroll_steps frames from 3 true ones, each
+    # step on its own (shape-matched) earlier predictions, detached; the loss averages all steps.
+    unroll_steps: int = 1
 
 
 @dataclass
@@ -195,6 +202,9 @@ def validate(cfg: Config) -> None:
         (cfg.train.steps >= 0, "train.steps must be >= 0"),
         (cfg.train.lr_init > 0 and cfg.train.lr_final >= 0, "learning rates must be positive"),
         (cfg.train.lr_decay_steps > 0, "train.lr_decay_steps must be > 0"),
+        (0 <= cfg.train.contact_fraction <= 1, "train.contact_fraction must be in [0, 1]"),
+        (cfg.train.contact_threshold > 0, "train.contact_threshold must be > 0"),
+        (cfg.train.unroll_steps >= 1, "train.unroll_steps must be >= 1"),
         (cfg.train.log_every >= 1 and cfg.train.checkpoint_every >= 1,
          "train.log_every and train.checkpoint_every must be >= 1"),
         (cfg.valid.every >= 0 and cfg.valid.rollout_steps >= 1, "valid.every must be >= 0, valid.rollout_steps >= 1"),

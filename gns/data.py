@@ -60,15 +60,29 @@ class Batch:
     history: torch.Tensor  # (N, 3, 3) float64 input positions at t-2, t-1, t
     target: torch.Tensor   # (N, 3) float64 position at t+1 (noise-corrected)
     graph: Graph
+    # (N, U - 1, 3) float64 positions at t+2 .. t+U for unrolled training (noise-corrected as target)
+    future: torch.Tensor | None = None
 
     def to(self, device) -> "Batch":
-        return Batch(self.history.to(device), self.target.to(device), self.graph.to(device))
+        future = None if self.future is None else self.future.to(device)
+        return Batch(self.history.to(device), self.target.to(device), self.graph.to(device), future)
+
+    @property
+    def targets(self) -> torch.Tensor:
+        """(N, U, 3): the positions at t+1 .. t+U."""
+        if self.future is None:
+            return self.target[:, None]
+        return torch.cat([self.target[:, None], self.future], dim=1)
 
 
 class ObjectTracks:
     """All tracks of a list of scenes, with their training windows."""
 
-    def __init__(self, scenes: list[Scene], library: MeshLibrary, name: str = "scenes"):
+    def __init__(self, scenes: list[Scene], library: MeshLibrary, name: str = "scenes", unroll: int = 1):
+        if unroll < 1:
+            raise ValueError(f"unroll must be >= 1, got {unroll}")
+        self.unroll = unroll
+        self.window = HISTORY + unroll  # frames a training window spans: inputs and the targets
         positions, quaternions, lengths, scene_of = [], [], [], []
         shapes, scale, friction, restitution = [], [], [], []
         for i, sc in enumerate(scenes):
@@ -103,7 +117,7 @@ class ObjectTracks:
         self.scene_num_tracks = torch.bincount(self.track_scene, minlength=len(scenes))
         self.scene_first_track = torch.cumsum(self.scene_num_tracks, 0) - self.scene_num_tracks
         scene_length = torch.tensor([sc.num_frames for sc in scenes], dtype=torch.int64)
-        per_scene = torch.where(self.scene_num_tracks > 0, scene_length - WINDOW + 1, 0).clamp(min=0)
+        per_scene = torch.where(self.scene_num_tracks > 0, scene_length - self.window + 1, 0).clamp(min=0)
         self.window_scene = torch.repeat_interleave(torch.arange(len(scenes)), per_scene)
         offset = torch.cumsum(per_scene, 0) - per_scene
         self.window_first = torch.arange(int(per_scene.sum())) - offset[self.window_scene]
@@ -111,7 +125,8 @@ class ObjectTracks:
         self.window_track = self.scene_first_track[self.window_scene]
         self.max_objects = int(self.scene_num_tracks.max())
         if self.num_windows == 0:
-            raise DataError(f"{name}: no scene has the {WINDOW} frames a training window needs")
+            raise DataError(f"{name}: no scene has the {self.window} frames a training window needs")
+        self.contact = None  # (num_windows,) bool once mark_contacts ran
 
     @property
     def num_tracks(self) -> int:
@@ -150,22 +165,22 @@ class ObjectTracks:
 
         Every object of a window's scene is in the batch (one graph each, grouped by window)."""
         tracks, window_of = self.window_tracks(windows)
-        pos, rot = self.poses(tracks, self.window_first[windows][window_of], WINDOW)
+        pos, rot = self.poses(tracks, self.window_first[windows][window_of], self.window)
         if track_noise > 0:
-            step = (pos[:, 1:] - pos[:, :-1]).norm(dim=-1)                  # (B, WINDOW - 1)
-            displacement = torch.cat([step[:, :1], step], dim=1)            # (B, WINDOW)
+            step = (pos[:, 1:] - pos[:, :-1]).norm(dim=-1)                  # (B, window - 1)
+            displacement = torch.cat([step[:, :1], step], dim=1)            # (B, window)
             pos = pos + torch.from_numpy(rng.normal(0.0, 1.0, pos.shape)) * (track_noise * displacement)[..., None]
         if rotate:
             rz = rotation_z(torch.from_numpy(rng.uniform(-np.pi, np.pi, len(windows))))[window_of]
             rot = rz[:, None] @ rot
             pos = (rz[:, None] @ pos[..., None])[..., 0]
         graph = self.graph(tracks, window_of)
-        x = vertices_from_poses(graph, pos, rot)                  # (N, 4, 3)
+        x = vertices_from_poses(graph, pos, rot)                  # (N, window, 3)
         if vertex_noise > 0:
             size = graph_sizes(graph)[graph.node_graph]           # (N,)
             offset = torch.from_numpy(rng.normal(0.0, 1.0, (graph.num_nodes, 3))) * (vertex_noise * size)[:, None]
             x = x + torch.einsum("ntij,nj->nti", rot[graph.node_graph], offset)
-        history, target = x[:, :HISTORY], x[:, HISTORY]
+        history, target, future = x[:, :HISTORY], x[:, HISTORY], x[:, HISTORY + 1:]
         if noise_std > 0:
             step_std = noise_std / np.sqrt(HISTORY - 1)
             velocity_noise = rng.normal(0.0, step_std, (graph.num_nodes, HISTORY - 1, 3))
@@ -173,11 +188,44 @@ class ObjectTracks:
                 [np.zeros((graph.num_nodes, 1, 3)), np.cumsum(velocity_noise, axis=1)], axis=1))
             history = history + position_noise
             target = target + position_noise[:, -1]
-        return Batch(history, target, graph)
+            future = future + position_noise[:, -1:]
+        return Batch(history, target, graph, future if self.unroll > 1 else None)
+
+    def mark_contacts(self, gravity_step: torch.Tensor, threshold: float) -> float:
+        """Flag the windows in which some object is in contact; returns the flagged share.
+
+        A window is in contact when, at one of its target frames, some object's centre
+        acceleration (second difference of the true centres) differs from free fall's
+        gravity_step = g dt^2 (3,) by more than threshold x |g| dt^2. Resting, sliding,
+        bouncing and object-object pushes all do; free flight does not, whatever the spin.
+        Tracking noise of real data adds a few tens of % of |g| dt^2 to free flight, so
+        threshold ~0.5 still separates the two.
+        """
+        g = gravity_step.to(torch.float64)
+        centres = self.positions                                  # (F, 3) all frames of all tracks
+        accel = torch.zeros(len(centres))
+        accel[1:-1] = (centres[2:] - 2 * centres[1:-1] + centres[:-2] - g).norm(dim=-1)
+        hit = accel > threshold * float(g.norm())                 # (F,) valid inside tracks only
+        # a window of scene s, first frame f: its targets are frames f+HISTORY .. f+window-1;
+        # the second difference at frame k needs k-1 .. k+1, so look at k = f+HISTORY-1 .. f+window-2
+        tracks, window_of = self.window_tracks(torch.arange(self.num_windows))
+        first = self.start[tracks] + self.window_first[window_of]
+        frames = first[:, None] + torch.arange(HISTORY - 1, self.window - 1)
+        per_track = hit[frames].any(dim=1)
+        self.contact = torch.zeros(self.num_windows, dtype=torch.float64).index_add_(0, window_of, per_track.double()) > 0
+        return float(self.contact.double().mean())
 
     def sample(self, rng: np.random.Generator, batch_size: int, rotate: bool, noise_std: float,
-               vertex_noise: float = 0.0, track_noise: float = 0.0) -> Batch:
-        windows = torch.from_numpy(rng.integers(0, self.num_windows, batch_size))
+               vertex_noise: float = 0.0, track_noise: float = 0.0, contact_fraction: float = 0.0) -> Batch:
+        """A random batch; with contact_fraction > 0 (after mark_contacts) that share of its windows,
+        rounded at random, is drawn from the windows in contact, the rest from all windows."""
+        if contact_fraction > 0 and self.contact is not None and self.contact.any():
+            contact = torch.nonzero(self.contact)[:, 0]
+            n_contact = int(rng.binomial(batch_size, contact_fraction))
+            windows = torch.cat([contact[torch.from_numpy(rng.integers(0, len(contact), n_contact))],
+                                 torch.from_numpy(rng.integers(0, self.num_windows, batch_size - n_contact))])
+        else:
+            windows = torch.from_numpy(rng.integers(0, self.num_windows, batch_size))
         return self.batch(windows, rng, rotate, noise_std, vertex_noise, track_noise)
 
     def track_vertices(self, tracks: torch.Tensor, frames: int) -> tuple[Graph, torch.Tensor, torch.Tensor]:

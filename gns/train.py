@@ -145,7 +145,7 @@ def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: B
     """
     for group in optimizer.param_groups:
         group["lr"] = lr
-    loss = sim.loss(batch.history, batch.target, batch.graph)
+    loss = unrolled_loss(sim, batch)
     if not torch.isfinite(loss):
         raise FloatingPointError(f"the loss is {loss.item()}")
     optimizer.zero_grad(set_to_none=True)
@@ -155,6 +155,27 @@ def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: B
         raise FloatingPointError(f"the gradient norm is {norm.item()}")
     optimizer.step()
     return loss.item()
+
+
+def unrolled_loss(sim: LearnedSimulator, batch: Batch) -> torch.Tensor:
+    """The one-step loss, averaged over the batch's target frames (pushforward training).
+
+    Step k > 1 starts from the model's own earlier predictions, shape-matched as in rollouts and
+    detached: the model learns to correct the errors it makes itself (after a bounce, say),
+    without backpropagating through time. Each step's target is the true frame, so the
+    acceleration asked for pulls a drifted prediction back toward the truth."""
+    targets = batch.targets
+    frames = list(batch.history.unbind(1))
+    total = 0.0
+    for k in range(targets.shape[1]):
+        history = torch.stack(frames[-HISTORY:], dim=1)
+        total = total + sim.loss(history, targets[:, k], batch.graph)
+        if k + 1 < targets.shape[1]:
+            with torch.no_grad():
+                x = sim.predict_next(*frames[-HISTORY:], batch.graph)
+                x = shape_match_packed(x, batch.graph.rest, batch.graph.node_graph, batch.graph.num_graphs)[2]
+            frames.append(x)
+    return total / targets.shape[1]
 
 
 @torch.no_grad()
@@ -244,7 +265,10 @@ def _load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, O
         library = MeshLibrary(dataset.meshes)
     except ValueError as e:
         raise DataError(f"{data_dir}: {e}") from None
-    tracks = ObjectTracks(scenes, library, "train split")
+    tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)
+    if cfg.train.contact_fraction > 0:
+        tracks.mark_contacts(torch.as_tensor(dataset.gravity, dtype=torch.float64) / dataset.frame_rate ** 2,
+                             cfg.train.contact_threshold)
     valid = None
     if cfg.valid.every > 0 and "valid" in dataset.splits:
         valid = ObjectTracks(dataset.load("valid"), library, "valid split")
@@ -298,8 +322,10 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
                 "model": sim.state_dict(), "optimizer": optimizer.state_dict(), "rng": _rng_state(rng)}
 
     n_params = sum(p.numel() for p in sim.parameters())
+    contact = (f" ({float(tracks.contact.double().mean()):.0%} in contact, drawn as {cfg.train.contact_fraction:.0%})"
+               if tracks.contact is not None else "")
     log(f"{'resuming' if ckpt else 'training'} at step {step} of {cfg.train.steps}: {tracks.num_windows} "
-        f"windows from {tracks.num_scenes} train scenes, {n_params} parameters, "
+        f"windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
         f"node features {spec['node_features']}, edge features {spec['edge_features']}")
 
     last_good = run / LATEST if ckpt else None
@@ -310,7 +336,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
             t0 = time.perf_counter()
             lr = learning_rate(cfg, step)
             batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std,
-                                  cfg.augment.vertex_noise, cfg.augment.track_noise).to(device)
+                                  cfg.augment.vertex_noise, cfg.augment.track_noise,
+                                  cfg.train.contact_fraction).to(device)
             try:
                 loss = train_step(sim, optimizer, batch, lr, cfg.train.grad_clip)
             except FloatingPointError as e:

@@ -1,0 +1,127 @@
+"""Contact-weighted window sampling and pushforward (unrolled) training."""
+import numpy as np
+import pytest
+import torch
+from gns_fixtures import FRAME_RATE, GRAVITY, cube_meshes, toss_scene, write_toss_dataset
+
+from datagen.shards import Dataset, Scene
+from gns.config import ConfigError, build_config
+from gns.data import ObjectTracks
+from gns.graph import MeshLibrary
+from gns.simulator import shape_match_packed
+from gns.train import build_simulator, read_checkpoint, train, unrolled_loss
+from test_gns_train import TINY, metrics, quiet, tiny
+
+G_STEP = torch.tensor(GRAVITY, dtype=torch.float64) / FRAME_RATE ** 2
+
+
+def scene(positions: np.ndarray) -> Scene:
+    """One unit cube along given centre positions (T, 3), not rotating."""
+    t = len(positions)
+    quats = np.tile([1.0, 0, 0, 0], (t, 1))
+    return Scene(positions=positions[:, None], quaternions=quats[:, None], velocities=np.zeros((t, 1, 3)),
+                 angular_velocities=np.zeros((t, 1, 3)), shape=["cube"], material=["metal"], scale=np.ones(1),
+                 mass=np.ones(1), friction=np.array([0.4]), restitution=np.array([0.3]))
+
+
+def ballistic(frames: int, z0: float = 50.0) -> np.ndarray:
+    t = np.arange(frames) / FRAME_RATE
+    return np.stack([0.5 * t, 0 * t, z0 + 2 * t + 0.5 * GRAVITY[2] * t ** 2], axis=1)
+
+
+def test_free_flight_is_never_contact_and_rest_always_is():
+    lib = MeshLibrary(cube_meshes())
+    rest = np.tile([0.0, 0.0, 0.5], (10, 1))
+    tracks = ObjectTracks([scene(ballistic(10)), scene(rest)], lib)
+    tracks.mark_contacts(G_STEP, 0.5)
+    flying = tracks.window_scene == 0
+    assert not tracks.contact[flying].any()
+    assert tracks.contact[~flying].all()
+
+
+def test_a_bounce_flags_exactly_the_windows_whose_targets_hold_it():
+    # free fall, then at frame 6 the vertical velocity is reversed (halved) and free fall goes on:
+    # only the second difference at frame 6 departs from gravity
+    x = ballistic(12)
+    bounce = 6
+    dt = 1.0 / FRAME_RATE
+    v = (x[bounce] - x[bounce - 1]) / dt + 0.5 * np.array(GRAVITY) * dt   # velocity at the bounce frame
+    v[2] = -0.5 * v[2]
+    k = np.arange(1, 12 - bounce)[:, None] * dt
+    x[bounce + 1:] = x[bounce] + v * k + 0.5 * np.array(GRAVITY) * k ** 2
+    tracks = ObjectTracks([scene(x)], MeshLibrary(cube_meshes()), unroll=1)
+    tracks.mark_contacts(G_STEP, 0.5)
+    # window f predicts frame f+3 from f..f+2; its acceleration is taken at frame f+2
+    flagged = [int(f) for f in tracks.window_first[tracks.contact]]
+    assert flagged == [bounce - 2]
+    unrolled = ObjectTracks([scene(x)], MeshLibrary(cube_meshes()), unroll=3)
+    unrolled.mark_contacts(G_STEP, 0.5)
+    # with 3 targets (frames f+3..f+5) the accelerations at f+2..f+4 count
+    assert [int(f) for f in unrolled.window_first[unrolled.contact]] == [bounce - 4, bounce - 3, bounce - 2]
+
+
+def test_contact_fraction_one_draws_only_contact_windows():
+    lib = MeshLibrary(cube_meshes())
+    tracks = ObjectTracks([scene(ballistic(10)), scene(np.tile([0.0, 0.0, 0.5], (10, 1)))], lib)
+    tracks.mark_contacts(G_STEP, 0.5)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        batch = tracks.sample(rng, 6, False, 0.0, contact_fraction=1.0)
+        # every graph of the batch is the resting cube: its centre never moves
+        assert torch.allclose(batch.history[:, 0], batch.target)
+    resting = []
+    for _ in range(100):
+        b = tracks.sample(rng, 8, False, 0.0, contact_fraction=0.5)
+        still = (b.history[:, 0] - b.target).norm(dim=-1).reshape(8, 8).amax(dim=1) < 1e-12  # per graph
+        resting += still.tolist()
+    # half drawn from contact windows (all resting), half from all windows (half resting): 3/4
+    assert abs(np.mean(resting) - 0.75) < 0.06
+
+
+def test_unrolled_windows_carry_the_true_future(tmp_path):
+    ds = Dataset(write_toss_dataset(tmp_path, train=3, valid=0, frames=10))
+    lib = MeshLibrary(ds.meshes)
+    one, three = (ObjectTracks(ds.load("train"), lib, unroll=u) for u in (1, 3))
+    assert three.num_windows == one.num_windows - 3 * 2
+    w = torch.tensor([0, 4])
+    b3 = three.batch(w)
+    for k in range(3):  # target k of a window is the one-step target of the window k frames later
+        later = one.batch(torch.tensor([int(three.window_first[0]) + k, 4 + k]))
+        assert torch.allclose(b3.targets[:, k], later.target)
+
+
+def test_unrolled_loss_is_the_mean_of_one_step_losses_on_its_own_predictions(tmp_path):
+    ds = Dataset(write_toss_dataset(tmp_path, train=3, valid=0, frames=10))
+    from gns.data import feature_spec
+    scenes = ds.load("train")
+    cfg = build_config(path=TINY)
+    sim = build_simulator(cfg, feature_spec(ds, scenes)).eval()   # eval: normalisers frozen
+    tracks = ObjectTracks(scenes, MeshLibrary(ds.meshes), unroll=2)
+    batch = tracks.batch(torch.tensor([0, 5]))
+    g = batch.graph
+    first = sim.loss(batch.history, batch.target, g)
+    with torch.no_grad():
+        x = shape_match_packed(sim.predict_next(*batch.history.unbind(1), g), g.rest, g.node_graph, g.num_graphs)[2]
+    second = sim.loss(torch.stack([batch.history[:, 1], batch.history[:, 2], x], 1), batch.future[:, 0], g)
+    assert torch.allclose(unrolled_loss(sim, batch), (first + second) / 2)
+    one = ObjectTracks(scenes, MeshLibrary(ds.meshes)).batch(torch.tensor([0, 5]))
+    assert torch.allclose(unrolled_loss(sim, one), sim.loss(one.history, one.target, one.graph))
+
+
+def test_training_with_both_levers_resumes_exactly(tmp_path):
+    data = write_toss_dataset(tmp_path / "data", train=4, valid=1, frames=10)
+    over = ("train.steps=12", "train.checkpoint_every=6", "train.unroll_steps=2", "train.contact_fraction=0.5",
+            "valid.every=6")
+    train(data, tmp_path / "a", tiny(*over), log=quiet)
+    train(data, tmp_path / "b", tiny(*over[1:], "train.steps=6"), log=quiet)
+    train(data, tmp_path / "b", tiny(*over), resume=True, log=quiet)
+    a, b = read_checkpoint(tmp_path / "a" / "latest.pt"), read_checkpoint(tmp_path / "b" / "latest.pt")
+    for k in a["model"]:
+        assert torch.equal(a["model"][k], b["model"][k]), k
+    assert metrics(tmp_path / "a")[-1]["loss"] == metrics(tmp_path / "b")[-1]["loss"]
+
+
+@pytest.mark.parametrize("key", ["train.unroll_steps=0", "train.contact_fraction=1.5", "train.contact_threshold=0"])
+def test_bad_lever_values_are_one_line_errors(key):
+    with pytest.raises(ConfigError, match=key.split("=")[0]):
+        build_config(path=TINY, overrides=[key])
