@@ -39,6 +39,9 @@ class FeatureConfig:
     collision_radius: float = 0.15     # collision edges between objects closer than this, scene units
     collision_mode: str = "vertex"     # collision edges vertex-vertex, or vertex-to-surface (gns.contacts)
     frame_stride: int = 1              # train on every k-th recorded frame: the time step is k / frame_rate
+    # > 0 adds v / (|v| + s) per input velocity, s = velocity_direction x |g| dt^2: the direction
+    # of slow motion (friction's sign), resolved at any speed above s; 0 = off (paper)
+    velocity_direction: float = 0.0
 
 
 @dataclass
@@ -70,6 +73,8 @@ class TrainConfig:
     # Steps of pushforward training: the model predicts unroll_steps frames from 3 true ones, each
     # step on its own (shape-matched) earlier predictions, detached; the loss averages all steps.
     unroll_steps: int = 1
+    loss: str = "mse"                  # "mse" (paper), "huber" or "l1" on the normalised acceleration
+    huber_delta: float = 1.0           # huber: quadratic within this many normalised units
 
 
 @dataclass
@@ -195,6 +200,7 @@ def validate(cfg: Config) -> None:
         (cfg.features.collision_radius > 0, "features.collision_radius must be > 0"),
         (cfg.features.collision_mode in ("vertex", "surface"), "features.collision_mode must be 'vertex' or 'surface'"),
         (cfg.features.frame_stride >= 1, "features.frame_stride must be >= 1"),
+        (cfg.features.velocity_direction >= 0, "features.velocity_direction must be >= 0"),
         (cfg.augment.noise_std >= 0, "augment.noise_std must be >= 0"),
         (cfg.augment.vertex_noise >= 0, "augment.vertex_noise must be >= 0"),
         (cfg.augment.track_noise >= 0, "augment.track_noise must be >= 0"),
@@ -205,6 +211,8 @@ def validate(cfg: Config) -> None:
         (0 <= cfg.train.contact_fraction <= 1, "train.contact_fraction must be in [0, 1]"),
         (cfg.train.contact_threshold > 0, "train.contact_threshold must be > 0"),
         (cfg.train.unroll_steps >= 1, "train.unroll_steps must be >= 1"),
+        (cfg.train.loss in ("mse", "huber", "l1"), "train.loss must be 'mse', 'huber' or 'l1'"),
+        (cfg.train.huber_delta > 0, "train.huber_delta must be > 0"),
         (cfg.train.log_every >= 1 and cfg.train.checkpoint_every >= 1,
          "train.log_every and train.checkpoint_every must be >= 1"),
         (cfg.valid.every >= 0 and cfg.valid.rollout_steps >= 1, "valid.every must be >= 0, valid.rollout_steps >= 1"),

@@ -85,6 +85,7 @@ class FeatureLayout:
     floor_clip: float
     collision_groups: tuple[tuple[str, int], ...] = ()
     collision_radius: float = 0.0
+    velocity_scale: float = 0.0      # "velocity_direction": v / (|v| + velocity_scale), scene units per frame
 
     @property
     def collisions(self) -> bool:
@@ -107,13 +108,21 @@ class FeatureLayout:
         return not self.edge_groups
 
 
-def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, collisions: bool = False) -> FeatureLayout:
+def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, collisions: bool = False,
+                gravity_step: float | None = None) -> FeatureLayout:
     """features_cfg: a FeatureConfig. floor_z None when the dataset has no floor; collisions
-    when it has scenes of several objects."""
+    when it has scenes of several objects; gravity_step |g| dt^2 (scene units per frame), which
+    features.velocity_direction is measured in (needs a dataset with gravity)."""
     f = features_cfg
     node = []
     if f.velocity:
         node.append(("velocity", 3 * (HISTORY - 1)))
+    velocity_scale = 0.0
+    if f.velocity_direction > 0:
+        if not gravity_step:
+            raise ConfigError("features.velocity_direction needs a dataset with gravity")
+        velocity_scale = f.velocity_direction * gravity_step
+        node.append(("velocity_direction", 3 * (HISTORY - 1)))
     if f.floor_distance and floor_z is not None:
         node.append(("floor", 1))
     if f.material and materials_vary:
@@ -133,7 +142,7 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, colli
         raise ConfigError("no node features are on: switch on features.velocity or features.rest_position")
     collision = (("collision_relative", 3), ("collision_relative_norm", 1)) if collisions else ()
     return FeatureLayout(tuple(node), tuple(edge), floor_z if f.floor_distance else None, f.floor_clip,
-                         collision, float(f.collision_radius))
+                         collision, float(f.collision_radius), velocity_scale)
 
 
 def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph) -> dict[str, torch.Tensor]:
@@ -144,6 +153,13 @@ def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
         if name == "velocity":
             v = history[:, 1:] - history[:, :-1]                 # (N, 2, 3): older first
             out[name] = v.flip(1).reshape(len(history), 3 * (HISTORY - 1))  # newest first
+        elif name == "velocity_direction":
+            # Coulomb friction flips with the sign of a slow sliding velocity; normalised by the
+            # spread of flight speeds, such velocities are too small for the MLP to resolve, so
+            # it learns a friction that fades out before the object stops. The direction is
+            # resolved at any speed above velocity_scale.
+            v = (history[:, 1:] - history[:, :-1]).flip(1)
+            out[name] = (v / (v.norm(dim=-1, keepdim=True) + layout.velocity_scale)).reshape(len(history), -1)
         elif name == "floor":
             out[name] = (x_t[:, 2:3] - layout.floor_z).clamp(0.0, layout.floor_clip)
         elif name == "material":

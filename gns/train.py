@@ -138,14 +138,14 @@ def _incompatibility(ckpt: dict, cfg: Config, spec: dict) -> str | None:
 
 
 def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: Batch, lr: float,
-               grad_clip: float) -> float:
+               grad_clip: float, loss_kind: str = "mse", huber_delta: float = 1.0) -> float:
     """One Adam step on the per-node MSE of a batch; returns the loss.
 
     Raises FloatingPointError, before the weights change, if the loss or the gradient is not finite.
     """
     for group in optimizer.param_groups:
         group["lr"] = lr
-    loss = unrolled_loss(sim, batch)
+    loss = unrolled_loss(sim, batch, loss_kind, huber_delta)
     if not torch.isfinite(loss):
         raise FloatingPointError(f"the loss is {loss.item()}")
     optimizer.zero_grad(set_to_none=True)
@@ -157,7 +157,7 @@ def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: B
     return loss.item()
 
 
-def unrolled_loss(sim: LearnedSimulator, batch: Batch) -> torch.Tensor:
+def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta: float = 1.0) -> torch.Tensor:
     """The one-step loss, averaged over the batch's target frames (pushforward training).
 
     Step k > 1 starts from the model's own earlier predictions, shape-matched as in rollouts and
@@ -169,7 +169,7 @@ def unrolled_loss(sim: LearnedSimulator, batch: Batch) -> torch.Tensor:
     total = 0.0
     for k in range(targets.shape[1]):
         history = torch.stack(frames[-HISTORY:], dim=1)
-        total = total + sim.loss(history, targets[:, k], batch.graph)
+        total = total + sim.loss(history, targets[:, k], batch.graph, kind, delta)
         if k + 1 < targets.shape[1]:
             with torch.no_grad():
                 x = sim.predict_next(*frames[-HISTORY:], batch.graph)
@@ -339,7 +339,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
                                   cfg.augment.vertex_noise, cfg.augment.track_noise,
                                   cfg.train.contact_fraction).to(device)
             try:
-                loss = train_step(sim, optimizer, batch, lr, cfg.train.grad_clip)
+                loss = train_step(sim, optimizer, batch, lr, cfg.train.grad_clip, cfg.train.loss, cfg.train.huber_delta)
             except FloatingPointError as e:
                 raise TrainingError(_stopped(str(e), step + 1, last_good)) from None
             step += 1

@@ -125,3 +125,44 @@ def test_training_with_both_levers_resumes_exactly(tmp_path):
 def test_bad_lever_values_are_one_line_errors(key):
     with pytest.raises(ConfigError, match=key.split("=")[0]):
         build_config(path=TINY, overrides=[key])
+
+
+def _sim_and_batch(tmp_path, *overrides):
+    ds = Dataset(write_toss_dataset(tmp_path, train=3, valid=0, frames=10))
+    from gns.data import feature_spec
+    scenes = ds.load("train")
+    sim = build_simulator(build_config(path=TINY, overrides=list(overrides)), feature_spec(ds, scenes)).eval()
+    return sim, ObjectTracks(scenes, MeshLibrary(ds.meshes)).batch(torch.tensor([0, 3, 6]))
+
+
+def test_huber_and_l1_losses_are_what_they_say(tmp_path):
+    sim, b = _sim_and_batch(tmp_path)
+    mse = sim.loss(b.history, b.target, b.graph)
+    # within delta the Huber loss is half the squared error; with a tiny delta it is delta x |e|
+    assert torch.allclose(sim.loss(b.history, b.target, b.graph, "huber", 1e6), mse / 2)
+    l1 = sim.loss(b.history, b.target, b.graph, "l1")
+    assert torch.allclose(sim.loss(b.history, b.target, b.graph, "huber", 1e-4), 1e-4 * l1, rtol=1e-3)
+    assert l1 > 0
+    with pytest.raises(ValueError):
+        sim.loss(b.history, b.target, b.graph, "l3")
+
+
+def test_velocity_direction_is_the_direction_of_motion_above_its_scale_and_fades_at_rest(tmp_path):
+    from gns.features import raw_node_features
+    sim, b = _sim_and_batch(tmp_path, "features.velocity_direction=0.3")
+    layout = sim.layout
+    assert "velocity_direction" in dict(layout.node_groups)
+    assert layout.velocity_scale == pytest.approx(0.3 * 10 / FRAME_RATE ** 2)
+    s = layout.velocity_scale
+    x0 = torch.zeros(2, 3, dtype=torch.float64)
+    fast = torch.stack([x0, x0 + torch.tensor([1000 * s, 0, 0]), x0 + torch.tensor([2000 * s, 0, 0])], 1)
+    still = torch.stack([x0, x0, x0], 1)
+    g = b.graph
+    f_fast = raw_node_features(layout, fast, g)["velocity_direction"]
+    f_still = raw_node_features(layout, still, g)["velocity_direction"]
+    assert torch.allclose(f_fast[:, 0], torch.full((2,), 1000 / 1001, dtype=torch.float32))
+    assert float(f_still.abs().max()) == 0.0
+    # the model stays equivariant to horizontal translation (z would change the floor distance)
+    assert torch.isfinite(sim(b.history, g)).all()
+    shift = torch.tensor([5.0, -3.0, 0.0], dtype=torch.float64)
+    assert torch.allclose(sim(b.history + shift, g), sim(b.history, g), atol=1e-5)
