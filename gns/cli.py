@@ -52,6 +52,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     ckpt = checkpoint_of(args.run_dir)
     saved = read_checkpoint(ckpt)
     sim, _ = load_model(saved)
+    sim.symmetrize = args.symmetrize
     ds, scenes = load_split(args.data, args.split, args.limit, saved["spec"]["frame_rate"])
     check_ranges(saved["spec"], ds, scenes)
     t0 = time.perf_counter()
@@ -61,7 +62,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]),
             "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
             "given_frames": 3, "seconds": seconds,
-            "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}}
+            "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize}
     write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
     print(f"rolled out {len(pred)} scenes in {seconds:.2f} s; wrote {args.out}")
 
@@ -72,7 +73,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
     results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit,
                                shape_matching=not args.no_shape_matching, plots_dir=args.plots,
-                               batch_tracks=args.batch, sleep=_sleep(args))
+                               batch_tracks=args.batch, sleep=_sleep(args), symmetrize=args.symmetrize)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched")
@@ -100,6 +101,9 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--sleep", action="store_true",
                    help="hold resting objects still until another object touches them, as physics engines "
                         "deactivate bodies (docs/stability.md); off by default")
+    p.add_argument("--symmetrize", action="store_true",
+                   help="average each step's prediction over the floor's mirror and half-turn symmetries: exactly "
+                        "mirror-equivariant rollouts at 4x the network cost")
     p.add_argument("--sleep-fraction", type=float, default=0.1, metavar="F",
                    help="--sleep: an object is at rest when no vertex moved F x |g| dt^2 in either input step "
                         "(default 0.1)")

@@ -36,7 +36,7 @@ def write_json(path: str | Path, obj) -> None:
 
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
                  shape_matching: bool = True, plots_dir: str | Path | None = None, progress: bool = True,
-                 batch_tracks: int = 256, sleep=None) -> tuple[dict, list, list, Dataset]:
+                 batch_tracks: int = 256, sleep=None, symmetrize: bool = False) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it.
 
     Returns (results, predicted scenes, true scenes, dataset). Results hold the metrics of
@@ -45,6 +45,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     ckpt = checkpoint_of(run)
     saved = read_checkpoint(ckpt)
     sim, _ = load_model(saved)
+    sim.symmetrize = symmetrize
     ds, scenes = load_split(data, split, limit, saved["spec"]["frame_rate"])
     warnings = check_ranges(saved["spec"], ds, scenes)
     t0 = time.perf_counter()
@@ -52,7 +53,8 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                           batch_tracks=batch_tracks, progress=progress, sleep=sleep)
     results = score_predictions(pred, scenes, ds, time.perf_counter() - t0, plots_dir)
     results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
-                   outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep))
+                   outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
+                   symmetrize=symmetrize)
     return results, pred, scenes, ds
 
 

@@ -115,8 +115,14 @@ class Sleep:
         return slow[graph.node_graph]
 
 
+# Diagonals of the world maps that keep the floor: identity, mirror x, mirror y, half turn about z.
+FLOOR_SYMMETRIES = ((1.0, 1.0, 1.0), (-1.0, 1.0, 1.0), (1.0, -1.0, 1.0), (-1.0, -1.0, 1.0))
+
+
 class LearnedSimulator(nn.Module):
     """GNS for rigid meshes. `spec` is the dataset's feature spec (see gns.data.feature_spec)."""
+
+    symmetrize: bool = False  # average predictions over FLOOR_SYMMETRIES (rollouts; not saved)
 
     def __init__(self, model_cfg, features_cfg, spec: dict):
         super().__init__()
@@ -181,8 +187,24 @@ class LearnedSimulator(nn.Module):
                             c_features, c.senders, c.receivers)
 
     def predict_acceleration(self, history: torch.Tensor, graph: Graph) -> torch.Tensor:
-        """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2."""
-        return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
+        """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2.
+
+        With `self.symmetrize` (a rollout option, off by default), the prediction is averaged over
+        the world's floor symmetries {identity, mirror x, mirror y, half turn about z}: each maps
+        the input, the network predicts, the map is undone. The result is exactly equivariant
+        to those four maps (e.g. a cube tilted 45 - d degrees mirrors one tilted 45 + d), where
+        the network alone is only approximately so (trained with random z rotations)."""
+        if not self.symmetrize:
+            return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
+        total = torch.zeros_like(history[:, -1])
+        for m in FLOOR_SYMMETRIES:
+            g = torch.tensor(m, dtype=history.dtype, device=history.device)
+            # the body frame is mapped too (x = R rest + p -> (g R g) (g rest) + g p): the network
+            # sees a proper rotation, as in training, and the average is exactly equivariant
+            mapped = replace(graph, rest=graph.rest * g, collision_edges=None)
+            a = self.target_normalizer.inverse(self(history * g, mapped).to(torch.float64))
+            total = total + a * g
+        return total / len(FLOOR_SYMMETRIES)
 
     def predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: Graph) -> torch.Tensor:
         """Vertex positions (N, 3) float64 at t-2, t-1, t -> positions at t+1 (N, 3) float64."""
