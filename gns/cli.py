@@ -73,7 +73,8 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
     results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit,
                                shape_matching=not args.no_shape_matching, plots_dir=args.plots,
-                               batch_tracks=args.batch, sleep=_sleep(args), symmetrize=args.symmetrize)
+                               batch_tracks=args.batch, sleep=_sleep(args), symmetrize=args.symmetrize,
+                               at_data_rate=args.at_data_rate)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched")
@@ -123,6 +124,9 @@ def add_eval_parsers(sub) -> None:
                                    "frames, then scenes), at fixed horizons and by shape, size and material.")
     _add_rollout_args(e)
     e.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    e.add_argument("--at-data-rate", action="store_true",
+                   help="a model trained at every k-th frame is scored at every frame of the data (its poses "
+                        "interpolated), the instants any other simulator is scored at; default: at its own frames")
     e.add_argument("--plots", metavar="DIR", help="write trajectory plots, error against time and a GIF here")
     e.set_defaults(run=cmd_eval)
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors, per_scene_means
-from gns.rollout import rollout_scenes
+from gns.rollout import rollout_scenes, upsample_scene
 from gns.data import feature_spec
 from gns.ranges import outside_training
 from gns.train import LATEST, load_model, read_checkpoint
@@ -36,8 +36,13 @@ def write_json(path: str | Path, obj) -> None:
 
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
                  shape_matching: bool = True, plots_dir: str | Path | None = None, progress: bool = True,
-                 batch_tracks: int = 256, sleep=None, symmetrize: bool = False) -> tuple[dict, list, list, Dataset]:
+                 batch_tracks: int = 256, sleep=None, symmetrize: bool = False,
+                 at_data_rate: bool = False) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it.
+
+    A model trained at every k-th frame rolls out at its own rate from frames 0, k, 2k; it is
+    scored at those frames, or with `at_data_rate` at every frame of the data (its poses
+    interpolated, gns.rollout.upsample_scene), i.e. at the same instants as any other simulator.
 
     Returns (results, predicted scenes, true scenes, dataset). Results hold the metrics of
     gns.metrics.evaluate_scenes plus where they came from and what the rollouts cost.
@@ -51,10 +56,17 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
                           batch_tracks=batch_tracks, progress=progress, sleep=sleep)
-    results = score_predictions(pred, scenes, ds, time.perf_counter() - t0, plots_dir)
+    seconds = time.perf_counter() - t0
+    if at_data_rate and ds.stride > 1:
+        full = Dataset(data)
+        pairs = [upsample_scene(p, ds.stride, t, full.frame_rate)
+                 for p, t in zip(pred, full.load(split, limit), strict=True)]
+        pred, scenes, ds = [p for p, _ in pairs], [t for _, t in pairs], full
+    results = score_predictions(pred, scenes, ds, seconds, plots_dir)
     results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
                    outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
-                   symmetrize=symmetrize)
+                   symmetrize=symmetrize, at_data_rate=at_data_rate, model_stride=ds.stride if not at_data_rate
+                   else round(ds.frame_rate / saved["spec"]["frame_rate"]))
     return results, pred, scenes, ds
 
 

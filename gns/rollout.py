@@ -146,3 +146,38 @@ def write_rollouts(out: str | Path, scenes: list[Scene], source: Dataset, split:
     meta.update(generator="gns rollout", rollout=info, frame_rate=source.frame_rate,
                 splits={split: {"num_scenes": len(scenes), "shards": names}})
     write_metadata(out, meta)
+
+
+def upsample_scene(pred: Scene, stride: int, true: Scene, frame_rate: float) -> tuple[Scene, Scene]:
+    """A rollout made at every `stride`-th frame, interpolated to every frame of the full-rate
+    truth it covers: centres by a cubic spline (exact for free flight's parabolas; a bounce's
+    kink rings by a small fraction of one coarse step's motion), rotations by slerp. Returns (predicted, true), both cut to the frames up to the last predicted one, so a
+    model with a coarser time step is scored at the same instants as one at the data's rate.
+    frame_rate is the truth's (fine) rate."""
+    from scipy.interpolate import CubicSpline
+    from scipy.spatial.transform import Rotation, Slerp
+
+    coarse = np.arange(pred.num_frames) * stride
+    fine = np.arange(coarse[-1] + 1)
+    positions = CubicSpline(coarse, pred.positions, axis=0)(fine) if len(coarse) > 2 else \
+        np.stack([np.interp(fine, coarse, c) for c in pred.positions.reshape(len(coarse), -1).T], -1).reshape(
+            len(fine), *pred.positions.shape[1:])
+    quaternions = np.empty((len(fine), pred.num_objects, 4))
+    for n in range(pred.num_objects):
+        wxyz = pred.quaternions[:, n]
+        slerp = Slerp(coarse, Rotation.from_quat(wxyz[:, [1, 2, 3, 0]]))
+        quaternions[:, n] = _continuous(slerp(fine).as_quat()[:, [3, 0, 1, 2]])
+    dt = 1.0 / frame_rate
+    velocities = np.zeros_like(positions)
+    velocities[1:] = (positions[1:] - positions[:-1]) / dt
+    velocities[0] = true.velocities[0]
+    cut = len(fine)
+    upsampled = Scene(positions=positions, quaternions=quaternions, velocities=velocities,
+                      angular_velocities=_angular_velocity(quaternions, dt), shape=list(pred.shape),
+                      material=list(pred.material), scale=pred.scale.copy(), mass=pred.mass.copy(),
+                      friction=pred.friction.copy(), restitution=pred.restitution.copy(),
+                      attrs={**pred.attrs, "upsampled_from_stride": stride})
+    truth = Scene(*(getattr(true, k)[:cut] for k in ("positions", "quaternions", "velocities", "angular_velocities")),
+                  list(true.shape), list(true.material), true.scale, true.mass, true.friction, true.restitution,
+                  dict(true.attrs))
+    return upsampled, truth
