@@ -438,9 +438,9 @@ def report(out: Path, results: dict) -> Path:
              "all frames of a toss, then over tosses (ContactNets convention, docs/metrics.md). "
              f"The ground truth's own penetration is {_f(results['true_penetration_pct'])}% (the metric's floor).", "",
              "## Error against the number of training tosses (Figure 4)", "",
-             f"Each engine's contact parameters are identified on the training tosses of the row "
+             "Each engine's contact parameters are identified on the training tosses of the row "
              "(pipelines/real_cubes_baselines.py); \"GNS better\" is the share of test tosses on which the GNS "
-             "has the lower error than that engine (position / rotation).", "",
+             "has a lower error than that engine (position / rotation).", "",
              "| training tosses | seed | GNS pos % | GNS rot deg | GNS pen % | "
              + " | ".join(f"{ENGINE_LABELS[e]} pos % | {ENGINE_LABELS[e]} rot deg | {ENGINE_LABELS[e]} pen %" for e in engines)
              + " | " + " | ".join(f"GNS better than {ENGINE_LABELS[e]}" for e in engines) + " |",
