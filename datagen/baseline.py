@@ -23,12 +23,17 @@ and the cube carries the identified values. Parameters (BaselineParams):
   friction, restitution  the Coulomb friction and restitution of the cube-table contact;
   stiffness, damping_ratio  a compliant contact (changeDynamics contactStiffness k and
     contactDamping 2 zeta sqrt(k m)); stiffness 0 keeps Bullet's rigid contact;
+  rolling_friction, spinning_friction  Bullet's rolling and torsional friction (lever arms);
   gravity  its magnitude (fit_gravity measures the data's own: ~2% below the nominal value);
   floor_z  the table's height (fit_floor measures it: the data's cube rests 0.022 low);
-  substeps  physics steps per 148 Hz frame (physics at 148 * substeps Hz).
-`fit_parameters` identifies friction, restitution, log10 stiffness and the damping ratio on
-training tosses with scipy (a seeded Latin hypercube, then bounded Nelder-Mead from its best
-point), after `fit_gravity` and `fit_floor` have measured gravity and the table height.
+  substeps  physics steps per 148 Hz frame (physics at 148 * substeps Hz);
+  solver_iterations, contact_erp  the sequential-impulse solver's iterations and its position
+    correction for rigid contacts.
+`fit_parameters` identifies the FIT names of BOUNDS on training tosses with `identify`, which
+is engine-neutral (datagen/baseline_mujoco.py uses it too): `fit_gravity` and `fit_floor`
+measure gravity and the table height, then a seeded Latin hypercube over the searched box
+and bounded Nelder-Mead from its best few points minimise the pipeline's own metric
+(`objective`) on the training tosses.
 
 This module scores its own objective with a local copy of the metric formulas, because datagen
 must not import gns; tests check the copy against gns.metrics.
@@ -64,10 +69,13 @@ class BaselineParams:
     restitution: float = float(CONTACTNETS["restitution"])  # 0.125
     stiffness: float = 0.0       # contact stiffness (mass units / s^2); 0 = Bullet's rigid contact
     damping_ratio: float = 0.0   # contact damping as a fraction of critical, used with stiffness
+    rolling_friction: float = 0.0   # Bullet's rolling and spinning (torsional) friction: a lever
+    spinning_friction: float = 0.0  # arm, scene units (torque limit = value x normal force)
     gravity: float = GRAVITY     # magnitude along -z, scene units / s^2 (see fit_gravity)
     floor_z: float = 0.0         # height of the table top (see fit_floor)
     substeps: int = 4            # physics steps per frame: 592 Hz for the 148 Hz data
     solver_iterations: int = 50  # Bullet's default
+    contact_erp: float = 0.0     # rigid contact's position correction per step; 0 keeps Bullet's
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -75,35 +83,20 @@ class BaselineParams:
 
 PUBLISHED = BaselineParams()
 
-# What fit_parameters searches, in this order: (name, low, high). Friction is the parameter the
-# errors hinge on (it sets how far a cube slides: 0.1 or 0.3 instead of 0.18 doubles the error),
-# so its range is kept to what acrylic on a table can plausibly have. Stiffness is searched on
-# a log10 scale: 10^3.5 is soft (the cube visibly sinks), 10^7 is about rigid at 592 Hz.
+# What fit_parameters can search, in this order: (name, low, high); "log10_x" searches field x
+# on a log10 scale, an int field is rounded. Friction is the parameter the errors hinge on (it
+# sets how far a cube slides: 0.1 or 0.3 instead of 0.18 doubles the error), so its range is
+# kept to what acrylic on a table can plausibly have. 10^3.5 is a soft contact (the cube visibly
+# sinks), 10^7 about rigid at 592 Hz. Rolling and spinning friction are lever arms in half-widths:
+# Coulomb friction at a face's corners already resists spin with ~0.18 x 1.4 = 0.25.
 BOUNDS = (("friction", 0.05, 0.5), ("restitution", 0.0, 0.6),
-          ("log10_stiffness", 3.5, 7.0), ("damping_ratio", 0.05, 2.0))
-
-
-def _params_from_unit(u: np.ndarray, names: Sequence[str], base: BaselineParams) -> BaselineParams:
-    lows = {n: lo for n, lo, _ in BOUNDS}
-    highs = {n: hi for n, _, hi in BOUNDS}
-    values = {}
-    for n, x in zip(names, np.clip(u, 0.0, 1.0)):
-        v = lows[n] + float(x) * (highs[n] - lows[n])
-        if n == "log10_stiffness":
-            values["stiffness"] = 10.0 ** v
-        else:
-            values[n] = v
-    return replace(base, **values)
-
-
-def _unit_from_params(p: BaselineParams, names: Sequence[str]) -> np.ndarray:
-    out = []
-    for n, lo, hi in BOUNDS:
-        if n not in names:
-            continue
-        v = math.log10(p.stiffness) if n == "log10_stiffness" else getattr(p, n)
-        out.append((v - lo) / (hi - lo))
-    return np.clip(np.array(out), 0.0, 1.0)
+          ("log10_stiffness", 3.5, 7.0), ("damping_ratio", 0.05, 2.0),
+          ("rolling_friction", 0.0, 0.1), ("spinning_friction", 0.0, 0.3),
+          ("substeps", 2, 20), ("solver_iterations", 10, 150), ("contact_erp", 0.05, 1.0))
+# What the pipeline identifies: all but contact_erp, which a compliant contact (stiffness > 0,
+# as every searched point is) ignores: Bullet then derives ERP and CFM from stiffness and damping.
+FIT = ("friction", "restitution", "log10_stiffness", "damping_ratio", "rolling_friction", "spinning_friction",
+       "substeps", "solver_iterations")
 
 
 # ---- one toss --------------------------------------------------------------------------------
@@ -145,6 +138,8 @@ def _build(scene: Scene, params: BaselineParams, frame_rate: float, state) -> tu
         numSubSteps=0, restitutionVelocityThreshold=0, warmStartingFactor=0, useSplitImpulse=True,
         contactSlop=0, splitImpulsePenetrationThreshold=0, enableConeFriction=False,
         deterministicOverlappingPairs=True, physicsClientId=c)
+    if params.contact_erp > 0:
+        pb.setPhysicsEngineParameter(contactERP=float(params.contact_erp), physicsClientId=c)
     box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[FLOOR_HALF_WIDTH, FLOOR_HALF_WIDTH, 1.0], physicsClientId=c)
     floor = pb.createMultiBody(0, box, basePosition=[0, 0, params.floor_z - 1.0], useMaximalCoordinates=True,
                                physicsClientId=c)
@@ -158,8 +153,13 @@ def _build(scene: Scene, params: BaselineParams, frame_rate: float, state) -> tu
     # mass must be passed with localInertiaDiagonal: without it this PyBullet build ignores the
     # new inertia in the solver and the cube falls through the floor.
     inertia = 2.0 / 3.0 * mass * a * a
+    # Bullet combines rolling (spinning) friction as r0 mu1 + r1 mu0: with the floor's 1 and 0
+    # the cube's own value is the contact's. Bullet adds the torsional (spinning) friction
+    # constraint only where rolling friction is > 0, so a negligible one switches it on.
+    rolling = max(float(params.rolling_friction), 1e-9 if params.spinning_friction > 0 else 0.0)
     pb.changeDynamics(body, -1, lateralFriction=float(params.friction), restitution=float(params.restitution),
-                      mass=mass, localInertiaDiagonal=[inertia] * 3, linearDamping=0, angularDamping=0,
+                      rollingFriction=rolling,
+                      spinningFriction=float(params.spinning_friction), mass=mass, localInertiaDiagonal=[inertia] * 3, linearDamping=0, angularDamping=0,
                       contactProcessingThreshold=0, physicsClientId=c)
     if params.stiffness > 0:
         damping = 2.0 * params.damping_ratio * math.sqrt(params.stiffness * mass)
@@ -175,33 +175,41 @@ def simulate_toss(scene: Scene, params: BaselineParams = PUBLISHED, frame_rate: 
     simulated from the state estimated on them."""
     if params.substeps < 1:
         raise ValueError("substeps must be >= 1")
-    T = scene.num_frames
-    pos = np.empty((T, 1, 3))
-    quat = np.empty((T, 1, 4))
-    vel = np.empty((T, 1, 3))
-    ang = np.empty((T, 1, 3))
-    k = given - 1
-    pos[:given], quat[:given] = scene.positions[:given], scene.quaternions[:given]
-    vel[:given], ang[:given] = scene.velocities[:given], scene.angular_velocities[:given]
+    out = prediction_arrays(scene, given)
     state = initial_state(scene, frame_rate, params.gravity, given)
     c, body = _build(scene, params, frame_rate, state)
     try:
-        for t in range(k + 1, T):
+        for t in range(given, scene.num_frames):
             for _ in range(params.substeps):
                 pb.stepSimulation(physicsClientId=c)
             p, q = pb.getBasePositionAndOrientation(body, physicsClientId=c)
             v, w = pb.getBaseVelocity(body, physicsClientId=c)
-            pos[t, 0], quat[t, 0], vel[t, 0], ang[t, 0] = p, _wxyz(q), v, w
+            out[0][t, 0], out[1][t, 0], out[2][t, 0], out[3][t, 0] = p, _wxyz(q), v, w
     finally:
         pb.disconnect(c)
-    # Keep one quaternion cover along the toss (as the truth and datagen.simulate do).
+    return prediction_scene(scene, out, "pybullet", params, params.restitution)
+
+
+def prediction_arrays(scene: Scene, given: int = GIVEN) -> tuple[np.ndarray, ...]:
+    """Position, quaternion, velocity and angular velocity arrays (T, 1, .) of a prediction, the
+    first `given` frames copied from the truth; an engine fills the rest."""
+    T = scene.num_frames
+    arrays = (np.empty((T, 1, 3)), np.empty((T, 1, 4)), np.empty((T, 1, 3)), np.empty((T, 1, 3)))
+    for a, b in zip(arrays, (scene.positions, scene.quaternions, scene.velocities, scene.angular_velocities)):
+        a[:given] = b[:given]
+    return arrays
+
+
+def prediction_scene(scene: Scene, arrays, engine: str, params, restitution: float) -> Scene:
+    """The predicted Scene from filled prediction_arrays, its quaternions kept on one cover along
+    the toss (as the truth and datagen.simulate do)."""
+    pos, quat, vel, ang = arrays
     flip = np.cumprod(np.where(np.sum(quat[1:] * quat[:-1], axis=-1) < 0, -1.0, 1.0), axis=0)
     quat[1:] *= flip[..., None]
     return Scene(positions=pos, quaternions=quat, velocities=vel, angular_velocities=ang,
                  shape=list(scene.shape), material=list(scene.material), scale=scene.scale.copy(),
-                 mass=scene.mass.copy(), friction=np.array([params.friction]),
-                 restitution=np.array([params.restitution]),
-                 attrs={**scene.attrs, "baseline": "pybullet", "params": str(params.to_dict())})
+                 mass=scene.mass.copy(), friction=np.array([params.friction]), restitution=np.array([restitution]),
+                 attrs={**scene.attrs, "baseline": engine, "params": str(params.to_dict())})
 
 
 # ---- scoring and identification ---------------------------------------------------------------
@@ -272,98 +280,177 @@ def fit_floor(scenes: Sequence[Scene], frame_rate: float = FRAME_RATE, max_speed
     return float(np.median(values)) if values else None
 
 
-def objective(params: BaselineParams, scenes: Sequence[Scene], frame_rate: float = FRAME_RATE,
-              rotation_weight: float = ROTATION_WEIGHT) -> float:
-    """Mean over tosses of position error % + rotation_weight x rotation error in degrees."""
+def first_frames(scene: Scene, frames: int | None) -> Scene:
+    """The first `frames` frames of a scene (all of them if None)."""
+    if frames is None or frames >= scene.num_frames:
+        return scene
+    return replace(scene, positions=scene.positions[:frames], quaternions=scene.quaternions[:frames],
+                   velocities=scene.velocities[:frames], angular_velocities=scene.angular_velocities[:frames])
+
+
+def objective(params, scenes: Sequence[Scene], frame_rate: float = FRAME_RATE,
+              rotation_weight: float = ROTATION_WEIGHT, simulate: Callable | None = None,
+              horizon: int | None = None) -> float:
+    """Mean over tosses of position error % + rotation_weight x rotation error in degrees, over
+    each toss's first `horizon` frames (all frames if None). `simulate(scene, params,
+    frame_rate)` is the engine (default: this module's PyBullet)."""
+    simulate = simulate or simulate_toss
     total = 0.0
     for sc in scenes:
-        pos, rot = toss_errors(simulate_toss(sc, params, frame_rate), sc)
+        sc = first_frames(sc, horizon)
+        pos, rot = toss_errors(simulate(sc, params, frame_rate), sc)
         total += pos + rotation_weight * rot
     return total / len(scenes)
 
 
-def fit_parameters(train_scenes: Sequence[Scene], budget: int = 60, seed: int = 0,
-                   start: BaselineParams = PUBLISHED, fit: Sequence[str] = tuple(n for n, _, _ in BOUNDS),
-                   initial_points: int | None = None, identify_gravity: bool = True, identify_floor: bool = True,
-                   frame_rate: float = FRAME_RATE,
-                   rotation_weight: float = ROTATION_WEIGHT, log: Callable[[str], None] | None = None) -> dict:
-    """Identify contact parameters on training tosses; deterministic for a given seed.
+def _field(name: str) -> str:
+    return name[len("log10_"):] if name.startswith("log10_") else name
 
-    First the constants with closed-form estimates are measured on these tosses: gravity
-    (fit_gravity, from their free flight) with identify_gravity, the table height (fit_floor,
-    from where they come to rest) with identify_floor; either stays at start's value if no
-    toss allows the estimate. Search space for the rest: the names in `fit` (of BOUNDS: friction, restitution, log10_stiffness,
-    damping_ratio), each mapped to [0, 1]. `budget` objective evaluations in all: the start
-    point, then `initial_points` (default budget // 3) of a Latin hypercube design seeded by
-    `seed`, then bounded Nelder-Mead from the best point so far with what is left. The best
-    point seen is returned, so the objective never ends above the start's.
-    Returns {"params": BaselineParams, "objective", "start_objective", "evaluations", "seconds",
-    "history": [(objective, params dict), ...]}; "start_objective" is the start's objective
-    with the measured constants.
+
+def params_from_unit(u: np.ndarray, names: Sequence[str], base, bounds) -> object:
+    """base with the searched fields set from a point u of the unit cube (one entry per name)."""
+    box = {n: (lo, hi) for n, lo, hi in bounds}
+    values = {}
+    for n, x in zip(names, np.clip(u, 0.0, 1.0)):
+        lo, hi = box[n]
+        v, f = lo + float(x) * (hi - lo), _field(n)
+        v = 10.0 ** v if f != n else v
+        values[f] = int(round(v)) if isinstance(getattr(base, f), int) else v
+    return replace(base, **values)
+
+
+def unit_from_params(p, names: Sequence[str], bounds) -> np.ndarray:
+    """Where p lies in the unit cube of the searched names (clipped; a log field <= 0 maps to 0)."""
+    box = {n: (lo, hi) for n, lo, hi in bounds}
+    out = []
+    for n in names:
+        lo, hi = box[n]
+        v = float(getattr(p, _field(n)))
+        if _field(n) != n:
+            v = math.log10(v) if v > 0 else lo
+        out.append((v - lo) / (hi - lo))
+    return np.clip(np.array(out), 0.0, 1.0)
+
+
+def identify(train_scenes: Sequence[Scene], simulate: Callable, bounds, start, fit: Sequence[str],
+             budget: int = 60, seed: int = 0, initial_points: int | None = None, local_starts: int = 2,
+             max_tosses: int | None = None, horizon: int | None = None, identify_gravity: bool = True,
+             identify_floor: bool = True, frame_rate: float = FRAME_RATE, rotation_weight: float = ROTATION_WEIGHT,
+             log: Callable[[str], None] | None = None) -> dict:
+    """Identify an engine's parameters on training tosses; deterministic for a given seed.
+
+    Engine-neutral: `simulate(scene, params, frame_rate)` runs one toss, `start` is a frozen
+    dataclass of the engine's parameters (with gravity and floor_z fields), `bounds` its search
+    box ((name, low, high); "log10_x" searches field x on a log10 scale; int fields are rounded).
+
+    First the constants with closed-form estimates are measured on all training tosses: gravity
+    (fit_gravity) with identify_gravity, the table height (fit_floor) with identify_floor. The
+    objective (see `objective`) is evaluated on every training toss, or on a seeded random
+    subset of `max_tosses` of them. `budget` evaluations in all: the start point; a coarse
+    stage of `initial_points` (default budget // 2) Latin-hypercube points over all searched
+    names (seeded by `seed`); then bounded Nelder-Mead over the continuous names from each of
+    the `local_starts` best coarse points in turn (int names such as substeps stay at that
+    point's value), each with an equal share of what is left. Several local starts because the
+    objective is rough: a bounce on a corner is chaotic, so one descent often stalls in a dent.
+    The best point seen is returned, so the objective never ends above the start's.
+    Returns {"params", "objective", "start_objective", "evaluations", "seconds", "fitted",
+    "fit_tosses", "history": [(objective, params dict), ...], ...}.
     """
     if not train_scenes:
         raise ValueError("no training tosses to fit the baseline on")
-    names = [n for n, _, _ in BOUNDS if n in fit]
+    known = [n for n, _, _ in bounds]
+    names = [n for n in known if n in fit]
     unknown = set(fit) - set(names)
     if unknown:
-        raise ValueError(f"unknown parameter(s) {sorted(unknown)}; fittable: {', '.join(n for n, _, _ in BOUNDS)}")
+        raise ValueError(f"unknown parameter(s) {sorted(unknown)}; fittable: {', '.join(known)}")
     if budget < 1:
         raise ValueError("budget must be >= 1")
-    if "log10_stiffness" not in names and "damping_ratio" in names:
-        raise ValueError("damping_ratio needs log10_stiffness (it only acts on a compliant contact)")
-    # A rigid start (stiffness 0) has no log-stiffness: start the search from the stiff end.
-    base = replace(start, stiffness=start.stiffness or 10.0 ** BOUNDS[2][2],
-                   damping_ratio=start.damping_ratio or 1.0) if "log10_stiffness" in names else start
     t0 = time.perf_counter()
     measured = {"gravity": fit_gravity(train_scenes, frame_rate) if identify_gravity else None,
                 "floor_z": fit_floor(train_scenes, frame_rate) if identify_floor else None}
-    measured = {k: v for k, v in measured.items() if v is not None}
-    start, base = replace(start, **measured), replace(base, **measured)
+    start = replace(start, **{k: v for k, v in measured.items() if v is not None})
+    scenes = list(train_scenes)
+    if max_tosses is not None and len(scenes) > max_tosses:
+        pick = np.random.default_rng([seed, 1]).choice(len(scenes), max_tosses, replace=False)
+        scenes = [scenes[i] for i in sorted(pick)]
     cache: dict[tuple, float] = {}
     history: list[tuple[float, dict]] = []
     best = {"value": math.inf, "params": start}
+    cap = [budget]
 
-    def evaluate(p: BaselineParams) -> float:
-        key = tuple(round(float(getattr(p, f)), 12) for f in ("friction", "restitution", "stiffness", "damping_ratio",
-                                                               "gravity", "floor_z"))
+    def evaluate(p) -> float:
+        key = tuple(round(v, 12) if isinstance(v, float) else v for v in p.to_dict().values())
         if key not in cache:
-            if len(cache) >= budget:
+            if len(cache) >= cap[0]:
                 raise _BudgetSpent
-            cache[key] = objective(p, train_scenes, frame_rate, rotation_weight)
+            cache[key] = objective(p, scenes, frame_rate, rotation_weight, simulate, horizon)
             history.append((cache[key], p.to_dict()))
             if cache[key] < best["value"]:
                 best.update(value=cache[key], params=p)
             if log:
-                log(f"baseline fit {len(cache)}/{budget}: {cache[key]:.3f} at " + _short(p))
+                log(f"baseline fit {len(cache)}/{budget}: {cache[key]:.3f} at {_short(p)}")
         return cache[key]
 
     start_value = evaluate(start)
+    coarse: list[tuple[float, np.ndarray]] = []
     try:
-        n_init = budget // 3 if initial_points is None else initial_points
+        n_init = budget // 2 if initial_points is None else initial_points
         if n_init > 0 and names:
-            design = qmc.LatinHypercube(len(names), seed=seed).random(n_init)
-            for u in design:
-                evaluate(_params_from_unit(u, names, base))
-        if names:
-            x0 = _unit_from_params(best["params"] if best["params"] is not start else base, names)
-            simplex = np.vstack([x0] + [np.clip(x0 + 0.15 * np.eye(len(names))[i] * (1 if x0[i] < 0.85 else -1), 0, 1)
-                                        for i in range(len(names))])
-            minimize(lambda u: evaluate(_params_from_unit(u, names, base)), x0, method="Nelder-Mead",
-                     bounds=[(0.0, 1.0)] * len(names),
-                     options={"initial_simplex": simplex, "maxfev": 10 * budget, "xatol": 1e-3, "fatol": 1e-3})
+            for u in qmc.LatinHypercube(len(names), seed=seed).random(n_init):
+                coarse.append((evaluate(params_from_unit(u, names, start, bounds)), u))
     except _BudgetSpent:
         pass
+    ints = [isinstance(getattr(start, _field(n)), int) for n in names]
+    free = [i for i, is_int in enumerate(ints) if not is_int]
+    seeds = [u for _, u in sorted(coarse, key=lambda c: c[0])[:max(local_starts, 0)]]
+    if not seeds and names:  # no coarse stage: descend from the start
+        seeds = [unit_from_params(start, names, bounds)]
+    for k, u0 in enumerate(seeds if free else []):
+        cap[0] = len(cache) + (budget - len(cache)) // (len(seeds) - k)
+        x0 = u0[free]
+
+        def f(x, u0=u0):
+            u = u0.copy()
+            u[free] = x
+            return evaluate(params_from_unit(u, names, start, bounds))
+
+        simplex = np.vstack([x0] + [np.clip(x0 + 0.15 * np.eye(len(free))[i] * (1 if x0[i] < 0.85 else -1), 0, 1)
+                                    for i in range(len(free))])
+        try:
+            minimize(f, x0, method="Nelder-Mead", bounds=[(0.0, 1.0)] * len(free),
+                     options={"initial_simplex": simplex, "maxfev": 10 * budget, "xatol": 1e-3, "fatol": 1e-3})
+        except _BudgetSpent:
+            pass
     return {"params": best["params"], "objective": best["value"], "start_objective": start_value,
             "evaluations": len(cache), "seconds": time.perf_counter() - t0, "fitted": names,
-            "rotation_weight": rotation_weight, "history": history}
+            "fit_tosses": len(scenes), "horizon": horizon, "rotation_weight": rotation_weight, "history": history}
+
+
+def fit_parameters(train_scenes: Sequence[Scene], budget: int = 60, seed: int = 0,
+                   start: BaselineParams = PUBLISHED, fit: Sequence[str] = FIT, **kw) -> dict:
+    """Identify PyBullet's parameters (the names in `fit`, of BOUNDS) on training tosses with
+    `identify`; its keywords (initial_points, local_starts, max_tosses, horizon, ...) pass on."""
+    if "damping_ratio" in fit and "log10_stiffness" not in fit and not start.stiffness:
+        raise ValueError("damping_ratio needs log10_stiffness (it only acts on a compliant contact)")
+    return identify(train_scenes, simulate_toss, BOUNDS, start, fit, budget, seed, **kw)
+
+
+def baseline_engine(name: str) -> tuple[type, Callable, Callable]:
+    """(parameter class, simulate_toss, fit_parameters) of an engine: "pybullet" or "mujoco"."""
+    if name == "pybullet":
+        return BaselineParams, simulate_toss, fit_parameters
+    if name == "mujoco":
+        from . import baseline_mujoco  # imports mujoco itself only when it simulates
+        return baseline_mujoco.MujocoParams, baseline_mujoco.simulate_toss, baseline_mujoco.fit_parameters
+    raise ValueError(f"unknown baseline engine {name!r}: pybullet or mujoco")
 
 
 class _BudgetSpent(Exception):
     pass
 
 
-def _short(p: BaselineParams) -> str:
-    s = f"friction {p.friction:.3f}, restitution {p.restitution:.3f}"
-    if p.stiffness > 0:
-        s += f", stiffness {p.stiffness:.3g}, damping ratio {p.damping_ratio:.3f}"
-    return s
+def _short(p) -> str:
+    """The searched-for values of a parameter set, for the log."""
+    skip = {"gravity", "floor_z"}
+    return ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                     for k, v in p.to_dict().items() if k not in skip)

@@ -1,4 +1,4 @@
-"""The paper's real-cube experiments (Figures 4, 5, 7): a GNS against a tuned PyBullet.
+"""The paper's real-cube experiments (Figures 4, 5, 7): a GNS against tuned PyBullet and MuJoCo.
 
     python -m pipelines.real_cubes --src DATA --preset quick [--out runs/real_cubes_quick] [--test-dir DIR]
 
@@ -6,8 +6,9 @@ DATA is the ContactNets `data/` folder (tosses_processed/N.pt, params_processed/
 or a flat folder of N.pt files. The tosses are split once, with a fixed seed, into test, valid
 and a training pool; rotated copies of a toss (the data hold 22 such pairs) always land on the
 same side. GNS models are trained on the first n tosses of the pool for each size n (nested
-subsets; seed s > 0 reorders the pool and seeds the model), and PyBullet's contact parameters are
-identified on the very same tosses (datagen/baseline.py). Everything is rolled out from the
+subsets; seed s > 0 reorders the pool and seeds the model), and PyBullet's and MuJoCo's contact
+parameters are identified on the very same tosses (pipelines/real_cubes_baselines.py; MuJoCo
+only if the [mujoco] extra is installed). Everything is rolled out from the
 first 3 frames of the same test tosses and scored with the ContactNets metrics over the whole
 toss (docs/metrics.md). At one size: ablations (absolute encoding, no shape matching at rollout,
 one message-passing step, no rotation augmentation); at another: training with noise on the
@@ -33,12 +34,13 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen.baseline import PUBLISHED, BaselineParams, fit_parameters
 from datagen.contactnets import import_contactnets, list_toss_ids, read_toss
 from datagen.shards import Dataset, DataError
-from gns.evaluate import evaluate_baseline, evaluate_run, write_json
+from gns.evaluate import evaluate_run, write_json
 from gns.train import read_checkpoint
 from pipelines.common import guarded, done, say, train_stage, trained_step
+from pipelines.real_cubes_baselines import LABELS as ENGINE_LABELS
+from pipelines.real_cubes_baselines import available_engines, baselines_stage, fit_summary, fits_table
 
 SPLIT_SEED = 2022
 DUPLICATE_TOL = 1e-6   # half-widths; the known rotated copies agree to 1e-15
@@ -61,7 +63,8 @@ class Preset:
     model: str                     # configs/gns_<model>.toml
     steps: int
     train: tuple[str, ...] = ()    # further training overrides
-    baseline_budget: int = 40      # objective evaluations per baseline fit
+    baseline_budget: int = 120     # objective evaluations per baseline fit (each engine)
+    baseline_tosses: int | None = 64   # fit on a seeded random subset of at most this many tosses
     ablation_size: int = 0         # one of sizes (Figure 5)
     noise_size: int = 0            # one of sizes (Figure 7)
     vertex_noise: tuple[float, ...] = ()   # std, fraction of the cube's size
@@ -80,14 +83,15 @@ _TRAIN = ("train.threads=1", "train.batch_size=32", "train.lr_init=1e-3", "augme
 PRESETS = {
     "tiny": Preset(test=1, valid=0, sizes=(1, 2), seeds=(0,), model="tiny", steps=30,
                    train=_TRAIN + ("valid.every=0", "train.checkpoint_every=30"), baseline_budget=3,
+                   baseline_tosses=None,
                    ablation_size=2, noise_size=2, vertex_noise=(0.05,), track_noise=(0.5,), plots=False),
     "quick": Preset(test=96, valid=32, sizes=(8, 32, 128), seeds=(0,), model="cpu", steps=6000,
                     train=_TRAIN + ("train.lr_decay_steps=6000", "valid.every=1000", "train.checkpoint_every=1000"),
-                    baseline_budget=40, ablation_size=128, noise_size=32, vertex_noise=(0.02, 0.1),
+                    baseline_budget=120, ablation_size=128, noise_size=32, vertex_noise=(0.02, 0.1),
                     track_noise=(0.02, 0.1)),
     "full": Preset(test=96, valid=32, sizes=(8, 16, 32, 64, 128, 256), seeds=(0, 1, 2), model="cpu", steps=30000,
                    train=_TRAIN + ("train.lr_decay_steps=10000", "valid.every=2000"),
-                   baseline_budget=80, ablation_size=256, noise_size=256, vertex_noise=(0.01, 0.03, 0.1),
+                   baseline_budget=200, ablation_size=256, noise_size=256, vertex_noise=(0.01, 0.03, 0.1),
                    track_noise=(0.01, 0.03, 0.1)),
 }
 
@@ -234,33 +238,6 @@ def gns_eval_stage(path: Path, ckpt: Path, data: Path, costs: Costs, shape_match
     return results
 
 
-def baseline_fit_stage(path: Path, data: Path, ids: list[int], budget: int, seed: int, costs: Costs) -> dict:
-    key = {"train_ids": ids, "budget": budget, "seed": seed}
-    if path.exists():
-        saved = json.loads(path.read_text())
-        if all(saved.get(k) == v for k, v in key.items()):
-            return saved
-    say(f"baseline: fitting PyBullet on {len(ids)} tosses ({budget} evaluations)")
-    scenes = Dataset(data).load("train")
-    fit = fit_parameters(scenes, budget=budget, seed=seed, log=say)
-    out = {**key, **{k: v for k, v in fit.items() if k != "params"}, "params": asdict(fit["params"])}
-    write_json(path, out)
-    costs.add(f"baseline fit {path.stem}", fit["seconds"])
-    return out
-
-
-def baseline_eval_stage(path: Path, data: Path, params: dict, costs: Costs, plots_dir: Path | None = None) -> dict:
-    if path.exists():
-        saved = json.loads(path.read_text())
-        if saved.get("params") == params and _scored_on(saved, data):
-            return saved
-    t0 = time.perf_counter()
-    results, *_ = evaluate_baseline(data, "test", BaselineParams(**params), plots_dir=plots_dir)
-    write_json(path, results)
-    costs.add(f"eval {path.stem}", time.perf_counter() - t0)
-    return results
-
-
 def summary(results: dict) -> dict:
     keys = METRICS + ("true_penetration_pct", "num_scenes")
     return {k: results[k] for k in keys}
@@ -322,21 +299,11 @@ def run(preset: str, src: Path, out: Path, test_dir: Path | None = None) -> dict
         runs[f"track_noise_{level:g}"] = (data_n, over_n + [f"augment.track_noise={level}"])
 
     largest = (max(p.sizes), p.seeds[0])
-    fits, base_evals, base_ext = {}, {}, {}
-    base_evals["published"] = baseline_eval_stage(out / "baseline" / "eval_published.json", test_data,
-                                                  PUBLISHED.to_dict(), costs)
-    if external is not None:
-        base_ext["published"] = baseline_eval_stage(out / "baseline" / "eval_published.external.json",
-                                                    external["data"], PUBLISHED.to_dict(), costs)
-    for (n, s), (data, ids, _) in main_runs.items():
-        name = f"n{n}_s{s}"
-        fits[name] = baseline_fit_stage(out / "baseline" / f"fit_{name}.json", data, ids, p.baseline_budget, s, costs)
-        plots = out / "plots" / f"pybullet_{name}" if p.plots and (n, s) == largest else None
-        base_evals[name] = baseline_eval_stage(out / "baseline" / f"eval_{name}.json", test_data,
-                                               fits[name]["params"], costs, plots_dir=plots)
-        if external is not None:
-            base_ext[name] = baseline_eval_stage(out / "baseline" / f"eval_{name}.external.json", external["data"],
-                                                 fits[name]["params"], costs)
+    engines = available_engines()
+    base = baselines_stage(out / "baseline", {k: (data, ids) for k, (data, ids, _) in main_runs.items()}, test_data,
+                           engines, p.baseline_budget, p.baseline_tosses, costs,
+                           external_data=external["data"] if external is not None else None,
+                           plots_for=largest if p.plots else None)
 
     evals, ext_evals = {}, {}
     for name, (data, over) in runs.items():
@@ -353,7 +320,7 @@ def run(preset: str, src: Path, out: Path, test_dir: Path | None = None) -> dict
         if external is not None and name.startswith("gns_"):
             ext_evals[name] = gns_eval_stage(out / "eval" / f"{name}.external.json", ckpt, external["data"], costs)
 
-    results = collect(preset, p, src, split, evals, fits, base_evals, external, ext_evals, base_ext, costs)
+    results = collect(preset, p, src, split, evals, base, external, ext_evals, costs)
     results["pipeline_seconds_this_call"] = round(time.perf_counter() - t_start, 1)
     write_json(out / "results.json", results)
     make_plots(out / "plots", p, results)
@@ -369,17 +336,18 @@ def _paired(gns: dict, base: dict, key: str = "position_error_pct") -> float:
     return float(np.mean(wins)) if wins else float("nan")
 
 
-def collect(preset, p, src, split, evals, fits, base_evals, external, ext_evals, base_ext, costs) -> dict:
+def collect(preset, p, src, split, evals, base, external, ext_evals, costs) -> dict:
+    engines = list(base["fits"])
     sizes = {}
     for n in p.sizes:
         rows = []
         for s in p.seeds:
-            g, b = evals[f"gns_n{n}_s{s}"], base_evals[f"n{n}_s{s}"]
-            rows.append({"seed": s, "gns": summary(g), "pybullet": summary(b), "params": fits[f"n{n}_s{s}"]["params"],
-                         "fit_objective": fits[f"n{n}_s{s}"]["objective"],
-                         "fit_start_objective": fits[f"n{n}_s{s}"]["start_objective"],
-                         "gns_wins_position_fraction": _paired(g, b),
-                         "gns_wins_rotation_fraction": _paired(g, b, "rotation_error_deg")})
+            g, name = evals[f"gns_n{n}_s{s}"], f"n{n}_s{s}"
+            rows.append({"seed": s, "gns": summary(g), **{e: summary(base["evals"][e][name]) for e in engines},
+                         "fits": {e: fit_summary(base["fits"][e][name]) for e in engines},
+                         "gns_wins": {e: {"position": _paired(g, base["evals"][e][name]),
+                                          "rotation": _paired(g, base["evals"][e][name], "rotation_error_deg")}
+                                      for e in engines}})
         sizes[str(n)] = rows
     full_name = f"gns_n{p.ablation_size}_s{p.seeds[0]}"
     ablations = {"full model": summary(evals[full_name]), "no shape matching": summary(evals["ablation_nosm"])}
@@ -390,14 +358,15 @@ def collect(preset, p, src, split, evals, fits, base_evals, external, ext_evals,
     ext = None
     if external is not None:
         ext = {"dir": external["dir"], "overlap": {str(k): v for k, v in external["overlap"].items()},
-               "pybullet_published": summary(base_ext["published"]),
+               "pybullet_published": summary(base["external"]["published"][""]),
                "sizes": {str(n): [{"seed": s, "gns": summary(ext_evals[f"gns_n{n}_s{s}"]),
-                                   "pybullet": summary(base_ext[f"n{n}_s{s}"])} for s in p.seeds] for n in p.sizes}}
+                                   **{e: summary(base["external"][e][f"n{n}_s{s}"]) for e in engines}}
+                                  for s in p.seeds] for n in p.sizes}}
     return {"preset": preset, "src": str(src), "preset_settings": asdict(p),
             "split": {k: split[k] for k in ("seed", "num_tosses", "duplicates")} | {
                 "test": len(split["test"]), "valid": len(split["valid"]), "pool": sum(map(len, split["pool"]))},
-            "sizes": sizes, "pybullet_published": summary(base_evals["published"]),
-            "true_penetration_pct": base_evals["published"]["true_penetration_pct"],
+            "engines": engines, "sizes": sizes, "pybullet_published": summary(base["evals"]["published"][""]),
+            "true_penetration_pct": base["evals"]["published"][""]["true_penetration_pct"],
             "ablation_size": p.ablation_size, "ablations": ablations, "noise_size": p.noise_size, "noise": noise,
             "external": ext, "costs_seconds": costs.data,
             "total_cost_seconds": round(sum(costs.data.values()), 1)}
@@ -417,17 +386,22 @@ def make_plots(out: Path, p: Preset, results: dict) -> list[Path]:
         refs = {"PyBullet, published constants": results["pybullet_published"][key]}
         if key == "penetration_pct":
             refs["ground truth's own penetration"] = results["true_penetration_pct"]
-        paths.append(plot_curve(xs, {"GNS": _by_size(results, "gns", key),
-                                     "PyBullet, identified on the same tosses": _by_size(results, "pybullet", key)},
+        curves = {"GNS": _by_size(results, "gns", key)}
+        curves.update({f"{ENGINE_LABELS[e]}, identified on the same tosses": _by_size(results, e, key)
+                       for e in results["engines"]})
+        paths.append(plot_curve(xs, curves,
                                 out / f"fig4_{key}.png", baseline=refs, ylabel=LABELS[key],
                                 title=f"held-out real tosses ({results['sizes'][str(xs[0])][0]['gns']['num_scenes']})"))
     labels = list(results["ablations"])
-    tuned = results["sizes"][str(results["ablation_size"])][0]["pybullet"]
+    row = results["sizes"][str(results["ablation_size"])][0]
     paths.append(plot_bars(labels, {LABELS[k]: [results["ablations"][a][k] for a in labels] for k in METRICS},
                            out / "fig5_ablations.png",
-                           references={LABELS[k]: {"PyBullet identified": tuned[k]} for k in METRICS},
+                           references={LABELS[k]: {f"{ENGINE_LABELS[e]} identified": row[e][k] for e in results["engines"]}
+                                       for k in METRICS},
                            title=f"ablations, {results['ablation_size']} training tosses"))
-    tuned = results["sizes"][str(results["noise_size"])][0]["pybullet"]
+    row = results["sizes"][str(results["noise_size"])][0]
+    refs = {f"{ENGINE_LABELS[e]} identified, {what}": row[e][key] for e in results["engines"]
+            for what, key in (("position", "position_error_pct"), ("rotation", "rotation_error_deg"))}
     for kind, xlabel in (("vertex", "std of the corner noise [fraction of the cube size]"),
                          ("track", "std of the pose noise [fraction of the per-frame displacement]")):
         levels = results["noise"][kind]
@@ -435,8 +409,7 @@ def make_plots(out: Path, p: Preset, results: dict) -> list[Path]:
         paths.append(plot_curve(xs_n, {"GNS position [% of width]": [levels[v]["position_error_pct"] for v in levels],
                                        "GNS rotation [deg]": [levels[v]["rotation_error_deg"] for v in levels]},
                                 out / f"fig7_{kind}_noise.png", log2=False, xlabel=xlabel, ylabel="error",
-                                baseline={"PyBullet identified, position": tuned["position_error_pct"],
-                                          "PyBullet identified, rotation": tuned["rotation_error_deg"]},
+                                baseline=refs,
                                 title=f"{kind} noise in training, {results['noise_size']} tosses"))
     return paths
 
@@ -454,7 +427,9 @@ def report(out: Path, results: dict) -> Path:
     head = "| | position error, % of width | rotation error, degrees | penetration, % of width |\n|---|---|---|---|"
     cmd = f"python -m pipelines.real_cubes --src {results['src']} --preset {preset} --out {out}" + (
         f" --test-dir {results['external']['dir']}" if results["external"] else "")
-    lines = [f"# Real cube tosses: GNS against an identified PyBullet, preset `{preset}`", "",
+    engines = results["engines"]
+    names = " and ".join(ENGINE_LABELS[e] for e in engines)
+    lines = [f"# Real cube tosses: GNS against identified {names}, preset `{preset}`", "",
              f"Made by `{cmd}`.", "",
              f"Tosses: {split['num_tosses']} from `{results['src']}`, split with seed {split['seed']} into "
              f"{split['test']} test, {split['valid']} valid and a pool of {split['pool']} training tosses; "
@@ -463,28 +438,31 @@ def report(out: Path, results: dict) -> Path:
              "all frames of a toss, then over tosses (ContactNets convention, docs/metrics.md). "
              f"The ground truth's own penetration is {_f(results['true_penetration_pct'])}% (the metric's floor).", "",
              "## Error against the number of training tosses (Figure 4)", "",
-             "| training tosses | seed | GNS pos % | GNS rot deg | GNS pen % | PyBullet pos % | PyBullet rot deg "
-             "| PyBullet pen % | GNS better on (pos / rot) | PyBullet parameters |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "Each engine's contact parameters are identified on the training tosses of the row "
+             "(pipelines/real_cubes_baselines.py); \"GNS better\" is the share of test tosses on which the GNS "
+             "has a lower error than that engine (position / rotation).", "",
+             "| training tosses | seed | GNS pos % | GNS rot deg | GNS pen % | "
+             + " | ".join(f"{ENGINE_LABELS[e]} pos % | {ENGINE_LABELS[e]} rot deg | {ENGINE_LABELS[e]} pen %" for e in engines)
+             + " | " + " | ".join(f"GNS better than {ENGINE_LABELS[e]}" for e in engines) + " |",
+             "|---|---|" + "---|---|---|" * (1 + len(engines)) + "---|" * len(engines)]
     for n, rows in results["sizes"].items():
         for r in rows:
-            pr = r["params"]
-            params = f"friction {pr['friction']:.3f}, restitution {pr['restitution']:.3f}" + (
-                f", stiffness {pr['stiffness']:.3g}, damping ratio {pr['damping_ratio']:.2f}" if pr["stiffness"] else "") + (
-                f", g {pr['gravity']:.1f}")
-            lines.append(f"| {n} | {r['seed']} | " + " | ".join(_f(r["gns"][k]) for k in METRICS) + " | "
-                         + " | ".join(_f(r["pybullet"][k]) for k in METRICS)
-                         + f" | {r['gns_wins_position_fraction']:.0%} / {r['gns_wins_rotation_fraction']:.0%} of tosses"
-                         + f" | {params} |")
+            lines.append(f"| {n} | {r['seed']} | " + " | ".join(_f(r[who][k]) for who in ["gns", *engines] for k in METRICS)
+                         + " | " + " | ".join(f"{r['gns_wins'][e]['position']:.0%} / {r['gns_wins'][e]['rotation']:.0%}"
+                                              for e in engines) + " |")
     pub = results["pybullet_published"]
     lines += ["", f"PyBullet with the published constants (friction 0.18, restitution 0.125, g 187.21): "
               f"{_f(pub['position_error_pct'])}% position, {_f(pub['rotation_error_deg'])} degrees, "
               f"{_f(pub['penetration_pct'])}% penetration.", "", verdict(results), "",
               "![position](plots/fig4_position_error_pct.png) ![rotation](plots/fig4_rotation_error_deg.png) "
-              "![penetration](plots/fig4_penetration_pct.png)", "",
+              "![penetration](plots/fig4_penetration_pct.png)", "", "Identified parameters (objective: mean "
+              "position error % + 0.5 x rotation error in degrees on the tosses fitted on):", "",
+              *fits_table([(e, int(n), r["seed"], r["fits"][e]) for n, rows in results["sizes"].items()
+                           for r in rows for e in engines]), "",
               f"## Ablations at {results['ablation_size']} training tosses (Figure 5)", "", head]
     lines += [_row(name, r) for name, r in results["ablations"].items()]
-    tuned = results["sizes"][str(results["ablation_size"])][0]["pybullet"]
-    lines += [_row("PyBullet identified on the same tosses", tuned), "",
+    row = results["sizes"][str(results["ablation_size"])][0]
+    lines += [_row(f"{ENGINE_LABELS[e]} identified on the same tosses", row[e]) for e in engines] + ["",
               "\"no shape matching\" is the full model rolled out without the rigid projection; the other rows "
               "are trained anew with one change each.", "", "![ablations](plots/fig5_ablations.png)", "",
               f"## Noise in training at {results['noise_size']} training tosses (Figure 7)", "",
@@ -507,7 +485,7 @@ def report(out: Path, results: dict) -> Path:
                   "| PyBullet, published constants | - | - | " + " | ".join(_f(ext["pybullet_published"][k]) for k in METRICS) + " |"]
         for n, rows in ext["sizes"].items():
             for r in rows:
-                for who, label in (("gns", "GNS"), ("pybullet", "PyBullet identified")):
+                for who, label in [("gns", "GNS")] + [(e, f"{ENGINE_LABELS[e]} identified") for e in engines]:
                     lines.append(f"| {label} | {n} | {r['seed']} | " + " | ".join(_f(r[who][k]) for k in METRICS) + " |")
         lines.append("")
     costs = results["costs_seconds"]
@@ -517,9 +495,9 @@ def report(out: Path, results: dict) -> Path:
               f"{sum(v for k, v in costs.items() if k.startswith('eval')):.0f} s); costs.json has each stage.", ""]
     largest = max(int(n) for n in results["sizes"])
     if results["preset_settings"]["plots"]:
-        lines += ["## Trajectories", "", f"GNS trained on {largest} tosses, then PyBullet identified on them; "
+        lines += ["## Trajectories", "", f"GNS trained on {largest} tosses, then {names} identified on them; "
                   "worst, median and best test toss by position error.", ""]
-        for who in (f"gns_n{largest}_s0", f"pybullet_n{largest}_s0"):
+        for who in [f"gns_n{largest}_s0"] + [f"{e}_n{largest}_s0" for e in engines]:
             lines += [f"![{who} {w}](plots/{who}/trajectory_{w}.png)" for w in ("worst", "median", "best")] + [""]
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
@@ -527,16 +505,17 @@ def report(out: Path, results: dict) -> Path:
 
 
 def verdict(results: dict) -> str:
-    """One honest sentence per size: who has the lower mean error."""
+    """One honest sentence per size: the mean errors, lowest first."""
     parts = []
     for n, rows in results["sizes"].items():
-        g = np.mean([r["gns"]["position_error_pct"] for r in rows])
-        b = np.mean([r["pybullet"]["position_error_pct"] for r in rows])
-        gr = np.mean([r["gns"]["rotation_error_deg"] for r in rows])
-        br = np.mean([r["pybullet"]["rotation_error_deg"] for r in rows])
-        parts.append(f"{n} tosses: position {'GNS' if g < b else 'PyBullet'} ({_f(g)} vs {_f(b)}), "
-                     f"rotation {'GNS' if gr < br else 'PyBullet'} ({_f(gr)} vs {_f(br)})")
-    return "Lower mean error (GNS vs identified PyBullet): " + "; ".join(parts) + "."
+        who = ["gns", *results["engines"]]
+        label = {"gns": "GNS", **ENGINE_LABELS}
+        text = []
+        for key, what in (("position_error_pct", "position"), ("rotation_error_deg", "rotation")):
+            means = sorted((np.mean([r[w][key] for r in rows]), label[w]) for w in who)
+            text.append(f"{what} " + " < ".join(f"{name} {_f(v)}" for v, name in means))
+        parts.append(f"{n} tosses: " + ", ".join(text))
+    return "Mean errors, lowest first: " + "; ".join(parts) + "."
 
 
 def main(argv=None) -> int:

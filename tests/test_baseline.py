@@ -8,8 +8,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from datagen import baseline
-from datagen.baseline import (BOUNDS, PUBLISHED, BaselineParams, fit_floor, fit_gravity, fit_parameters,
-                              free_flight_frames, initial_state, objective, simulate_toss, toss_errors)
+from datagen.baseline import (BOUNDS, FIT, PUBLISHED, BaselineParams, fit_floor, fit_gravity, fit_parameters,
+                              free_flight_frames, initial_state, objective, params_from_unit, simulate_toss,
+                              toss_errors, unit_from_params)
 from datagen.contactnets import read_experiment, read_toss, toss_to_scene
 from datagen.shapes import get_shape
 from datagen.shards import Scene
@@ -135,6 +136,44 @@ def test_fit_on_two_tosses_stays_in_bounds_and_does_not_get_worse(tosses):
     assert objective(p, train) == pytest.approx(fit["objective"], rel=1e-12)  # what it reports is what it found
     again = fit_parameters(train, budget=6, seed=0)
     assert again["params"] == p and again["objective"] == fit["objective"]
+
+
+def test_spinning_friction_slows_a_spinning_cube_even_without_rolling_friction():
+    T, w = 60, np.array([0.0, 0.0, 30.0])
+    rot = Rotation.from_rotvec(w * (np.arange(T) / 148)[:, None])
+    sc = synthetic(np.tile([0.0, 0.0, 1.0], (T, 1)), rot.as_quat()[:, [3, 0, 1, 2]])  # spinning on a face
+    spin = lambda **p: abs(simulate_toss(sc, replace(PUBLISHED, **p)).angular_velocities[20, 0, 2])  # noqa: E731
+    free = spin()
+    assert free > 10  # Coulomb friction alone slows it only a little in 0.13 s
+    assert spin(spinning_friction=0.3) < free - 5  # Bullet applies it only with rolling friction > 0
+    assert spin(spinning_friction=0.3, rolling_friction=0.01) < free - 5
+
+
+def test_unit_cube_mapping_covers_log_and_integer_fields():
+    names = ["friction", "log10_stiffness", "substeps"]
+    p = params_from_unit(np.array([0.5, 1.0, 0.5]), names, PUBLISHED, BOUNDS)
+    box = {n: (lo, hi) for n, lo, hi in BOUNDS}
+    assert p.friction == pytest.approx(sum(box["friction"]) / 2)
+    assert p.stiffness == pytest.approx(10 ** box["log10_stiffness"][1])
+    assert isinstance(p.substeps, int) and p.substeps == round(sum(box["substeps"]) / 2)
+    assert p.restitution == PUBLISHED.restitution  # not searched: kept
+    np.testing.assert_allclose(unit_from_params(p, names, BOUNDS)[:2], [0.5, 1.0])
+    assert unit_from_params(PUBLISHED, ["log10_stiffness"], BOUNDS)[0] == 0.0  # rigid (0) maps to the low end
+
+
+def test_fit_on_a_subset_with_local_starts_is_deterministic(tosses):
+    train = [tosses[55], tosses[229], tosses[274]]
+    kw = dict(budget=9, seed=3, initial_points=4, local_starts=2, max_tosses=2, fit=["friction", "substeps"])
+    fit = fit_parameters(train, **kw)
+    assert fit["fit_tosses"] == 2 and fit["evaluations"] == 9  # the descents spent what the coarse stage left
+    values = [h[0] for h in fit["history"]]
+    assert fit["objective"] == min(values) <= values[0] == fit["start_objective"]
+    substeps = {h[1]["substeps"] for h in fit["history"][5:]}
+    assert len(substeps) <= 2  # each descent keeps its coarse point's substeps
+    assert all(isinstance(h[1]["substeps"], int) and 2 <= h[1]["substeps"] <= 20 for h in fit["history"][1:])
+    again = fit_parameters(train, **kw)
+    assert again["params"] == fit["params"] and again["history"] == fit["history"]
+    assert "solver_iterations" in FIT and "contact_erp" not in FIT
 
 
 def test_bad_input_is_refused(tosses):

@@ -84,8 +84,12 @@ def test_tiny_preset_end_to_end_with_an_external_test_folder(tmp_path, capsys):
     assert set(results["sizes"]) == {"1", "2"}
     for rows in results["sizes"].values():
         for key in ("position_error_pct", "rotation_error_deg", "penetration_pct"):
-            assert np.isfinite(rows[0]["gns"][key]) and np.isfinite(rows[0]["pybullet"][key])
-        assert rows[0]["gns"]["num_scenes"] == rows[0]["pybullet"]["num_scenes"] == 1
+            for who in ("gns", "pybullet", "mujoco"):
+                assert np.isfinite(rows[0][who][key])
+        assert rows[0]["gns"]["num_scenes"] == rows[0]["pybullet"]["num_scenes"] == rows[0]["mujoco"]["num_scenes"] == 1
+        for engine in ("pybullet", "mujoco"):
+            fit = rows[0]["fits"][engine]
+            assert fit["evaluations"] <= 3 and fit["objective"] <= fit["start_objective"]
     assert set(results["ablations"]) == {"full model", "no shape matching", "absolute encoding",
                                          "1 message-passing step", "no rotation augmentation"}
     assert set(results["noise"]["vertex"]) == {"0", "0.05"} and set(results["noise"]["track"]) == {"0", "0.5"}
@@ -94,7 +98,8 @@ def test_tiny_preset_end_to_end_with_an_external_test_folder(tmp_path, capsys):
     split = json.loads((out / "split.json").read_text())
     assert sorted(split["test"] + [i for g in split["pool"] for i in g]) == list(IDS)
     text = (out / "report.md").read_text()
-    assert "| 2 | 0 |" in text and "PyBullet" in text and "External test tosses" in text
+    assert "| 2 | 0 |" in text and "PyBullet" in text and "MuJoCo" in text and "External test tosses" in text
+    assert ext["sizes"]["2"][0]["mujoco"]["num_scenes"] == 3
     for name in ("fig4_position_error_pct", "fig4_rotation_error_deg", "fig4_penetration_pct", "fig5_ablations",
                  "fig7_vertex_noise", "fig7_track_noise"):
         assert (out / "plots" / f"{name}.png").stat().st_size > 0
@@ -102,6 +107,8 @@ def test_tiny_preset_end_to_end_with_an_external_test_folder(tmp_path, capsys):
     assert real_cubes.main(args) == 0  # resumed: nothing is trained or fitted again
     err = capsys.readouterr().err
     assert "baseline: fitting" not in err and err.count("skipping") == 7
+    assert sorted(p.name for p in (out / "baseline").glob("fit_*.json")) == [
+        "fit_mujoco_n1_s0.json", "fit_mujoco_n2_s0.json", "fit_n1_s0.json", "fit_n2_s0.json"]
     assert json.loads((out / "results.json").read_text())["sizes"] == results["sizes"]
 
 
@@ -119,3 +126,37 @@ def test_bad_input_gives_one_error_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("error: training size 2") and err.count("\n") == 1
     assert not (tmp_path / "o" / "runs").exists()
+
+
+def test_baselines_alone_fit_both_engines_and_resume(tmp_path, capsys):
+    from pipelines import real_cubes_baselines
+    out = tmp_path / "bl"
+    args = ["--src", str(SRC), "--out", str(out), "--sizes", "1", "2", "--budget", "2", "--test", "1", "--valid", "0"]
+    assert real_cubes_baselines.main(args) == 0
+    results = json.loads((out / "results.json").read_text())
+    for n in ("1", "2"):
+        for engine in ("pybullet", "mujoco"):
+            r = results["sizes"][n][engine]
+            assert r["num_scenes"] == 1 and np.isfinite(r["position_error_pct"])
+            assert r["fit"]["evaluations"] == 2 and r["fit"]["train_tosses"] == int(n)
+    assert "| MuJoCo | 2 |" in (out / "baselines.md").read_text()
+    err = capsys.readouterr().err
+    assert err.count("baseline: fitting") == 4
+    assert real_cubes_baselines.main(args) == 0  # resumed: every fit is found
+    assert "baseline: fitting" not in capsys.readouterr().err
+    assert json.loads((out / "results.json").read_text())["sizes"] == results["sizes"]
+    assert real_cubes_baselines.main(args[:-4] + ["--budget", "3", "--test", "1", "--valid", "0"]) == 0
+    assert capsys.readouterr().err.count("baseline: fitting") == 4  # a new budget is a new fit
+
+
+def test_baselines_alone_refuse_a_missing_mujoco_in_one_line(tmp_path, capsys, monkeypatch):
+    from datagen import baseline_mujoco
+    from pipelines import real_cubes_baselines
+    monkeypatch.setattr(baseline_mujoco, "available", lambda: False)
+    args = ["--src", str(SRC), "--out", str(tmp_path / "bl"), "--sizes", "1", "--test", "1", "--valid", "0",
+            "--engines", "mujoco"]
+    assert real_cubes_baselines.main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "pip install -e '.[mujoco]'" in err
+    assert real_cubes_baselines.available_engines() == ["pybullet"]  # the pipeline leaves it out, with a warning
+    assert "leaving it out" in capsys.readouterr().err
