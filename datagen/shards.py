@@ -55,12 +55,13 @@ class Scene:
     def num_objects(self) -> int:
         return self.positions.shape[1]
 
-    def every(self, stride: int) -> "Scene":
-        """Every `stride`-th frame from the first: the scene as if recorded at 1/stride the rate."""
-        if stride == 1:
+    def every(self, stride: int, phase: int = 0) -> "Scene":
+        """Every `stride`-th frame from frame `phase`: the scene as if recorded at 1/stride the rate."""
+        if stride == 1 and phase == 0:
             return self
-        return Scene(*(getattr(self, k)[::stride] for k in SCENE_ARRAYS), self.shape, self.material, self.scale,
-                     self.mass, self.friction, self.restitution, {**self.attrs, "frame_stride": stride})
+        return Scene(*(getattr(self, k)[phase::stride] for k in SCENE_ARRAYS), self.shape, self.material,
+                     self.scale, self.mass, self.friction, self.restitution,
+                     {**self.attrs, "frame_stride": stride, "frame_phase": phase})
 
 
 def _atomic_path(final: Path):

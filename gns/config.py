@@ -73,6 +73,9 @@ class TrainConfig:
     # Steps of pushforward training: the model predicts unroll_steps frames from 3 true ones, each
     # step on its own (shape-matched) earlier predictions, detached; the loss averages all steps.
     unroll_steps: int = 1
+    # With features.frame_stride k > 1, train on windows starting at every frame (k phases of each
+    # scene), not only at multiples of k: k times the windows from the same data.
+    all_phases: bool = False
     loss: str = "mse"                  # "mse" (paper), "huber" or "l1" on the normalised acceleration
     huber_delta: float = 1.0           # huber: quadratic within this many normalised units
 

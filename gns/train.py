@@ -261,6 +261,12 @@ def _load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, O
     """Feature spec, train tracks and (if validating and present) valid tracks of a dataset."""
     dataset = Dataset(data_dir, stride=cfg.features.frame_stride)
     scenes = dataset.load("train")
+    k = cfg.features.frame_stride
+    if k > 1 and cfg.train.all_phases:
+        # read at stride k from frame 0 only, a scene gives 1/k of its windows; starting at each
+        # of frames 0 .. k-1 gives them all (as many windows as at stride 1)
+        full = Dataset(data_dir).load("train")
+        scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
     try:
         library = MeshLibrary(dataset.meshes)
     except ValueError as e:

@@ -203,3 +203,18 @@ def test_upsampling_a_strided_rollout_recovers_a_smooth_trajectory_at_every_fram
     # a rollout shorter than the truth is scored only where it reaches
     up, truth = upsample_scene(full.every(4), 4, scene(ballistic(23)), FRAME_RATE)
     assert truth.num_frames == up.num_frames == 21
+
+
+def test_all_phases_gives_a_strided_model_every_window_of_the_data(tmp_path):
+    from gns.train import _load_data
+    data = write_toss_dataset(tmp_path, train=3, valid=1, frames=12)
+    _, plain, _ = _load_data(data, tiny("features.frame_stride=2"))
+    _, phased, valid = _load_data(data, tiny("features.frame_stride=2", "train.all_phases=true"))
+    # a window at stride k spans 3k + 1 recorded frames: 12 - 6 = 6 start frames per scene
+    assert phased.num_windows == 3 * (12 - 3 * 2)
+    assert plain.num_windows == 3 * (6 - 3)          # from frame 0 only: frames 0, 2, .., 10
+    assert valid.num_windows == 1 * (6 - 3)          # validation stays at phase 0
+    # phase 1 of a scene is its odd frames
+    ds = Dataset(data)
+    sc = ds.load("train")[0]
+    assert np.array_equal(phased.positions[6:12].numpy(), sc.positions[1::2, 0])
