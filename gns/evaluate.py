@@ -81,9 +81,10 @@ def check_ranges(trained_spec: dict, ds: Dataset, scenes: list, warn=None) -> li
 
 
 def evaluate_baseline(data: str | Path, split: str = "test", params=None, limit: int | None = None,
-                      plots_dir: str | Path | None = None, engine: str = "pybullet") -> tuple[dict, list, list, Dataset]:
+                      plots_dir: str | Path | None = None, engine: str = "pybullet",
+                      given: int = 3) -> tuple[dict, list, list, Dataset]:
     """`evaluate_run` for an analytic baseline (datagen.baseline: "pybullet" or "mujoco"): every
-    one-cube scene of a split simulated from its first 3 frames with `params` (default: the
+    one-cube scene of a split simulated from its first `given` frames with `params` (default: the
     engine's defaults, for PyBullet the published ContactNets constants), scored the same way.
     Returns (results, predicted, true, dataset)."""
     from datagen.baseline import baseline_engine  # the engines only when asked for
@@ -92,11 +93,11 @@ def evaluate_baseline(data: str | Path, split: str = "test", params=None, limit:
     ds, scenes = load_split(data, split, limit)
     t0 = time.perf_counter()
     try:
-        pred = [simulate(sc, params, frame_rate=ds.frame_rate) for sc in scenes]
+        pred = [simulate(sc, params, frame_rate=ds.frame_rate, given=given) for sc in scenes]
     except ValueError as e:
         raise DataError(f"{data}: {e}") from None
     results = score_predictions(pred, scenes, ds, time.perf_counter() - t0, plots_dir)
-    results.update(baseline=engine, params=params.to_dict(), data=str(data), split=split)
+    results.update(baseline=engine, params=params.to_dict(), data=str(data), split=split, given_frames=given)
     return results, pred, scenes, ds
 
 

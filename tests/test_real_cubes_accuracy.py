@@ -1,0 +1,36 @@
+"""The real-cube accuracy pipeline: tiny preset end to end, rerun skipping, exported models, bad input."""
+import json
+
+from test_real_cubes_pipeline import SRC
+
+from pipelines import real_cubes_accuracy
+from gns.train import load_model
+
+
+def test_tiny_preset_end_to_end_and_rerun(tmp_path, capsys):
+    out, export = tmp_path / "acc", tmp_path / "models"
+    args = ["--src", str(SRC), "--preset", "tiny", "--out", str(out), "--export", str(export)]
+    assert real_cubes_accuracy.main(args) == 0
+    results = json.loads((out / "results.json").read_text())
+    row = results["sizes"]["2"]
+    assert set(row) >= {"gns", "pybullet", "mujoco", "steps"}
+    for who in ("gns", "pybullet", "mujoco"):
+        assert row[who]["num_scenes"] == 1 and row[who]["position_error_pct"] >= 0
+    assert row["pybullet"]["given_frames"] in (3, 17)
+    assert (out / "plots" / "accuracy.png").stat().st_size > 1000
+    assert "| 2 | GNS |" in (out / "report.md").read_text()
+    sim, cfg = load_model(export / "gns_real_cubes_n2.pt")   # the shipped form loads alone
+    assert cfg.features.frame_stride == 8 and cfg.train.all_phases
+    capsys.readouterr()
+    before = (out / "eval" / "gns_n2.json").stat().st_mtime_ns
+    assert real_cubes_accuracy.main(args) == 0                 # everything done: nothing retrained
+    said = "".join(capsys.readouterr())
+    assert "has reached step 30, skipping" in said and "fitting" not in said
+    assert (out / "eval" / "gns_n2.json").stat().st_mtime_ns == before
+
+
+def test_a_missing_source_is_one_line(tmp_path, capsys):
+    assert real_cubes_accuracy.main(["--src", str(tmp_path / "nope"), "--preset", "tiny",
+                                     "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not exist" in err[0]
