@@ -14,6 +14,7 @@ import math
 import os
 import random
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -85,6 +86,28 @@ def read_checkpoint(path: str | Path) -> dict:
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} is not a gns checkpoint of format {CHECKPOINT_FORMAT}")
     return ckpt
+
+
+def resume_checkpoint(run: str | Path, log: Callable[[str], None] | None = None) -> tuple[Path, dict]:
+    """The checkpoint a run resumes from: latest.pt, or if that is missing or unreadable (a crash
+    while it was copied, a damaged disk) the newest readable ckpt-*.pt. Nothing is deleted."""
+    run = Path(run)
+    problems = []
+    for path in [run / LATEST] + checkpoint_paths(run)[::-1]:
+        if not path.exists():
+            continue
+        try:
+            ckpt = read_checkpoint(path)
+        except CheckpointError as e:
+            problems.append(str(e))
+            continue
+        if "optimizer" not in ckpt:
+            raise CheckpointError(f"{path} is an exported model (gns export): it can be evaluated or rolled out, "
+                                  f"not resumed")
+        if problems and log is not None:
+            log(f"warning: {problems[0]}; resuming from {path}")
+        return path, ckpt
+    raise CheckpointError(f"nothing to resume in {run}: " + ("; ".join(problems) if problems else "no checkpoint"))
 
 
 def export_model(checkpoint_path: str | Path, out: str | Path) -> Path:
@@ -229,8 +252,8 @@ def _check_run(run: Path, resume: bool, overwrite: bool) -> list[Path]:
     """Refuse to start over a run's checkpoints unless asked; returns the files to delete."""
     existing = checkpoint_paths(run) + [p for p in (run / LATEST, run / METRICS) if p.exists()]
     if resume:
-        if not (run / LATEST).exists():
-            raise CheckpointError(f"nothing to resume: {run / LATEST} does not exist")
+        if not (run / LATEST).exists() and not checkpoint_paths(run):
+            raise CheckpointError(f"nothing to resume: {run} holds no checkpoint")
         return []
     if any(p.suffix == ".pt" for p in existing) and not overwrite:
         raise CheckpointError(f"{run} already holds checkpoints; pass --resume to continue "
@@ -241,8 +264,16 @@ def _check_run(run: Path, resume: bool, overwrite: bool) -> list[Path]:
 def _drop_metrics_after(path: Path, step: int) -> None:
     """Forget log lines of steps that a resumed run will train again (after a crash)."""
     if path.exists():
-        lines = [line for line in path.read_text().splitlines() if json.loads(line)["step"] <= step]
-        _atomic_write(path, lambda p: p.write_text("".join(line + "\n" for line in lines)))
+        kept, torn = [], 0
+        for line in path.read_text().splitlines():
+            try:
+                if json.loads(line)["step"] <= step:
+                    kept.append(line)
+            except (ValueError, KeyError, TypeError):  # a line cut by a crash mid-write
+                torn += 1
+        if torn:
+            print(f"warning: dropped {torn} unreadable line(s) of {path}", file=sys.stderr)
+        _atomic_write(path, lambda p: p.write_text("".join(line + "\n" for line in kept)))
 
 
 def _set_threads(threads: int, log: Callable[[str], None]) -> None:
@@ -290,7 +321,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     """
     run = Path(run_dir)
     stale = _check_run(run, resume, overwrite)
-    ckpt = read_checkpoint(run / LATEST) if resume else None
+    ckpt = resume_checkpoint(run, log)[1] if resume else None
     data_spec, tracks, valid = _load_data(data_dir, cfg)
 
     _set_threads(cfg.train.threads, log)
@@ -380,6 +411,7 @@ def _stopped(what: str, step: int, last_good: Path | None) -> str:
 
 def resolve_config(run_dir: str | Path, resume: bool, config_path: str | None, overrides: list[str]) -> Config:
     """The config of a run: on resume the checkpoint's, updated by the file and overrides given."""
-    base = read_checkpoint(Path(run_dir) / LATEST)["config"] if resume and (Path(run_dir) / LATEST).exists() else None
+    run = Path(run_dir)
+    base = resume_checkpoint(run)[1]["config"] if resume and (checkpoint_paths(run) or (run / LATEST).exists()) else None
     return build_config(base=base, path=config_path, overrides=overrides)
 

@@ -11,7 +11,7 @@ from datagen.config import load_config as load_scene_config
 from datagen.generate import generate
 from datagen.shards import Dataset, DataError
 from gns.config import build_config
-from gns.train import LATEST, read_checkpoint, train
+from gns.train import LATEST, CheckpointError, resume_checkpoint, train
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
@@ -56,9 +56,11 @@ def guarded(stages) -> int:
 
 
 def trained_step(run: Path) -> int:
+    """The step of the checkpoint a rerun would resume from (latest.pt, else the newest readable
+    ckpt-*.pt), -1 if there is none: a damaged latest.pt must not restart (and delete) a run."""
     try:
-        return int(read_checkpoint(run / LATEST)["step"])
-    except Exception:  # no or unreadable checkpoint: train from the start
+        return int(resume_checkpoint(run)[1]["step"])
+    except CheckpointError:
         return -1
 
 
@@ -68,7 +70,7 @@ def train_stage(data: Path, run: Path, preset: str, overrides: list[str]) -> Pat
     step = trained_step(run)
     if step >= cfg.train.steps:
         say(f"train: {run} has reached step {step}, skipping")
-        return run / LATEST
+        return resume_checkpoint(run, say)[0]
     say(f"train: {run} ({preset} preset, {cfg.train.steps} steps" + (f", resuming at {step})" if step > 0 else ")"))
     train(data, run, cfg, resume=step > 0, overwrite=step <= 0, log=say)
     return run / LATEST

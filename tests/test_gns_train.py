@@ -110,3 +110,36 @@ def test_resume_after_a_crash_forgets_metrics_of_lost_steps(data, tmp_path):
     train(data, tmp_path, tiny("train.steps=8", "train.log_every=2", "train.checkpoint_every=4",
                                "valid.every=0"), resume=True, log=quiet)
     assert [r["step"] for r in metrics(tmp_path)] == [2, 4, 6, 8]
+
+
+def test_resume_skips_a_damaged_latest_and_keeps_every_checkpoint(data, tmp_path, capsys):
+    from pipelines.common import trained_step
+    run = tmp_path / "run"
+    train(data, run, tiny("train.steps=10", "train.checkpoint_every=5", "train.keep_checkpoints=0"), log=quiet)
+    (run / "latest.pt").write_bytes(b"not a checkpoint")            # a crash while latest.pt was copied
+    assert trained_step(run) == 10                                   # the pipelines resume, not restart
+    lines = []
+    train(data, run, tiny("train.steps=15", "train.checkpoint_every=5", "train.keep_checkpoints=0"),
+          resume=True, log=lines.append)
+    assert any("unreadable" in line and "ckpt-000010.pt" in line for line in lines), lines
+    assert [p.name for p in sorted(run.glob("ckpt-*.pt"))] == ["ckpt-000005.pt", "ckpt-000010.pt", "ckpt-000015.pt"]
+    assert read_checkpoint(run / "latest.pt")["step"] == 15
+
+
+def test_resume_tolerates_a_torn_metrics_line(data, tmp_path, capsys):
+    run = tmp_path / "run"
+    train(data, run, tiny("train.steps=10", "train.checkpoint_every=5", "train.log_every=5"), log=quiet)
+    with open(run / "metrics.jsonl", "a") as f:
+        f.write('{"step": 11, "loss": 0.')                         # cut mid-write by a crash
+    train(data, run, tiny("train.steps=15", "train.checkpoint_every=5", "train.log_every=5"), resume=True, log=quiet)
+    assert [m["step"] for m in metrics(run)] == [5, 10, 15]
+    assert "dropped 1 unreadable line" in capsys.readouterr().err
+
+
+def test_an_exported_model_cannot_be_resumed_but_says_why(data, tmp_path):
+    from gns.train import CheckpointError, export_model
+    run = tmp_path / "run"
+    train(data, run, tiny("train.steps=5", "train.checkpoint_every=5"), log=quiet)
+    export_model(run / "latest.pt", tmp_path / "exported" / "latest.pt")
+    with pytest.raises(CheckpointError, match="exported model"):
+        train(data, tmp_path / "exported", tiny("train.steps=10"), resume=True, log=quiet)
