@@ -48,7 +48,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     from gns.rollout import check_output, rollout_scenes, write_rollouts
     from gns.train import load_model, read_checkpoint
 
-    check_output(args.out, args.overwrite)
+    check_output(args.out, args.overwrite, source=args.data)
     ckpt = checkpoint_of(args.run_dir)
     saved = read_checkpoint(ckpt)
     sim, _ = load_model(saved)

@@ -121,9 +121,15 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
     return out
 
 
-def check_output(out: str | Path, overwrite: bool) -> Path:
-    """Refuse an existing non-empty folder before any work is done, unless overwriting."""
+def check_output(out: str | Path, overwrite: bool, source: str | Path | None = None) -> Path:
+    """Refuse an existing non-empty folder before any work is done, unless overwriting; refuse
+    always an output that is, holds or lies inside the source dataset (overwriting it would
+    delete the data being rolled out)."""
     out = Path(out)
+    if source is not None:
+        a, b = out.resolve(), Path(source).resolve()
+        if a == b or a in b.parents or b in a.parents:
+            raise DataError(f"--out {out} overlaps the dataset {source}: choose another output folder")
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise DataError(f"output folder {out} exists and is not empty; use --overwrite to replace it")
     return out

@@ -144,3 +144,17 @@ def test_data_recorded_at_a_multiple_of_the_model_rate_are_read_at_its_rate(trai
     assert all(sc.num_frames == 16 for sc in true) and results["outside_training"] == []
     full = Dataset(fine).load("test")
     np.testing.assert_array_equal(true[0].positions, full[0].positions[::2])
+
+
+@pytest.mark.parametrize("where", ["same", "inside", "parent"])
+def test_rollout_refuses_an_output_that_overlaps_its_data_even_with_overwrite(trained, tmp_path, capsys, where):
+    from gns.cli import main as gns_main
+    data, run = trained
+    out = {"same": data, "inside": data / "rollouts", "parent": data.parent}[where]
+    shards = sorted(p.name for p in data.glob("*.h5"))
+    with pytest.raises(SystemExit) as e:
+        gns_main(["rollout", "--run", str(run), "--data", str(data), "--out", str(out), "--overwrite"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "overlaps the dataset" in err[0]
+    assert sorted(p.name for p in data.glob("*.h5")) == shards and Dataset(data).num_scenes("test") == 3
