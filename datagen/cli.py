@@ -82,7 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--frame-rate", type=float, help="recorded frames per second (default 12)")
     t.add_argument("--physics-rate", type=float, help="physics steps per second (default 240)")
     t.add_argument("--config", help="a TOML file overriding configs/movi_a.toml")
-    t.add_argument("--set", action="append", metavar="KEY=VALUE", help="override one config key, e.g. floor.friction=0.5")
+    t.add_argument("--set", action="extend", nargs="+", metavar="KEY=VALUE",
+                   help="override config keys, typed as in the preset, e.g. --set floor.friction=0.5 physics.ccd=true")
     t.add_argument("--scenes-per-shard", type=int, default=50, help="scenes per HDF5 shard (default 50)")
     g = t.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true", help="finish an interrupted run in --out (same command)")

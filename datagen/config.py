@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import math
 import tomllib
 from pathlib import Path
 
@@ -52,12 +53,41 @@ def merge(base: dict, override: dict, prefix: str = "") -> dict:
                 raise ConfigError(f"config key {key!r} is a table, got {v!r}")
             out[k] = merge(out[k], v, key + ".")
         else:
-            out[k] = v
+            out[k] = _typed(key, v, out[k])
     return out
 
 
+def _typed(key: str, value, default):
+    """value checked against the type of the preset's value: a string where a boolean belongs
+    ("no", "False" from a shell) must not be taken as true. Ints are accepted for floats."""
+    expected = type(default)
+    if expected is bool:
+        ok = isinstance(value, bool)
+    elif expected is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        value = float(value) if ok else value
+    elif expected is int:  # 12.0 from a float flag (--frame-rate) is the whole number 12
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif expected is list:
+        ok = isinstance(value, list) and (not default or all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)
+            == all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in default))
+    else:
+        ok = isinstance(value, expected)
+    if not ok:
+        want = {bool: "true or false", float: "a number", int: "a whole number", list: "a list like the preset's",
+                str: "a string"}.get(expected, expected.__name__)
+        raise ConfigError(f"config key {key!r} must be {want}, got {value!r}")
+    return value
+
+
 def parse_value(text: str):
-    """A --set value as TOML would read it (numbers, booleans, lists, quoted or bare strings)."""
+    """A --set value as TOML would read it (numbers, booleans, lists, quoted or bare strings);
+    True/FALSE are booleans too, as a shell user would write them."""
+    if text.strip().lower() in ("true", "false"):
+        return text.strip().lower() == "true"
     try:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
@@ -101,9 +131,37 @@ def parse_objects(spec) -> tuple[int, int]:
     return lo, hi
 
 
+def _finite(key: str, value, low: float | None = None, high: float | None = None, strict_low: bool = False) -> None:
+    values = value if isinstance(value, list) else [value]
+    for x in values:
+        x = float(x)
+        bad = not math.isfinite(x) or (low is not None and (x <= low if strict_low else x < low)) or \
+            (high is not None and x > high)
+        if bad:
+            rng = "" if low is None else f" {'>' if strict_low else '>='} {low:g}"
+            rng += "" if high is None else f"{' and' if rng else ''} <= {high:g}"
+            raise ConfigError(f"config key {key!r} must be finite{rng}, got {value!r}")
+
+
 def validate(cfg: dict) -> None:
     """Check values, so a bad number fails here with its key rather than deep inside PyBullet."""
     sc, ph = cfg["scene"], cfg["physics"]
+    # Physical values: a restitution above 1 gains energy, an infinite size fills shards with NaN.
+    _finite("scene.frame_rate", sc["frame_rate"], 0, strict_low=True)
+    _finite("physics.rate", ph["rate"], 0, strict_low=True)
+    _finite("physics.gravity", ph["gravity"])
+    _finite("floor.friction", cfg["floor"]["friction"], 0)
+    _finite("floor.restitution", cfg["floor"]["restitution"], 0, 1)
+    for k in ("low", "high", "velocity_low", "velocity_high"):
+        _finite(f"spawn.{k}", cfg["spawn"][k])
+    _finite("spawn.angular_velocity", cfg["spawn"]["angular_velocity"])
+    for name, size in cfg["sizes"].items():
+        _finite(f"sizes.{name}", size, 0, strict_low=True)
+    for name, m in cfg["materials"].items():
+        for k, low, high, strict in (("friction", 0, None, False), ("restitution", 0, 1, False),
+                                     ("density", 0, None, True)):
+            if k in m:
+                _finite(f"materials.{name}.{k}", m[k], low, high, strict)
     if int(sc["frames"]) < 4:
         raise ConfigError(f"scene.frames must be >= 4 (a GNS window needs 4), got {sc['frames']}")
     if not float(sc["frame_rate"]) > 0:

@@ -13,8 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
-class ConfigError(Exception):
-    """A config file or override that cannot be used. The message is one line for a user."""
+from datagen.config import ConfigError  # noqa: E402  one class for datagen and gns: `except ConfigError` catches both
 
 
 @dataclass

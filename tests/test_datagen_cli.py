@@ -102,7 +102,16 @@ def only_error_line(capsys, *words):
     (["--scenes", "-3"], ["must be >= 0"]),
     (["--scenes", "0"], ["nothing to generate"]),
     (["--objects", "5-3"], ["objects range"]),
-    (["--set", "sizes.small=-0.7"], ["size 'small' must be positive"]),
+    (["--set", "sizes.small=-0.7"], ["'sizes.small' must be finite > 0"]),
+    (["--set", "sizes.small=inf"], ["'sizes.small' must be finite > 0"]),
+    (["--set", "floor.restitution=5"], ["'floor.restitution' must be finite >= 0 and <= 1"]),
+    (["--set", "floor.friction=-0.1"], ["'floor.friction' must be finite >= 0"]),
+    (["--set", "materials.metal.density=0"], ["'materials.metal.density' must be finite > 0"]),
+    (["--set", "physics.gravity=[0, 0, nan]"], ["'physics.gravity' must be finite"]),
+    (["--set", "physics.ccd=no"], ["'physics.ccd' must be true or false, got 'no'"]),
+    (["--set", "floor.enabled=1"], ["'floor.enabled' must be true or false"]),
+    (["--set", "scene.frames=4.5"], ["'scene.frames' must be a whole number"]),
+    (["--set", "floor.friction=0.5", "physics.ccd=maybe"], ["'physics.ccd' must be true or false"]),
     (["--set", "scene.frmes=3"], ["unknown config key 'scene.frmes'", "did you mean 'frames'"]),
     (["--set", "spawn.low=[5, 5, 5]", "--set", "spawn.high=[1, 1, 1]"], ["spawn.low must be <= spawn.high"]),
     (["--frame-rate", "7"], ["whole multiple"]),
@@ -192,3 +201,11 @@ def test_inspect_reports_each_problem(tmp_path, capsys):
 def test_inspect_of_a_non_dataset(tmp_path, capsys):
     assert main(["inspect", str(tmp_path)]) == 1
     assert "not a dataset folder" in capsys.readouterr().err
+
+
+def test_set_booleans_as_a_shell_user_writes_them(tmp_path):
+    out = tmp_path / "nofloor"
+    assert main(["toss", "--out", str(out), "--scenes", "1", "--frames", "4", "--quiet",
+                 "--set", "floor.enabled=False", "physics.ccd=TRUE"]) == 0
+    meta = Dataset(out).meta
+    assert meta["floor"] is None and meta["config"]["physics"]["ccd"] is True
