@@ -28,7 +28,8 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from datagen.shapes import get_shape
-from datagen.shards import METADATA_FILE, SPLITS, DataError, Scene, write_metadata, write_shard
+from datagen.shards import (METADATA_FILE, SPLITS, DataError, Scene, clear_dataset, shard_name, write_metadata,
+                           write_shard)
 
 HALF_WIDTH_M = 0.0524         # 1 data unit in metres (10.48 cm cube)
 CUBE_SCALE = 2.0              # unit asset spans 1; the data's cube spans 2 half-widths
@@ -177,12 +178,6 @@ def _prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
         raise DataError(f"output folder exists and is not empty: {out_dir} (pass overwrite=True to replace a dataset)")
 
 
-def _clear_dataset(out_dir: Path) -> None:
-    # Only what a dataset consists of, never anything else a user keeps there. The metadata
-    # goes first so an interrupted overwrite never looks like a complete dataset.
-    (out_dir / METADATA_FILE).unlink(missing_ok=True)
-    for p in out_dir.glob("*.h5"):
-        p.unlink()
 
 
 def import_contactnets(src_dir: str | Path, out_dir: str | Path, ids: Iterable[int] | None = None,
@@ -221,12 +216,12 @@ def import_contactnets(src_dir: str | Path, out_dir: str | Path, ids: Iterable[i
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         if overwrite:
-            _clear_dataset(out_dir)
+            clear_dataset(out_dir)
         split_meta = {}
         for s, lst in scenes.items():
             names = []
             for k in range(0, len(lst), shard_size):
-                name = f"{s}-{k // shard_size:05d}.h5"
+                name = shard_name(s, k // shard_size)
                 write_shard(out_dir / name, lst[k:k + shard_size], meshes, attrs={"split": s, "source": "contactnets"})
                 written.append(out_dir / name)
                 names.append(name)

@@ -7,7 +7,6 @@ split, shard index), never on the worker count. `metadata.json` is written first
 from __future__ import annotations
 
 import multiprocessing as mp
-import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +18,8 @@ from . import __version__
 from .scenes import sample_scene
 from .shapes import get_shape
 from .inspect import floor_violations
-from .shards import METADATA_FILE, SPLITS, DataError, read_shard, write_metadata, write_shard
+from .shards import (METADATA_FILE, SPLITS, DataError, clear_dataset, dataset_files, read_shard, shard_name,
+                     write_metadata, write_shard)
 from .simulate import simulate, steps_per_frame
 
 
@@ -32,7 +32,7 @@ class ShardTask:
 
     @property
     def name(self) -> str:
-        return f"{self.split}-{self.shard:05d}.h5"
+        return shard_name(self.split, self.shard)
 
 
 def plan(counts: dict[str, int], per_shard: int) -> list[ShardTask]:
@@ -98,10 +98,9 @@ def prepare_output(out: Path, meta: dict, resume: bool, overwrite: bool) -> None
     """Refuse to mix datasets: an existing folder needs --resume (same plan) or --overwrite."""
     if out.exists() and any(out.iterdir()):
         if overwrite:
-            old = out / METADATA_FILE
-            if not old.exists() and not any(p.suffix == ".h5" for p in out.iterdir()):
+            if not dataset_files(out):
                 raise DataError(f"{out} exists and does not look like a dataset; refusing to delete it")
-            shutil.rmtree(out)
+            clear_dataset(out)  # only the tool's own files: a user's notes in the folder stay
         elif resume:
             import json
             path = out / METADATA_FILE

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -62,6 +63,31 @@ class Scene:
         return Scene(*(getattr(self, k)[phase::stride] for k in SCENE_ARRAYS), self.shape, self.material,
                      self.scale, self.mass, self.friction, self.restitution,
                      {**self.attrs, "frame_stride": stride, "frame_phase": phase})
+
+
+def shard_name(split: str, index: int) -> str:
+    """The file name of a split's index-th shard: the one naming rule of the format."""
+    return f"{split}-{index:05d}.h5"
+
+
+def dataset_files(root: str | Path) -> list[Path]:
+    """The files of a dataset folder that the tools write (metadata, shards named by
+    shard_name, and their temporary files): what an overwrite may delete, and nothing else."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    shard = re.compile(rf"^({'|'.join(SPLITS)})-\d{{5}}\.h5$")
+    temp = re.compile(rf"^\.(({'|'.join(SPLITS)})-\d{{5}}\.h5|{re.escape(METADATA_FILE)})\..*\.tmp$")
+    return sorted(p for p in root.iterdir() if p.is_file() and (
+        p.name == METADATA_FILE or shard.match(p.name) or temp.match(p.name)))
+
+
+def clear_dataset(root: str | Path) -> None:
+    """Delete a dataset's own files (metadata first, so an interrupted clear never looks like a
+    complete dataset); a user's other files in the folder stay."""
+    files = dataset_files(root)
+    for p in sorted(files, key=lambda p: p.name != METADATA_FILE):
+        p.unlink(missing_ok=True)
 
 
 def _atomic_path(final: Path):

@@ -209,3 +209,25 @@ def test_set_booleans_as_a_shell_user_writes_them(tmp_path):
                  "--set", "floor.enabled=False", "physics.ccd=TRUE"]) == 0
     meta = Dataset(out).meta
     assert meta["floor"] is None and meta["config"]["physics"]["ccd"] is True
+
+
+def test_overwrite_deletes_only_what_the_tool_wrote(tmp_path, capsys):
+    out = tmp_path / "d"
+    assert toss(out) == 0
+    (out / "notes.txt").write_text("my notes")
+    (out / "analysis.h5").write_bytes(b"user data")        # an .h5 the tool did not write
+    (out / "plots").mkdir()
+    (out / "plots" / "fig.png").write_bytes(b"png")
+    assert toss(out, "--overwrite", "--seed", "5") == 0
+    assert (out / "notes.txt").read_text() == "my notes"
+    assert (out / "analysis.h5").read_bytes() == b"user data" and (out / "plots" / "fig.png").exists()
+    assert Dataset(out).meta["seed"] == 5
+
+
+def test_overwrite_refuses_a_folder_that_is_not_a_dataset(tmp_path, capsys):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "results.h5").write_bytes(b"not a shard")
+    assert toss(out, "--overwrite") == 2
+    only_error_line(capsys, "does not look like a dataset")
+    assert (out / "results.h5").exists()
