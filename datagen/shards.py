@@ -209,6 +209,10 @@ def read_shard(path: str | Path) -> tuple[list[Scene], dict[str, tuple[np.ndarra
     return scenes, meshes
 
 
+# What every reader of a dataset relies on (docs/data_format.md).
+REQUIRED_META = ("frame_rate", "gravity", "floor", "splits")
+
+
 class Dataset:
     """A dataset folder: `metadata.json` plus the shards it lists, per split.
 
@@ -229,14 +233,24 @@ class Dataset:
             raise DataError(f"not a dataset folder (no {METADATA_FILE}): {self.root}")
         try:
             self.meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as e:
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
             raise DataError(f"{meta_path}: invalid JSON ({e})") from None
+        if not isinstance(self.meta, dict):
+            raise DataError(f"{meta_path}: not a JSON object (got {type(self.meta).__name__})")
         version = self.meta.get("format_version")
         if version != FORMAT_VERSION:
             raise DataError(f"{meta_path}: format version {version}, this reader reads {FORMAT_VERSION}")
         if self.meta.get("complete") is False:
             raise DataError(f"{self.root}: incomplete dataset (generation was interrupted); "
                             "finish it with `datagen toss ... --resume`")
+        missing = [k for k in REQUIRED_META if k not in self.meta]
+        if missing:
+            raise DataError(f"{meta_path}: lacks {', '.join(repr(k) for k in missing)}")
+        splits = self.meta["splits"]
+        if not isinstance(splits, dict) or not all(
+                isinstance(v, dict) and isinstance(v.get("shards"), list) and isinstance(v.get("num_scenes"), int)
+                for v in splits.values()):
+            raise DataError(f"{meta_path}: 'splits' must map each split to {{'num_scenes': int, 'shards': [names]}}")
         self._meshes: dict | None = None
 
     # Scene-level physical constants, so the trainer never reads the generator's config.

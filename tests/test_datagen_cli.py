@@ -231,3 +231,35 @@ def test_overwrite_refuses_a_folder_that_is_not_a_dataset(tmp_path, capsys):
     assert toss(out, "--overwrite") == 2
     only_error_line(capsys, "does not look like a dataset")
     assert (out / "results.h5").exists()
+
+
+@pytest.mark.parametrize("meta, words", [
+    ("[1, 2, 3]", "not a JSON object"),
+    ('{"format_version": 1, "gravity": [0, 0, -10], "floor": null, "splits": {}}', "lacks 'frame_rate'"),
+    ('{"format_version": 1, "frame_rate": 12, "gravity": [0, 0, -10], "floor": null, "splits": [1]}',
+     "'splits' must map"),
+])
+def test_inspect_of_broken_metadata_is_one_line(tmp_path, capsys, meta, words):
+    (tmp_path / "metadata.json").write_text(meta)
+    assert main(["inspect", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    problems = [line for line in err.splitlines() if line.startswith("problem:")]
+    assert len(problems) == 1 and words in problems[0] and "Traceback" not in err, err
+
+
+def test_inspect_judges_imported_tosses_as_measurements(tmp_path, capsys):
+    from pathlib import Path
+    src = Path(__file__).parent / "data" / "contactnets"
+    out = tmp_path / "cubes"
+    assert main(["import", "contactnets", str(src), "--out", str(out), "--quiet"]) == 0
+    ds = Dataset(out)
+    scenes = ds.load("test")
+    scenes[0].positions[:, 0, 2] -= 0.2                 # 10% of the width into the table: tracking
+    write_shard(out / "test-00000.h5", scenes, ds.meshes)
+    capsys.readouterr()
+    assert main(["inspect", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "measured data: deepest point below the floor" in said and "max 1" in said
+    scenes[1].positions[5, 0, 0] = np.nan               # corruption still fails
+    write_shard(out / "test-00000.h5", scenes, ds.meshes)
+    assert main(["inspect", str(out)]) == 1
