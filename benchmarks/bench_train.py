@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from datagen.shapes import get_shape
+from datagen.config import config_dir
 from datagen.shards import Dataset, Scene
 from gns.config import build_config
 from gns.data import ObjectTracks, feature_spec
@@ -26,7 +27,7 @@ from gns.geometry import quat_from_axis_angle
 from gns.graph import MeshLibrary
 from gns.train import build_simulator, learning_rate, train_step
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = config_dir()
 SHAPES = ("beveled_cube", "cylinder", "sphere")  # MOVi-A's shapes: 51-64 vertices each
 
 

@@ -81,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--frames", type=int, help="frames recorded per scene (default 24)")
     t.add_argument("--frame-rate", type=float, help="recorded frames per second (default 12)")
     t.add_argument("--physics-rate", type=float, help="physics steps per second (default 240)")
-    t.add_argument("--config", help="a TOML file overriding configs/movi_a.toml")
+    t.add_argument("--config", help="a TOML file overriding the movi_a preset (configs/movi_a.toml)")
     t.add_argument("--set", action="extend", nargs="+", metavar="KEY=VALUE",
                    help="override config keys, typed as in the preset, e.g. --set floor.friction=0.5 physics.ccd=true")
     t.add_argument("--scenes-per-shard", type=int, default=50, help="scenes per HDF5 shard (default 50)")

@@ -12,8 +12,7 @@ import math
 import tomllib
 from pathlib import Path
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
-DEFAULT_CONFIG = CONFIG_DIR / "movi_a.toml"
+DEFAULT_PRESET = "movi_a"
 # Tables whose entries a user may add to (each new entry must have the built-in entries' keys).
 OPEN_TABLES = ("materials", "sizes")
 
@@ -22,10 +21,35 @@ class ConfigError(ValueError):
     pass
 
 
+def config_dir() -> Path:
+    """The presets (TOML): the checkout's configs/ folder, or, installed from a wheel, the same
+    files shipped as the package `rigid_gns_configs` (pyproject.toml maps configs/ to it)."""
+    checkout = Path(__file__).resolve().parent.parent / "configs"
+    if (checkout / f"{DEFAULT_PRESET}.toml").is_file():
+        return checkout
+    from importlib.resources import files
+    return Path(str(files("rigid_gns_configs")))
+
+
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in config_dir().glob("*.toml"))
+
+
+def config_path(path: str | Path) -> Path:
+    """A TOML file, or a preset's name (gns_cpu, movi_a) looked up among the shipped presets;
+    a path into a checkout's configs/ that is not there (installed package) falls back to the
+    preset of that name."""
+    p = Path(path)
+    if p.is_file():
+        return p
+    if p.suffix in ("", ".toml") and (config_dir() / f"{p.stem}.toml").is_file() and (
+            p.parent == Path(".") or p.parent.name == "configs"):
+        return config_dir() / f"{p.stem}.toml"
+    raise ConfigError(f"config file not found: {path} (presets: {', '.join(preset_names())})")
+
+
 def load_toml(path: str | Path) -> dict:
-    path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"config file not found: {path}")
+    path = config_path(path)
     try:
         return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
@@ -110,7 +134,7 @@ def apply_sets(cfg: dict, sets: list[str]) -> dict:
 
 
 def load_config(path: str | Path | None = None, sets: list[str] | None = None) -> dict:
-    cfg = load_toml(DEFAULT_CONFIG)
+    cfg = load_toml(config_dir() / f"{DEFAULT_PRESET}.toml")
     if path is not None:
         cfg = merge(cfg, load_toml(path))
     cfg = apply_sets(cfg, sets or [])

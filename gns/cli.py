@@ -31,7 +31,8 @@ def add_train_parser(sub) -> None:
                        description="Train a GNS on the train split of DIR; validate on its valid split.")
     p.add_argument("--data", required=True, metavar="DIR", help="dataset folder (metadata.json + shards)")
     p.add_argument("--out", required=True, metavar="RUN", help="run folder for checkpoints and metrics.jsonl")
-    p.add_argument("--config", metavar="TOML", help="preset, e.g. configs/gns_cpu.toml (default: built-in)")
+    p.add_argument("--config", metavar="TOML", help="a TOML file or a shipped preset by name: gns_tiny, gns_cpu, gns_paper "
+                   "(default: built-in, the paper's model)")
     p.add_argument("--steps", type=int, metavar="N", help="train until step N (same as --set train.steps=N)")
     p.add_argument("--set", action="extend", nargs="+", metavar="KEY=VALUE",
                    help="override a config key, e.g. --set model.latent_size=64 train.batch_size=4")

@@ -167,14 +167,7 @@ def parse_override(text: str) -> dict:
     return {section: {name: value}}
 
 
-def load_toml(path: str | Path) -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
-    try:
-        return tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{path}: invalid TOML ({e})") from None
+from datagen.config import load_toml  # noqa: E402  files or preset names, one reader for both tools
 
 
 def build_config(base: dict | None = None, path: str | Path | None = None,

@@ -7,13 +7,13 @@ import sys
 import time
 from pathlib import Path
 
-from datagen.config import load_config as load_scene_config
+from datagen.config import config_dir, load_config as load_scene_config
 from datagen.generate import generate
 from datagen.shards import Dataset, DataError
 from gns.config import build_config
 from gns.train import LATEST, CheckpointError, resume_checkpoint, train
 
-CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+CONFIGS = config_dir()
 
 
 def say(msg: str) -> None:
