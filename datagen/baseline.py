@@ -107,20 +107,23 @@ def _rotations(quat_wxyz: np.ndarray) -> Rotation:
 
 def initial_state(scene: Scene, frame_rate: float = FRAME_RATE, gravity: float = GRAVITY,
                   given: int = GIVEN) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """State at the last given frame k = given-1 from frames 0..k, as free flight.
+    """State at the last given frame k = given-1 from frames k-2..k, as free flight.
 
     Returns position (3,), quaternion wxyz (4,), linear and world-frame angular velocity (3,).
     """
     if scene.num_frames < given or given < 2:
         raise ValueError(f"need at least {max(given, 2)} frames to estimate the initial state")
     dt, k = 1.0 / frame_rate, given - 1
+    # From the last 3 given frames (or 2): a longer start (to match what a strided GNS is given)
+    # may hold a bounce, across which a secant from frame 0 would be no velocity at all.
+    j = max(0, k - 2)
     p, q = scene.positions[:, 0], scene.quaternions[:, 0]
-    span = k * dt
+    span = (k - j) * dt
     accel = np.array([0.0, 0.0, -gravity])
-    # For a ballistic centre p(t) = p_k + v (t - t_k) + a (t - t_k)^2 / 2 the secant from frame 0
+    # For a ballistic centre p(t) = p_k + v (t - t_k) + a (t - t_k)^2 / 2 the secant from frame j
     # to k plus a * span / 2 is exactly v; for 3 frames it is also the least-squares slope.
-    v = (p[k] - p[0]) / span + accel * span / 2.0
-    w = (_rotations(q[k]) * _rotations(q[0]).inv()).as_rotvec() / span
+    v = (p[k] - p[j]) / span + accel * span / 2.0
+    w = (_rotations(q[k]) * _rotations(q[j]).inv()).as_rotvec() / span
     return p[k].copy(), q[k] / np.linalg.norm(q[k]), v, w
 
 

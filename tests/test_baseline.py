@@ -186,3 +186,18 @@ def test_bad_input_is_refused(tosses):
                    sc.scale, sc.mass, sc.friction, sc.restitution)
     with pytest.raises(ValueError, match="one cube"):
         simulate_toss(sphere)
+
+
+def test_a_long_start_estimates_the_state_after_a_bounce_not_across_it():
+    from datagen.baseline import initial_state
+    from datagen.shards import Scene
+    rate, g = 100.0, 10.0
+    t = np.arange(20) / rate
+    z = 1.0 + 2.0 * t - 0.5 * g * t ** 2          # flying up at 2 units/s ...
+    z[10:] = z[9] - 1.0 * (t[10:] - t[9]) - 0.5 * g * (t[10:] - t[9]) ** 2   # ... then knocked downwards
+    pos = np.stack([0 * t, 0 * t, z], 1)[:, None]
+    quat = np.tile([1.0, 0, 0, 0], (20, 1))[:, None]
+    sc = Scene(pos, quat, np.zeros_like(pos), np.zeros_like(pos), ["cube"], ["acrylic"], np.ones(1), np.ones(1),
+               np.ones(1), np.ones(1))
+    _, _, v, _ = initial_state(sc, rate, g, given=17)
+    assert abs(v[2] - (-1.0 - g * (t[16] - t[9]))) < 1e-9      # the velocity at frame 16, after the kink
