@@ -93,7 +93,7 @@ def _sleep(args: argparse.Namespace):
 
 def _add_rollout_args(p) -> None:
     p.add_argument("--run", required=True, dest="run_dir", metavar="RUN",
-                   help="run folder (its latest.pt) or a .pt checkpoint")
+                   help="run folder (its latest.pt), a .pt checkpoint, or a shipped model by name (gns_real_cubes_n256, ...)")
     p.add_argument("--data", required=True, metavar="DIR", help="dataset folder to roll out")
     p.add_argument("--split", default="test", help="split to roll out (default test)")
     p.add_argument("--limit", type=int, metavar="N", help="only the first N scenes")

@@ -16,10 +16,23 @@ from gns.ranges import outside_training
 from gns.train import LATEST, load_model, read_checkpoint
 
 
+SHIPPED_MODELS = Path(__file__).resolve().parent / "models"
+
+
+def shipped_models() -> list[str]:
+    """Names of the trained models shipped with the package (gns/models/*.pt, docs/accuracy.md)."""
+    return sorted(p.stem for p in SHIPPED_MODELS.glob("*.pt"))
+
+
 def checkpoint_of(run: str | Path) -> Path:
-    """A run folder means its latest checkpoint; a .pt file is taken as it is."""
+    """A run folder means its latest checkpoint; a .pt file is taken as it is; a bare name that
+    is neither is looked up among the shipped models (e.g. gns_real_cubes_n256)."""
     run = Path(run)
-    return run / LATEST if run.is_dir() else run
+    if run.is_dir():
+        return run / LATEST
+    if not run.exists() and run.parent == Path(".") and (SHIPPED_MODELS / f"{run.stem}.pt").is_file():
+        return SHIPPED_MODELS / f"{run.stem}.pt"
+    return run
 
 
 def _worst_first(per_scene: list[float]) -> list[int]:

@@ -1,0 +1,30 @@
+"""The trained models shipped in gns/models (docs/accuracy.md): they load by name and roll out
+real tosses the way the measured figures say."""
+from pathlib import Path
+
+import pytest
+
+from gns.evaluate import checkpoint_of, evaluate_run, shipped_models
+from gns.train import load_model
+
+CUBES = Path(__file__).parent / "data" / "contactnets"
+
+
+def test_the_real_cube_models_are_shipped_and_load_by_name():
+    assert {"gns_real_cubes_n16", "gns_real_cubes_n64", "gns_real_cubes_n256"} <= set(shipped_models())
+    sim, cfg = load_model(checkpoint_of("gns_real_cubes_n256"))
+    assert cfg.features.frame_stride == 8 and sim.layout.floor_z is not None
+
+
+def test_the_256_toss_model_rolls_out_real_tosses_within_its_measured_error(tmp_path):
+    from datagen.contactnets import import_contactnets
+    data = tmp_path / "cubes"
+    import_contactnets(CUBES, data, progress=False)
+    results, pred, true, _ = evaluate_run("gns_real_cubes_n256", data, "test", symmetrize=True, at_data_rate=True,
+                                          progress=False)
+    assert results["num_scenes"] == 3 and pred[0].num_frames == true[0].num_frames
+    # These 3 tosses are among the model's 256 training tosses (the only real ones in the repo),
+    # so this checks the shipped file works as trained, not held-out accuracy (8.1% / 7.5 deg on
+    # the 96 test tosses, docs/accuracy.md); a broken or mismatched model is far off either way.
+    assert results["position_error_pct"] < 30 and results["rotation_error_deg"] < 30
+    assert results["penetration_pct"] < 5
