@@ -82,7 +82,10 @@ def read_checkpoint(path: str | Path) -> dict:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for a damaged or foreign file
-        raise CheckpointError(f"unreadable checkpoint {path}: {str(e).splitlines()[0]}") from None
+        # torch's own message for a damaged file is advice about weights_only, not the cause
+        what = "damaged or not a checkpoint" if "weights_only" in str(e) or "Weights only" in str(e) \
+            else str(e).splitlines()[0][:200]
+        raise CheckpointError(f"unreadable checkpoint {path}: {what}") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} is not a gns checkpoint of format {CHECKPOINT_FORMAT}")
     return ckpt
