@@ -46,7 +46,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     import time
 
     from gns.evaluate import check_ranges, checkpoint_of, load_split
-    from gns.rollout import check_output, rollout_scenes, write_rollouts
+    from gns.rollout import check_output, diverged, rollout_scenes, write_rollouts
     from gns.train import load_model, read_checkpoint
 
     check_output(args.out, args.overwrite, source=args.data)
@@ -60,7 +60,14 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=not args.no_shape_matching,
                           batch_tracks=args.batch, sleep=_sleep(args))
     seconds = time.perf_counter() - t0
-    info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]),
+    bad = [str(sc.attrs.get("scene_id", i)) for i, (p, sc) in enumerate(zip(pred, scenes)) if diverged(p)]
+    if bad:
+        if len(bad) == len(pred):
+            raise DataError(f"every rollout diverged (non-finite positions); nothing written to {args.out}")
+        print(f"warning: {len(bad)} of {len(pred)} rollouts diverged and are not written: scenes "
+              f"{', '.join(bad[:20])}{' ...' if len(bad) > 20 else ''}", file=sys.stderr)
+        pred = [p for p in pred if not diverged(p)]
+    info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]), "diverged_scenes": bad,
             "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
             "given_frames": 3, "seconds": seconds,
             "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize}

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import numpy as np
 
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors, per_scene_means
-from gns.rollout import rollout_scenes, upsample_scene
+from gns.rollout import diverged, rollout_scenes, upsample_scene
 from gns.data import feature_spec
 from gns.ranges import outside_training
 from gns.train import LATEST, load_model, read_checkpoint
@@ -70,15 +71,30 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
                           batch_tracks=batch_tracks, progress=progress, sleep=sleep)
     seconds = time.perf_counter() - t0
+    # A rollout that blew up is named and left out of the averages, not a crash in the metrics.
+    bad = [i for i, p in enumerate(pred) if diverged(p)]
+    bad_ids = [str(scenes[i].attrs.get("scene_id", i)) for i in bad]
+    if bad:
+        if len(bad) == len(pred):
+            raise DataError(f"every rollout diverged (non-finite positions) on {len(pred)} scenes of {data}")
+        print(f"warning: {len(bad)} of {len(pred)} rollouts diverged and are left out of the metrics: "
+              f"scenes {', '.join(bad_ids[:20])}{' ...' if len(bad) > 20 else ''}", file=sys.stderr)
+        keep = [i for i in range(len(pred)) if i not in set(bad)]
+        pred, scenes = [pred[i] for i in keep], [scenes[i] for i in keep]
+        limit_ids = keep
+    else:
+        limit_ids = None
     if at_data_rate and ds.stride > 1:
         full = Dataset(data)
-        pairs = [upsample_scene(p, ds.stride, t, full.frame_rate)
-                 for p, t in zip(pred, full.load(split, limit), strict=True)]
+        truth = full.load(split, limit)
+        if limit_ids is not None:
+            truth = [truth[i] for i in limit_ids]
+        pairs = [upsample_scene(p, ds.stride, t, full.frame_rate) for p, t in zip(pred, truth, strict=True)]
         pred, scenes, ds = [p for p, _ in pairs], [t for _, t in pairs], full
     results = score_predictions(pred, scenes, ds, seconds, plots_dir)
     results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
                    outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
-                   symmetrize=symmetrize, at_data_rate=at_data_rate, model_stride=ds.stride if not at_data_rate
+                   symmetrize=symmetrize, at_data_rate=at_data_rate, diverged_scenes=bad_ids, model_stride=ds.stride if not at_data_rate
                    else round(ds.frame_rate / saved["spec"]["frame_rate"]))
     return results, pred, scenes, ds
 
@@ -118,6 +134,8 @@ def load_split(data: str | Path, split: str, limit: int | None,
                frame_rate: float | None = None) -> tuple[Dataset, list]:
     """Scenes of a split. Given a model's `frame_rate`, data recorded at a whole multiple of it
     are read at that rate (every k-th frame); any other rate is left for check_ranges to flag."""
+    if limit is not None and limit < 1:
+        raise DataError(f"--limit must be >= 1 scene, got {limit}")
     ds = Dataset(data)
     if frame_rate:
         ratio = ds.frame_rate / frame_rate

@@ -35,10 +35,23 @@ def _continuous(quat: np.ndarray) -> np.ndarray:
 def _angular_velocity(quat: np.ndarray, dt: float) -> np.ndarray:
     """World-frame angular velocity (T, N, 3) from orientations (T, N, 4) wxyz, backward differences."""
     out = np.zeros(quat.shape[:-1] + (3,))
-    rot = Rotation.from_quat(quat.reshape(-1, 4)[:, [1, 2, 3, 0]]).as_matrix().reshape(quat.shape[:-1] + (3, 3))
-    rel = rot[1:] @ np.swapaxes(rot[:-1], -1, -2)
-    out[1:] = Rotation.from_matrix(rel.reshape(-1, 3, 3)).as_rotvec().reshape(rel.shape[:-2] + (3,)) / dt
+    flat = quat.reshape(-1, 4)
+    # a diverged rollout has non-finite (or zero) quaternions: NaN there, not a scipy error
+    good = np.isfinite(flat).all(axis=1) & (np.linalg.norm(np.nan_to_num(flat), axis=1) > 0)
+    rot = np.full((len(flat), 3, 3), np.nan)
+    rot[good] = Rotation.from_quat(flat[good][:, [1, 2, 3, 0]]).as_matrix()
+    rot = rot.reshape(quat.shape[:-1] + (3, 3))
+    rel = (rot[1:] @ np.swapaxes(rot[:-1], -1, -2)).reshape(-1, 3, 3)
+    ok = np.isfinite(rel).all(axis=(1, 2))
+    vec = np.full((len(rel), 3), np.nan)
+    vec[ok] = Rotation.from_matrix(rel[ok]).as_rotvec()
+    out[1:] = vec.reshape((quat.shape[0] - 1, *quat.shape[1:-1], 3)) / dt
     return out
+
+
+def diverged(scene: Scene) -> bool:
+    """Whether a rolled-out scene left the finite numbers (the model blew up)."""
+    return not (np.isfinite(scene.positions).all() and np.isfinite(scene.quaternions).all())
 
 
 @torch.no_grad()

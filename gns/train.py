@@ -332,7 +332,13 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     torch.manual_seed(seed)
     random.seed(seed)
     rng = np.random.default_rng(seed)
-    device = torch.device(cfg.train.device)
+    try:
+        device = torch.device(cfg.train.device)
+    except RuntimeError as e:
+        raise TrainingError(f"train.device {cfg.train.device!r} is not a device: {e}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise TrainingError(f"train.device is {cfg.train.device!r} but this torch has no CUDA device "
+                            f"(torch {torch.__version__}); use train.device=cpu")
 
     sim = build_simulator(cfg, data_spec)
     spec = _with_layout(data_spec, sim)

@@ -143,3 +143,12 @@ def test_an_exported_model_cannot_be_resumed_but_says_why(data, tmp_path):
     export_model(run / "latest.pt", tmp_path / "exported" / "latest.pt")
     with pytest.raises(CheckpointError, match="exported model"):
         train(data, tmp_path / "exported", tiny("train.steps=10"), resume=True, log=quiet)
+
+
+def test_a_cuda_device_on_a_cpu_build_is_one_line(data, tmp_path):
+    from gns.train import TrainingError
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA: the error cannot happen here")
+    with pytest.raises(TrainingError, match="no CUDA device"):
+        train(data, tmp_path / "run", tiny("train.device=cuda", "train.steps=2"), log=quiet)
+    assert not (tmp_path / "run").exists()

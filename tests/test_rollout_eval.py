@@ -158,3 +158,39 @@ def test_rollout_refuses_an_output_that_overlaps_its_data_even_with_overwrite(tr
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "overlaps the dataset" in err[0]
     assert sorted(p.name for p in data.glob("*.h5")) == shards and Dataset(data).num_scenes("test") == 3
+
+
+def _blow_up_graph_zero(monkeypatch):
+    from gns.simulator import LearnedSimulator
+    real = LearnedSimulator.predict_acceleration
+
+    def boom(self, history, graph):
+        a = real(self, history, graph)
+        a[graph.node_graph == 0] = float("inf")          # the first object of every batch diverges
+        return a
+    monkeypatch.setattr(LearnedSimulator, "predict_acceleration", boom)
+
+
+def test_a_diverged_rollout_is_named_and_left_out_not_a_crash(trained, tmp_path, capsys, monkeypatch):
+    from gns.cli import main as gns_main
+    from gns.evaluate import evaluate_run
+    data, run = trained
+    _blow_up_graph_zero(monkeypatch)
+    results, pred, _, _ = evaluate_run(run, data, "test", progress=False)
+    assert len(results["diverged_scenes"]) == 1 and results["num_scenes"] == 2
+    assert np.isfinite(results["position_error_pct"])
+    assert "1 of 3 rollouts diverged" in capsys.readouterr().err
+    gns_main(["rollout", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "roll")])
+    assert "1 of 3 rollouts diverged and are not written" in capsys.readouterr().err
+    assert Dataset(tmp_path / "roll").num_scenes("test") == 2
+
+
+@pytest.mark.parametrize("limit", ["0", "-2"])
+def test_a_limit_below_one_is_one_line(trained, capsys, limit):
+    from gns.cli import main as gns_main
+    data, run = trained
+    with pytest.raises(SystemExit) as e:
+        gns_main(["eval", "--run", str(run), "--data", str(data), "--limit", limit])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--limit must be >= 1" in err[0]
