@@ -218,6 +218,8 @@ def report(out: Path, r: dict, command: str) -> Path:
 
 
 def run(preset: str, out: Path, run_path: Path | None, seed: int, shape: str, command: str) -> dict:
+    if run_path is not None:
+        read_checkpoint(checkpoint_of(run_path))  # a missing or bad checkpoint fails first, one line
     out.mkdir(parents=True, exist_ok=True)
     drops = drops_stage(out / "drops", shape)
     if run_path is None:
@@ -226,7 +228,6 @@ def run(preset: str, out: Path, run_path: Path | None, seed: int, shape: str, co
         ckpt = train_stage(data.root, out / "run", p["model"], [f"train.steps={p['steps']}", f"train.seed={seed}"])
     else:
         ckpt = checkpoint_of(run_path)
-        read_checkpoint(ckpt)  # a missing or bad checkpoint fails here, one line
     results = evaluate(ckpt, drops, out, shape)
     say(f"report: {report(out, results, command)}")
     for name in ("plain", "symmetrized"):
