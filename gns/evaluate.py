@@ -10,7 +10,8 @@ import numpy as np
 
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors, per_scene_means
-from gns.rollout import rollout_scenes
+from gns.outputs import check_writable
+from gns.rollout import diverged_line, rollout_scenes, split_diverged
 from gns.data import feature_spec
 from gns.ranges import outside_training
 from gns.train import LATEST, load_model, read_checkpoint
@@ -45,24 +46,40 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     ckpt = checkpoint_of(run)
     saved = read_checkpoint(ckpt)
     sim, _ = load_model(saved)
+    if plots_dir is not None:
+        check_writable(plots_dir, "plots folder")
     ds, scenes = load_split(data, split, limit, saved["spec"]["frame_rate"])
     warnings = check_ranges(saved["spec"], ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
                           batch_tracks=batch_tracks, progress=progress, sleep=sleep)
-    results = score_predictions(pred, scenes, ds, time.perf_counter() - t0, plots_dir)
+    seconds = time.perf_counter() - t0
+    pred, scenes, diverged = split_diverged(pred, scenes)
+    if diverged:
+        _warn(diverged_line(diverged, len(scenes) + len(diverged), "left out of the metrics"))
+    results = score_predictions(pred, scenes, ds, seconds, plots_dir)
     results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
-                   outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep))
+                   outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
+                   diverged_scenes=diverged, num_diverged=len(diverged))
     return results, pred, scenes, ds
+
+
+def _warn(line: str) -> None:
+    import sys
+    print(line, file=sys.stderr)
 
 
 def check_ranges(trained_spec: dict, ds: Dataset, scenes: list, warn=None) -> list[str]:
     """Warn (stderr, one line each) where the scenes leave a checkpoint's training ranges
     (its `spec`)."""
-    import sys
     problems = outside_training(trained_spec, feature_spec(ds, scenes))
     for p in problems:
-        (warn or (lambda m: print(m, file=sys.stderr)))(f"warning: outside training: {p}")
+        (warn or _warn)(f"warning: outside training: {p}")
+    crowded = sum(sc.num_objects > 1 for sc in scenes)
+    if crowded and not trained_spec.get("collision_edges", False):
+        # not an "outside training" range: the model cannot represent contact between objects at all
+        (warn or _warn)(f"warning: {crowded} of {len(scenes)} scenes hold several objects, but the model was trained "
+                        "on single-object scenes and has no collision edges: objects will pass through each other")
     return problems
 
 
