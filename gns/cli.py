@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from pathlib import Path
 
 from datagen.shards import DataError
 from gns.config import ConfigError
@@ -47,7 +46,8 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     import time
 
     from gns.evaluate import check_ranges, checkpoint_of, load_split
-    from gns.rollout import check_output, diverged_line, rollout_scenes, scene_label, write_rollouts
+    from gns.rollout import (DivergedError, check_output, diverged_line, rollout_scenes, scene_label,
+                             write_rollouts)
     from gns.train import load_model, read_checkpoint
 
     check_output(args.out, args.overwrite, args.data)
@@ -61,6 +61,9 @@ def cmd_rollout(args: argparse.Namespace) -> None:
                           batch_tracks=args.batch, sleep=_sleep(args))
     seconds = time.perf_counter() - t0
     diverged = [scene_label(sc, i) for i, (p, sc) in enumerate(zip(pred, scenes)) if "diverged_at_frame" in p.attrs]
+    if len(diverged) == len(pred):
+        raise DivergedError(f"every rollout diverged ({len(pred)} scenes: positions became inf or NaN); "
+                            f"nothing written to {args.out}")
     if diverged:
         print(diverged_line(diverged, len(pred), f"not written (listed in {args.out}/metadata.json)"), file=sys.stderr)
     info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]),
@@ -74,10 +77,10 @@ def cmd_rollout(args: argparse.Namespace) -> None:
 def cmd_eval(args: argparse.Namespace) -> None:
     from gns.evaluate import evaluate_run, write_json
     from gns.metrics import format_table
-    from gns.outputs import check_writable
+    from gns.outputs import check_json_output
 
     if args.json:
-        check_writable(Path(args.json).parent, "--json folder")
+        check_json_output(args.json, "position_error_pct", "gns eval")
     results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit,
                                shape_matching=not args.no_shape_matching, plots_dir=args.plots,
                                batch_tracks=args.batch, sleep=_sleep(args))

@@ -25,7 +25,7 @@ def check_writable(path: str | Path, what: str = "output folder") -> Path:
         os.close(fd)
         os.unlink(probe)
     except OSError as e:
-        raise DataError(f"cannot write to the {what} {path}: {e.strerror or e} in {existing}") from None
+        raise DataError(f"cannot write to the {what} {path}: {existing} is not writable ({e.strerror or e})") from None
     return path
 
 
@@ -33,3 +33,21 @@ def overlapping(a: str | Path, b: str | Path) -> bool:
     """Whether folders a and b are the same or one lies inside the other (after symlinks)."""
     a, b = Path(a).resolve(), Path(b).resolve()
     return a == b or a in b.parents or b in a.parents
+
+
+def check_json_output(path: str | Path, marker: str, what: str) -> Path:
+    """A JSON output file that may be replaced: new, or an earlier output of the same command
+    (a dict holding key `marker`), so a mistyped path never overwrites someone else's file
+    (a dataset's metadata.json, say)."""
+    import json
+    path = Path(path)
+    if path.is_dir():
+        raise DataError(f"{path} is a folder; give a file name such as {path / 'results.json'}")
+    if path.exists():
+        try:
+            ours = marker in json.loads(path.read_text())
+        except (OSError, ValueError, TypeError):
+            ours = False
+        if not ours:
+            raise DataError(f"{path} exists and is not a {what} output; refusing to replace it")
+    return check_writable(path.parent, "--json folder")

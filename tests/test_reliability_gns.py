@@ -159,6 +159,18 @@ def test_export_never_replaces_a_checkpoint(run, capsys):
     gns_main(["export", "--run", str(run), "--out", str(run / "model.pt"), "--overwrite"])  # its own: replaced
 
 
+def test_eval_json_replaces_only_an_earlier_eval(made, tmp_path, capsys):
+    data, run = made
+    copy = Path(shutil.copytree(data, tmp_path / "data"))
+    meta = (copy / "metadata.json").read_text()
+    line = one_error(capsys, ["eval", "--run", run, "--data", copy, "--split", "valid", "--json", copy / "metadata.json"])
+    assert "not a gns eval output" in line and (copy / "metadata.json").read_text() == meta
+    args = ["eval", "--run", str(run), "--data", str(data), "--split", "valid", "--json", str(tmp_path / "r.json")]
+    gns_main(args)
+    gns_main(args)  # its own earlier output is replaced
+    assert json.loads((tmp_path / "r.json").read_text())["num_scenes"] == 4
+
+
 def test_pipeline_fresh_deletes_only_its_own_folder(tmp_path, capsys):
     out = tmp_path / "mine"
     (out / "data").mkdir(parents=True)
