@@ -6,6 +6,7 @@ line `error: ...` on stderr and exits with status 2 (bad input) or 1 (training f
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from datagen.shards import DataError
@@ -46,10 +47,11 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     import time
 
     from gns.evaluate import check_ranges, checkpoint_of, load_split
-    from gns.rollout import check_output, diverged, rollout_scenes, write_rollouts
+    from gns.rollout import (DivergedError, check_output, diverged_line, rollout_scenes, scene_label,
+                             write_rollouts)
     from gns.train import load_model, read_checkpoint
 
-    check_output(args.out, args.overwrite, source=args.data)
+    check_output(args.out, args.overwrite, args.data)
     ckpt = checkpoint_of(args.run_dir)
     saved = read_checkpoint(ckpt)
     sim, _ = load_model(saved)
@@ -60,25 +62,27 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=not args.no_shape_matching,
                           batch_tracks=args.batch, sleep=_sleep(args))
     seconds = time.perf_counter() - t0
-    bad = [str(sc.attrs.get("scene_id", i)) for i, (p, sc) in enumerate(zip(pred, scenes)) if diverged(p)]
-    if bad:
-        if len(bad) == len(pred):
-            raise DataError(f"every rollout diverged (non-finite positions); nothing written to {args.out}")
-        print(f"warning: {len(bad)} of {len(pred)} rollouts diverged and are not written: scenes "
-              f"{', '.join(bad[:20])}{' ...' if len(bad) > 20 else ''}", file=sys.stderr)
-        pred = [p for p in pred if not diverged(p)]
-    info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]), "diverged_scenes": bad,
+    diverged = [scene_label(sc, i) for i, (p, sc) in enumerate(zip(pred, scenes)) if "diverged_at_frame" in p.attrs]
+    if len(diverged) == len(pred):
+        raise DivergedError(f"every rollout diverged ({len(pred)} scenes: positions became inf or NaN); "
+                            f"nothing written to {args.out}")
+    if diverged:
+        print(diverged_line(diverged, len(pred), f"not written (listed in {args.out}/metadata.json)"), file=sys.stderr)
+    info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]),
             "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
             "given_frames": 3, "seconds": seconds,
             "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize}
     write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
-    print(f"rolled out {len(pred)} scenes in {seconds:.2f} s; wrote {args.out}")
+    print(f"rolled out {len(pred)} scenes in {seconds:.2f} s; wrote {len(pred) - len(diverged)} to {args.out}")
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
     from gns.evaluate import evaluate_run, write_json
     from gns.metrics import format_table
+    from gns.outputs import check_json_output
 
+    if args.json:
+        check_json_output(args.json, "position_error_pct", "gns eval")
     results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit,
                                shape_matching=not args.no_shape_matching, plots_dir=args.plots,
                                batch_tracks=args.batch, sleep=_sleep(args), symmetrize=args.symmetrize,
@@ -87,7 +91,16 @@ def cmd_eval(args: argparse.Namespace) -> None:
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched")
     if args.json:
-        write_json(args.json, {k: v for k, v in results.items() if k != "per_scene"})
+        summary = {k: v for k, v in results.items() if k != "per_scene"}
+        try:
+            write_json(args.json, summary)
+        except OSError as e:  # checked before the rollouts, but a disk can fill during them: keep the work
+            import tempfile
+            fd, spare = tempfile.mkstemp(prefix="gns-eval-", suffix=".json")
+            os.close(fd)
+            write_json(spare, summary)
+            print(f"error: cannot write {args.json} ({e.strerror or e}); the results are in {spare}", file=sys.stderr)
+            raise SystemExit(EXIT_FAILED)
         print(f"wrote {args.json}")
     if args.plots:
         print(f"plots in {args.plots}")
@@ -143,7 +156,7 @@ def cmd_export(args: argparse.Namespace) -> None:
     from gns.evaluate import checkpoint_of
     from gns.train import export_model
 
-    out = export_model(checkpoint_of(args.run_dir), args.out)
+    out = export_model(checkpoint_of(args.run_dir), args.out, overwrite=args.overwrite)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB): model, config and training ranges, no optimiser state")
 
 
@@ -153,6 +166,8 @@ def add_export_parser(sub) -> None:
                                    "`gns rollout`/`gns eval` read it like a run; training cannot resume from it.")
     x.add_argument("--run", required=True, dest="run_dir", metavar="RUN", help="run folder or .pt checkpoint")
     x.add_argument("--out", required=True, metavar="FILE", help="output .pt file")
+    x.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier exported model at FILE (never a run's checkpoint or another file)")
     x.set_defaults(run=cmd_export)
 
 
@@ -168,6 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
     # Imported after parsing so that `gns --help` and usage errors do not wait for torch.
+    from gns.rollout import DivergedError
     from gns.train import CheckpointError, TrainingError
 
     try:
@@ -175,8 +191,11 @@ def main(argv: list[str] | None = None) -> None:
     except (DataError, ConfigError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(EXIT_BAD_INPUT)
-    except TrainingError as e:
+    except (TrainingError, DivergedError) as e:
         print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(EXIT_FAILED)
+    except OSError as e:  # an output that became unwritable, or a full disk, after the checks
+        print(f"error: {e.strerror or e}: {e.filename}", file=sys.stderr)
         raise SystemExit(EXIT_FAILED)
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)

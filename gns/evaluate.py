@@ -11,7 +11,8 @@ import numpy as np
 
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors, per_scene_means
-from gns.rollout import diverged, rollout_scenes, upsample_scene
+from gns.outputs import check_writable
+from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene
 from gns.data import feature_spec
 from gns.ranges import outside_training
 from gns.train import LATEST, load_model, read_checkpoint
@@ -65,47 +66,48 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     saved = read_checkpoint(ckpt)
     sim, _ = load_model(saved)
     sim.symmetrize = symmetrize
+    if plots_dir is not None:
+        check_writable(plots_dir, "plots folder")
     ds, scenes = load_split(data, split, limit, saved["spec"]["frame_rate"])
     warnings = check_ranges(saved["spec"], ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
                           batch_tracks=batch_tracks, progress=progress, sleep=sleep)
     seconds = time.perf_counter() - t0
-    # A rollout that blew up is named and left out of the averages, not a crash in the metrics.
-    bad = [i for i, p in enumerate(pred) if diverged(p)]
-    bad_ids = [str(scenes[i].attrs.get("scene_id", i)) for i in bad]
-    if bad:
-        if len(bad) == len(pred):
-            raise DataError(f"every rollout diverged (non-finite positions) on {len(pred)} scenes of {data}")
-        print(f"warning: {len(bad)} of {len(pred)} rollouts diverged and are left out of the metrics: "
-              f"scenes {', '.join(bad_ids[:20])}{' ...' if len(bad) > 20 else ''}", file=sys.stderr)
-        keep = [i for i in range(len(pred)) if i not in set(bad)]
-        pred, scenes = [pred[i] for i in keep], [scenes[i] for i in keep]
-        limit_ids = keep
-    else:
-        limit_ids = None
+    kept = [i for i, p in enumerate(pred) if "diverged_at_frame" not in p.attrs]
+    pred, scenes, diverged = split_diverged(pred, scenes)
+    if diverged:
+        _warn(diverged_line(diverged, len(scenes) + len(diverged), "left out of the metrics"))
+    model_stride = ds.stride
     if at_data_rate and ds.stride > 1:
         full = Dataset(data)
         truth = full.load(split, limit)
-        if limit_ids is not None:
-            truth = [truth[i] for i in limit_ids]
-        pairs = [upsample_scene(p, ds.stride, t, full.frame_rate) for p, t in zip(pred, truth, strict=True)]
+        pairs = [upsample_scene(p, ds.stride, truth[i], full.frame_rate) for p, i in zip(pred, kept, strict=True)]
         pred, scenes, ds = [p for p, _ in pairs], [t for _, t in pairs], full
     results = score_predictions(pred, scenes, ds, seconds, plots_dir)
     results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
                    outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
-                   symmetrize=symmetrize, at_data_rate=at_data_rate, diverged_scenes=bad_ids, model_stride=ds.stride if not at_data_rate
-                   else round(ds.frame_rate / saved["spec"]["frame_rate"]))
+                   diverged_scenes=diverged, num_diverged=len(diverged), symmetrize=symmetrize,
+                   at_data_rate=at_data_rate, model_stride=model_stride)
     return results, pred, scenes, ds
+
+
+def _warn(line: str) -> None:
+    import sys
+    print(line, file=sys.stderr)
 
 
 def check_ranges(trained_spec: dict, ds: Dataset, scenes: list, warn=None) -> list[str]:
     """Warn (stderr, one line each) where the scenes leave a checkpoint's training ranges
     (its `spec`)."""
-    import sys
     problems = outside_training(trained_spec, feature_spec(ds, scenes))
     for p in problems:
-        (warn or (lambda m: print(m, file=sys.stderr)))(f"warning: outside training: {p}")
+        (warn or _warn)(f"warning: outside training: {p}")
+    crowded = sum(sc.num_objects > 1 for sc in scenes)
+    if crowded and not trained_spec.get("collision_edges", False):
+        # not an "outside training" range: the model cannot represent contact between objects at all
+        (warn or _warn)(f"warning: {crowded} of {len(scenes)} scenes hold several objects, but the model was trained "
+                        "on single-object scenes and has no collision edges: objects will pass through each other")
     return problems
 
 

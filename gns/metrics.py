@@ -289,4 +289,7 @@ def format_table(results: dict) -> str:
                     f"{_fmt(results['interpenetration_max_pct'])} (true {_fmt(results['true_interpenetration_max_pct'])}), "
                     f"pairs deeper than {PASS_THROUGH_PCT:g}%: {_fmt(results['pairs_passing_through_pct'])}% "
                     f"(true {_fmt(results['true_pairs_passing_through_pct'])}%)")
+    if results.get("num_diverged"):
+        text.append(f"diverged: {results['num_diverged']} of {results['num_scenes'] + results['num_diverged']} scenes "
+                    f"(inf or NaN positions, not in the table): {', '.join(map(str, results['diverged_scenes']))}")
     return "\n".join(text)

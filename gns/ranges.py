@@ -27,9 +27,6 @@ def outside_training(trained: dict, data: dict) -> list[str]:
         out.append(f"gravity {data['gravity']}, trained with {trained['gravity']}")
     if (trained["floor"] is None) != (data["floor"] is None):
         out.append("the model was trained " + ("without" if trained["floor"] is None else "with") + " a floor")
-    if data.get("collision_edges") and not trained.get("collision_edges", False):
-        out.append("scenes of several objects, the model was trained on one object a scene: it has no "
-                   "collision edges, so objects will pass through each other")
     unseen = sorted(set(data["shapes"]) - set(trained["shapes"]))
     if unseen:
         out.append(f"shape(s) {', '.join(unseen)} not seen in training ({', '.join(trained['shapes'])})")

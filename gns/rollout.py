@@ -9,6 +9,7 @@ float64; poses (centre, quaternion) are recovered from the predicted vertices by
 """
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from datagen.shards import Dataset, DataError, Scene, write_metadata, write_shar
 from gns.geometry import matrix_to_quat
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
+from gns.outputs import check_writable, overlapping
 from gns.simulator import HISTORY, LearnedSimulator, Sleep, shape_match_packed
 
 
@@ -49,11 +51,6 @@ def _angular_velocity(quat: np.ndarray, dt: float) -> np.ndarray:
     return out
 
 
-def diverged(scene: Scene) -> bool:
-    """Whether a rolled-out scene left the finite numbers (the model blew up)."""
-    return not (np.isfinite(scene.positions).all() and np.isfinite(scene.quaternions).all())
-
-
 @torch.no_grad()
 def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Tensor, length: int,
                    shape_matching: bool = True, sleep: Sleep | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -74,7 +71,13 @@ def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Ten
     true_pos = tracks.positions[idx].permute(1, 0, 2).numpy()
     true_quat = tracks.quaternions[idx].permute(1, 0, 2).numpy()
     positions = np.concatenate([true_pos, centre.numpy()])
-    quaternions = np.concatenate([true_quat, matrix_to_quat(rot.numpy())])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        quaternions = np.concatenate([true_quat, matrix_to_quat(rot.numpy())])
+    # A diverged track (a vertex went to inf or NaN) has no pose from then on: NaN, not the
+    # identity rotation or zero quaternion that shape matching and matrix_to_quat make of it.
+    bad = np.maximum.accumulate(~np.isfinite(positions).all(-1) | ~np.isfinite(quaternions).all(-1), axis=0)
+    positions[bad] = np.nan
+    quaternions[bad] = np.nan
     return positions, _continuous(quaternions)
 
 
@@ -124,46 +127,108 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
         vel = np.zeros_like(pos)
         vel[1:] = (pos[1:] - pos[:-1]) / dt
         vel[:HISTORY] = sc.velocities[:HISTORY]
-        ang = _angular_velocity(quat, dt)
+        finite = np.isfinite(pos).all() and np.isfinite(quat).all()
+        ang = _angular_velocity(quat, dt) if finite else np.full_like(pos, np.nan)
         ang[:HISTORY] = sc.angular_velocities[:HISTORY]
+        attrs = {**sc.attrs, "rollout": True}
+        if not finite:
+            attrs["diverged_at_frame"] = int(np.argmax(~(np.isfinite(pos).all((-1, -2)) & np.isfinite(quat).all((-1, -2)))))
         out.append(Scene(positions=pos, quaternions=quat, velocities=vel, angular_velocities=ang,
                          shape=list(sc.shape), material=list(sc.material), scale=sc.scale.copy(),
                          mass=sc.mass.copy(), friction=sc.friction.copy(), restitution=sc.restitution.copy(),
-                         attrs={**sc.attrs, "rollout": True}))
+                         attrs=attrs))
         first += N
     return out
 
 
-def check_output(out: str | Path, overwrite: bool, source: str | Path | None = None) -> Path:
-    """Refuse an existing non-empty folder before any work is done, unless overwriting; refuse
-    always an output that is, holds or lies inside the source dataset (overwriting it would
-    delete the data being rolled out)."""
+class DivergedError(Exception):
+    """Every rollout went to inf or NaN: nothing to score or write. One line for a user."""
+
+
+def scene_label(scene: Scene, index: int):
+    """A scene's id for reports: its scene_id attribute, else its index in the split."""
+    sid = scene.attrs.get("scene_id", index)
+    return sid.item() if hasattr(sid, "item") else sid
+
+
+def split_diverged(pred: list[Scene], true: list[Scene]) -> tuple[list[Scene], list[Scene], list]:
+    """(finite predictions, their true scenes, ids of the scenes whose rollout diverged).
+
+    Raises DivergedError when every rollout diverged."""
+    ok = [i for i, p in enumerate(pred) if "diverged_at_frame" not in p.attrs]
+    diverged = [scene_label(true[i], i) for i in range(len(pred)) if "diverged_at_frame" in pred[i].attrs]
+    if not ok:
+        raise DivergedError(f"every rollout diverged ({len(pred)} scenes: positions became inf or NaN); "
+                            "the model is unstable on this data")
+    return [pred[i] for i in ok], [true[i] for i in ok], diverged
+
+
+def diverged_line(diverged: list, total: int, what: str) -> str:
+    shown = ", ".join(map(str, diverged[:10])) + (f" and {len(diverged) - 10} more" if len(diverged) > 10 else "")
+    return f"warning: {len(diverged)} of {total} rollouts diverged (inf or NaN positions), {what}: {shown}"
+
+
+def check_output(out: str | Path, overwrite: bool, data: str | Path | None = None) -> Path:
+    """Refuse, before any work is done: an output folder that is, holds or lies in the input
+    dataset `data`; an existing non-empty folder without `overwrite`; with `overwrite`, a
+    folder that is not an earlier `gns rollout` output (only files this tool wrote are replaced);
+    a folder that cannot be written."""
     out = Path(out)
-    if source is not None:
-        a, b = out.resolve(), Path(source).resolve()
-        if a == b or a in b.parents or b in a.parents:
-            raise DataError(f"--out {out} overlaps the dataset {source}: choose another output folder")
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise DataError(f"output folder {out} exists and is not empty; use --overwrite to replace it")
-    return out
+    if data is not None and overlapping(out, data):
+        raise DataError(f"--out {out} and --data {data} overlap (the same folder or one inside the other); "
+                        "write the rollouts to a folder of their own")
+    if out.exists() and not out.is_dir():
+        raise DataError(f"output folder {out} is a file")
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise DataError(f"output folder {out} exists and is not empty; use --overwrite to replace it")
+        _rollout_files(out)
+    return check_writable(out)
+
+
+def _rollout_files(out: Path) -> list[Path]:
+    """The files an earlier `gns rollout` wrote into `out` (its metadata.json and the shards it
+    lists); DataError if `out` holds anything else, so --overwrite deletes nothing else."""
+    try:
+        meta = json.loads((out / "metadata.json").read_text())
+        listed = [out / name for split in meta["splits"].values() for name in split["shards"]]
+        ours = meta.get("generator") == "gns rollout"
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        ours, listed = False, []
+    if not ours:
+        raise DataError(f"--overwrite only replaces an earlier gns rollout output, and {out} is not one "
+                        "(no metadata.json written by gns rollout); choose another --out")
+    names = {p.name for p in listed} | {"metadata.json"}
+    others = sorted(p.name for p in out.iterdir() if p.name not in names)
+    if others:
+        raise DataError(f"--overwrite refuses {out}: besides an earlier rollout it holds {', '.join(others[:4])}"
+                        f"{' ...' if len(others) > 4 else ''}; choose another --out")
+    return [p for p in listed if p.exists()] + [out / "metadata.json"]
 
 
 def write_rollouts(out: str | Path, scenes: list[Scene], source: Dataset, split: str, info: dict,
                    overwrite: bool = False, per_shard: int = 64) -> None:
-    """Rollouts as a dataset in the documented format (the same reader reads them)."""
-    out = check_output(out, overwrite)
-    for p in list(out.glob("*.h5")) + [out / "metadata.json"]:
-        p.unlink(missing_ok=True)
+    """Rollouts as a dataset in the documented format (the same reader reads them). Diverged
+    rollouts (no finite pose) are left out and listed in the metadata as rollout.diverged."""
+    out = check_output(out, overwrite, source.root)
+    kept = [sc for sc in scenes if "diverged_at_frame" not in sc.attrs]
+    diverged = [scene_label(sc, i) for i, sc in enumerate(scenes) if "diverged_at_frame" in sc.attrs]
+    if not kept:
+        raise DivergedError(f"every rollout diverged ({len(scenes)} scenes: positions became inf or NaN); "
+                            f"nothing written to {out}")
+    if out.exists() and any(out.iterdir()):
+        for p in _rollout_files(out):
+            p.unlink()
     out.mkdir(parents=True, exist_ok=True)
     meshes = source.meshes
     names = []
-    for k in range(math.ceil(len(scenes) / per_shard)):
+    for k in range(math.ceil(len(kept) / per_shard)):
         name = f"{split}-{k:05d}.h5"
-        write_shard(out / name, scenes[k * per_shard:(k + 1) * per_shard], meshes, attrs={"split": split, "rollout": 1})
+        write_shard(out / name, kept[k * per_shard:(k + 1) * per_shard], meshes, attrs={"split": split, "rollout": 1})
         names.append(name)
     meta = {key: v for key, v in source.meta.items() if key not in ("splits", "format_version", "complete")}
-    meta.update(generator="gns rollout", rollout=info, frame_rate=source.frame_rate,
-                splits={split: {"num_scenes": len(scenes), "shards": names}})
+    meta.update(generator="gns rollout", rollout={**info, "diverged": diverged}, frame_rate=source.frame_rate,
+                splits={split: {"num_scenes": len(kept), "shards": names}})
     write_metadata(out, meta)
 
 

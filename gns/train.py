@@ -25,9 +25,10 @@ import torch
 from tqdm import tqdm
 
 from datagen.shards import Dataset, DataError
-from gns.config import Config, architecture_differences, build_config, config_to_dict
+from gns.config import Config, ConfigError, architecture_differences, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
+from gns.outputs import check_writable
 from gns.simulator import HISTORY, LearnedSimulator, shape_match_packed
 
 CHECKPOINT_FORMAT = 1
@@ -70,7 +71,9 @@ def save_checkpoint(run: Path, state: dict, keep: int) -> Path:
     _atomic_write(path, lambda p: torch.save(state, p))
     _atomic_write(run / LATEST, lambda p: shutil.copyfile(path, p))
     if keep > 0:
-        for old in checkpoint_paths(run)[:-keep]:
+        # Numbers beyond this step are left from before a resume that passed them over (unreadable);
+        # training overwrites them when it gets there, so the rotation never deletes the new one.
+        for old in [p for p in checkpoint_paths(run) if p.name <= path.name][:-keep]:
             old.unlink()
     return path
 
@@ -82,42 +85,76 @@ def read_checkpoint(path: str | Path) -> dict:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for a damaged or foreign file
-        # torch's own message for a damaged file is advice about weights_only, not the cause
-        what = "damaged or not a checkpoint" if "weights_only" in str(e) or "Weights only" in str(e) \
-            else str(e).splitlines()[0][:200]
-        raise CheckpointError(f"unreadable checkpoint {path}: {what}") from None
+        # torch's own first line runs on for several sentences of advice; its first says what broke
+        reason = str(e).splitlines()[0].split(". ")[0] if str(e) else ""
+        if isinstance(e, KeyError) or not reason:  # torch's KeyError carries only a number
+            reason = f"not a torch.save file ({type(e).__name__})"
+        raise CheckpointError(f"unreadable checkpoint {path}: {reason}") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} is not a gns checkpoint of format {CHECKPOINT_FORMAT}")
     return ckpt
 
 
-def resume_checkpoint(run: str | Path, log: Callable[[str], None] | None = None) -> tuple[Path, dict]:
-    """The checkpoint a run resumes from: latest.pt, or if that is missing or unreadable (a crash
-    while it was copied, a damaged disk) the newest readable ckpt-*.pt. Nothing is deleted."""
+def is_exported(ckpt: dict) -> bool:
+    """An export_model file: the model without the optimiser and random state."""
+    return "optimizer" not in ckpt or "rng" not in ckpt
+
+
+def exported_model_message(path: Path) -> str:
+    return (f"{path} is an exported model (no optimiser state): training cannot resume from it; "
+            f"gns eval and gns rollout can use it")
+
+
+def resume_point(run: str | Path) -> tuple[Path, dict, str | None]:
+    """The newest checkpoint of a run that training can resume from: latest.pt, else the
+    newest readable ckpt-*.pt (a crash or a full disk can leave latest.pt torn while the
+    numbered copies are intact). Returns (path, checkpoint, a one-line note naming the files
+    passed over, or None). Nothing is deleted; raises CheckpointError if none is usable."""
     run = Path(run)
-    problems = []
-    for path in [run / LATEST] + checkpoint_paths(run)[::-1]:
-        if not path.exists():
-            continue
+    candidates = [p for p in [run / LATEST, *reversed(checkpoint_paths(run))] if p.exists()]
+    if not candidates:
+        raise CheckpointError(f"nothing to resume: {run / LATEST} does not exist")
+    passed = []
+    for path in candidates:
         try:
             ckpt = read_checkpoint(path)
         except CheckpointError as e:
-            problems.append(str(e))
+            passed.append(str(e))
             continue
-        if "optimizer" not in ckpt:
-            raise CheckpointError(f"{path} is an exported model (gns export): it can be evaluated or rolled out, "
-                                  f"not resumed")
-        if problems and log is not None:
-            log(f"warning: {problems[0]}; resuming from {path}")
-        return path, ckpt
-    raise CheckpointError(f"nothing to resume in {run}: " + ("; ".join(problems) if problems else "no checkpoint"))
+        if is_exported(ckpt):
+            passed.append(exported_model_message(path))
+            continue
+        note = None
+        if passed:
+            note = (f"warning: resuming from {path.name} (step {int(ckpt['step'])}), the newest usable checkpoint; "
+                    f"passed over: {'; '.join(passed)}")
+        return path, ckpt, note
+    if len(passed) == 1:
+        raise CheckpointError(passed[0])
+    raise CheckpointError(f"nothing to resume in {run}: no checkpoint is usable ({'; '.join(passed)}); "
+                          "move them away to train from the start")
 
 
-def export_model(checkpoint_path: str | Path, out: str | Path) -> Path:
+def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool = False) -> Path:
     """A checkpoint without the optimiser and random state (about half the size): enough to
-    roll out and evaluate (load_model), not to resume training."""
+    roll out and evaluate (load_model), not to resume training.
+
+    An existing `out` is replaced only with `overwrite` and only if it is itself an exported
+    model: a full checkpoint (a run's latest.pt, say) or another file is never replaced."""
     ckpt = read_checkpoint(checkpoint_path)
     out = Path(out)
+    if out.is_dir():
+        raise DataError(f"--out {out} is a folder; give a file name such as {out / 'model.pt'}")
+    if out.exists():
+        if not overwrite:
+            raise DataError(f"{out} exists; pass --overwrite to replace an earlier exported model")
+        try:
+            old = read_checkpoint(out)
+        except CheckpointError:
+            old = None
+        if old is None or not is_exported(old):
+            raise DataError(f"{out} exists and is not an exported gns model; refusing to replace it")
+    check_writable(out.parent, "output folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model")}
     _atomic_write(out, lambda p: torch.save(slim, p))
@@ -134,7 +171,12 @@ def load_model(checkpoint: str | Path | dict) -> tuple[LearnedSimulator, Config]
     ckpt = checkpoint if isinstance(checkpoint, dict) else read_checkpoint(checkpoint)
     cfg = build_config(base=ckpt["config"])
     sim = build_simulator(cfg, ckpt["spec"])
-    sim.load_state_dict(ckpt["model"])
+    try:
+        sim.load_state_dict(ckpt["model"])
+    except RuntimeError as e:  # weights that do not fit the model the checkpoint's own config builds
+        where = "" if isinstance(checkpoint, dict) else f"{checkpoint}: "
+        raise CheckpointError(f"{where}damaged checkpoint, its weights do not fit its model "
+                              f"({str(e).splitlines()[1].strip() if len(str(e).splitlines()) > 1 else e})") from None
     sim.eval()
     return sim, cfg
 
@@ -255,8 +297,6 @@ def _check_run(run: Path, resume: bool, overwrite: bool) -> list[Path]:
     """Refuse to start over a run's checkpoints unless asked; returns the files to delete."""
     existing = checkpoint_paths(run) + [p for p in (run / LATEST, run / METRICS) if p.exists()]
     if resume:
-        if not (run / LATEST).exists() and not checkpoint_paths(run):
-            raise CheckpointError(f"nothing to resume: {run} holds no checkpoint")
         return []
     if any(p.suffix == ".pt" for p in existing) and not overwrite:
         raise CheckpointError(f"{run} already holds checkpoints; pass --resume to continue "
@@ -264,19 +304,41 @@ def _check_run(run: Path, resume: bool, overwrite: bool) -> list[Path]:
     return existing
 
 
-def _drop_metrics_after(path: Path, step: int) -> None:
-    """Forget log lines of steps that a resumed run will train again (after a crash)."""
-    if path.exists():
-        kept, torn = [], 0
-        for line in path.read_text().splitlines():
-            try:
-                if json.loads(line)["step"] <= step:
-                    kept.append(line)
-            except (ValueError, KeyError, TypeError):  # a line cut by a crash mid-write
-                torn += 1
-        if torn:
-            print(f"warning: dropped {torn} unreadable line(s) of {path}", file=sys.stderr)
-        _atomic_write(path, lambda p: p.write_text("".join(line + "\n" for line in kept)))
+def _drop_metrics_after(path: Path, step: int, log: Callable[[str], None] = print) -> None:
+    """Forget log lines of steps that a resumed run will train again (after a crash), and lines
+    that are not JSON: a crash mid-write leaves the last one torn."""
+    if not path.exists():
+        return
+    kept, torn = [], 0
+    for line in path.read_text(errors="replace").splitlines():
+        try:
+            entry = json.loads(line)
+            entry_step = int(entry["step"])
+        except (ValueError, KeyError, TypeError):
+            torn += bool(line.strip())
+            continue
+        if entry_step <= step:
+            kept.append(line)
+    if torn:
+        log(f"warning: dropped {torn} unreadable line{'s' if torn > 1 else ''} of {path} "
+            f"(a crash mid-write tears the last one)")
+    _atomic_write(path, lambda p: p.write_text("".join(line + "\n" for line in kept)))
+
+
+def _device(name: str) -> torch.device:
+    """train.device as a torch device, checked before any work: one line, not torch's assertion."""
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"train.device={name!r} is not a torch device; use 'cpu' or 'cuda'") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"train.device={name} but CUDA is not available in this torch build "
+                          f"(torch {torch.__version__}); use train.device=cpu")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise ConfigError(f"train.device={name} but MPS is not available here; use train.device=cpu")
+    if device.type not in ("cpu", "cuda", "mps"):
+        raise ConfigError(f"train.device={name}: only cpu, cuda and mps are supported")
+    return device
 
 
 def _set_threads(threads: int, log: Callable[[str], None]) -> None:
@@ -324,7 +386,13 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     """
     run = Path(run_dir)
     stale = _check_run(run, resume, overwrite)
-    ckpt = resume_checkpoint(run, log)[1] if resume else None
+    device = _device(cfg.train.device)
+    ckpt = None
+    if resume:
+        resumed_from, ckpt, note = resume_point(run)
+        if note:
+            log(note)
+    check_writable(run, "run folder")
     data_spec, tracks, valid = _load_data(data_dir, cfg)
 
     _set_threads(cfg.train.threads, log)
@@ -332,13 +400,6 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     torch.manual_seed(seed)
     random.seed(seed)
     rng = np.random.default_rng(seed)
-    try:
-        device = torch.device(cfg.train.device)
-    except RuntimeError as e:
-        raise TrainingError(f"train.device {cfg.train.device!r} is not a device: {e}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise TrainingError(f"train.device is {cfg.train.device!r} but this torch has no CUDA device "
-                            f"(torch {torch.__version__}); use train.device=cpu")
 
     sim = build_simulator(cfg, data_spec)
     spec = _with_layout(data_spec, sim)
@@ -347,7 +408,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     if ckpt is not None:
         problem = _incompatibility(ckpt, cfg, spec)
         if problem:
-            raise CheckpointError(f"cannot resume {run / LATEST}: {problem}")
+            raise CheckpointError(f"cannot resume {resumed_from}: {problem}")
         sim.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         step = int(ckpt["step"])
@@ -359,7 +420,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
         p.unlink()
     run.mkdir(parents=True, exist_ok=True)
     if ckpt is not None:
-        _drop_metrics_after(run / METRICS, step)
+        _drop_metrics_after(run / METRICS, step, log)
     config_dict = config_to_dict(cfg)
     _atomic_write(run / "config.json", lambda p: p.write_text(json.dumps(config_dict, indent=2) + "\n"))
 
@@ -374,7 +435,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
         f"windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
         f"node features {spec['node_features']}, edge features {spec['edge_features']}")
 
-    last_good = run / LATEST if ckpt else None
+    last_good = resumed_from if ckpt else None
     loss_sum, loss_count, busy, t_mark = 0.0, 0, 0.0, time.perf_counter()
     bar = tqdm(total=cfg.train.steps, initial=step, unit="step", disable=None, dynamic_ncols=True)
     with bar, open(run / METRICS, "a") as metrics:
@@ -420,7 +481,8 @@ def _stopped(what: str, step: int, last_good: Path | None) -> str:
 
 def resolve_config(run_dir: str | Path, resume: bool, config_path: str | None, overrides: list[str]) -> Config:
     """The config of a run: on resume the checkpoint's, updated by the file and overrides given."""
-    run = Path(run_dir)
-    base = resume_checkpoint(run)[1]["config"] if resume and (checkpoint_paths(run) or (run / LATEST).exists()) else None
+    base = None
+    if resume and (checkpoint_paths(Path(run_dir)) or (Path(run_dir) / LATEST).exists()):
+        base = resume_point(run_dir)[1]["config"]
     return build_config(base=base, path=config_path, overrides=overrides)
 

@@ -3,6 +3,7 @@ so rerunning a pipeline after an interruption continues where it stopped."""
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -11,7 +12,7 @@ from datagen.config import config_dir, load_config as load_scene_config
 from datagen.generate import generate
 from datagen.shards import Dataset, DataError
 from gns.config import build_config
-from gns.train import LATEST, CheckpointError, resume_checkpoint, train
+from gns.train import LATEST, checkpoint_paths, resume_point, train
 
 CONFIGS = config_dir()
 
@@ -46,33 +47,65 @@ def data_stage(out: Path, scene_sets: list[str], counts: dict[str, int], seed: i
 def guarded(stages) -> int:
     """Run a pipeline's stages; a user error ends it with one `error:` line and exit status 2."""
     from gns.config import ConfigError
+    from gns.rollout import DivergedError
     from gns.train import CheckpointError, TrainingError
     try:
         stages()
-    except (DataError, ConfigError, CheckpointError, TrainingError) as e:
+    except (DataError, ConfigError, CheckpointError, TrainingError, DivergedError) as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # a folder that became unwritable or a full disk after the checks
+        print(f"error: {e.strerror or e}: {e.filename}", file=sys.stderr)
         return 2
     return 0
 
 
+def remove_output(out: Path, names: set[str]) -> None:
+    """--fresh: delete a pipeline's output folder, but only if everything in it has a name the
+    pipeline writes (`names`), so a mistyped --out never deletes someone else's files."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise DataError(f"--out {out} is a file, not a pipeline output folder")
+    # write_json's temporary files, left by a crash mid-write, are the pipeline's too
+    foreign = sorted(p.name for p in out.iterdir()
+                     if p.name not in names and not (p.name.startswith(".") and p.name.endswith(".tmp")))
+    if foreign:
+        shown = ", ".join(foreign[:4]) + (f" and {len(foreign) - 4} more" if len(foreign) > 4 else "")
+        raise DataError(f"--fresh refuses to delete {out}: it holds {shown}, which this pipeline does not write")
+    say(f"fresh: deleting {out}")
+    shutil.rmtree(out)
+
+
 def trained_step(run: Path) -> int:
-    """The step of the checkpoint a rerun would resume from (latest.pt, else the newest readable
-    ckpt-*.pt), -1 if there is none: a damaged latest.pt must not restart (and delete) a run."""
-    try:
-        return int(resume_checkpoint(run)[1]["step"])
-    except CheckpointError:
-        return -1
+    """The step of a run's newest usable checkpoint, or -1 if it has none at all.
+
+    A run whose checkpoints are all unreadable raises CheckpointError instead of counting as
+    untrained: training from the start would delete them."""
+    return resumable(run)[1]
+
+
+def resumable(run: Path) -> tuple[Path | None, int, str | None]:
+    """(newest usable checkpoint, its step, a warning if it is not latest.pt), or (None, -1,
+    None) for a run with no checkpoint file."""
+    if not (run / LATEST).exists() and not checkpoint_paths(run):
+        return None, -1, None
+    path, ckpt, note = resume_point(run)
+    return path, int(ckpt["step"]), note
 
 
 def train_stage(data: Path, run: Path, preset: str, overrides: list[str]) -> Path:
-    """Train (or finish training) a run; skip when its checkpoint has reached the step count."""
+    """Train (or finish training) a run; skip when its checkpoint has reached the step count.
+    Returns the checkpoint to evaluate: latest.pt, or the newest readable one if it is torn."""
     cfg = build_config(path=CONFIGS / f"gns_{preset}.toml", overrides=overrides)
-    step = trained_step(run)
+    path, step, note = resumable(run)
     if step >= cfg.train.steps:
+        if note:
+            say(note)
         say(f"train: {run} has reached step {step}, skipping")
-        return resume_checkpoint(run, say)[0]
+        return path
     say(f"train: {run} ({preset} preset, {cfg.train.steps} steps" + (f", resuming at {step})" if step > 0 else ")"))
-    train(data, run, cfg, resume=step > 0, overwrite=step <= 0, log=say)
+    train(data, run, cfg, resume=path is not None, overwrite=path is None, log=say)
     return run / LATEST
 
 
@@ -80,5 +113,8 @@ def done(path: Path, checkpoint: Path) -> dict | None:
     """A stage's JSON output if it was made from this very checkpoint step."""
     if not path.exists():
         return None
-    out = json.loads(path.read_text())
+    try:
+        out = json.loads(path.read_text())
+    except ValueError:  # torn by a crash mid-write: the stage runs again
+        return None
     return out if out.get("checkpoint_step") == trained_step(checkpoint.parent) else None

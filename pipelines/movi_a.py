@@ -19,15 +19,17 @@ Presets (measured costs on a 2-core CPU in the README):
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 from pathlib import Path
 
 from gns.evaluate import evaluate_run, write_json
 from gns.metrics import format_table
 from gns.train import read_checkpoint
-from pipelines.common import guarded, data_stage, done, say, train_stage
+from gns.outputs import check_writable
+from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
 
+# Everything run() writes into --out: --fresh deletes a folder holding only these.
+OUTPUTS = {"data", "run", "results.json", "report.md", "plots"}
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
@@ -80,6 +82,7 @@ def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:
 
 def run(preset: str, out: Path, workers: int, seed: int) -> dict:
     p = PRESETS[preset]
+    check_writable(out)
     out.mkdir(parents=True, exist_ok=True)
     data = data_stage(out / "data", [SHAPES, *p["scene"]], p["counts"], seed, workers)
     ckpt = train_stage(data.root, out / "run", p["model"], [f"train.steps={p['steps']}", f"train.seed={seed}"])
@@ -112,9 +115,12 @@ def main(argv=None) -> int:
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
     a = ap.parse_args(argv)
     out = a.out or Path("runs") / f"movi_a_{a.preset}"
-    if a.fresh and out.exists():
-        shutil.rmtree(out)
-    return guarded(lambda: run(a.preset, out, a.workers, a.seed))
+
+    def stages():
+        if a.fresh:
+            remove_output(out, OUTPUTS)
+        run(a.preset, out, a.workers, a.seed)
+    return guarded(stages)
 
 
 if __name__ == "__main__":

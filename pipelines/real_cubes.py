@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -38,7 +37,8 @@ from datagen.contactnets import import_contactnets, list_toss_ids, read_toss
 from datagen.shards import Dataset, DataError
 from gns.evaluate import evaluate_run, write_json
 from gns.train import read_checkpoint
-from pipelines.common import guarded, done, say, train_stage, trained_step
+from gns.outputs import check_writable
+from pipelines.common import guarded, done, remove_output, say, train_stage, trained_step
 from pipelines.real_cubes_baselines import LABELS as ENGINE_LABELS
 from pipelines.real_cubes_baselines import available_engines, baselines_stage, fit_summary, fits_table
 
@@ -47,6 +47,8 @@ DUPLICATE_TOL = 1e-6   # half-widths; the known rotated copies agree to 1e-15
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 LABELS = {"position_error_pct": "position error [% of width]", "rotation_error_deg": "rotation error [deg]",
           "penetration_pct": "penetration [% of width]"}
+# Everything run() writes into --out: --fresh deletes a folder holding only these.
+OUTPUTS = {"split.json", "costs.json", "data", "runs", "eval", "baseline", "plots", "results.json", "report.md"}
 ABLATIONS = {  # name: (label, training overrides); "nosm" reuses the full model's checkpoint
     "abs": ("absolute encoding", ["features.encoding=absolute"]),
     "1mp": ("1 message-passing step", ["model.message_passing_steps=1", "model.processor_repeats=1"]),
@@ -221,8 +223,10 @@ def import_stage(src: Path, out: Path, splits: dict[str, list[int]]) -> Path:
 
 def _scored_on(results: dict | None, data: Path) -> bool:
     """Whether saved results were computed on exactly the test tosses of `data`."""
-    return results is not None and [r["scene_id"] for r in results.get("per_scene", [])] == \
-        Dataset(data).meta["splits"]["test"]["toss_ids"]
+    if results is None:
+        return False
+    scored = [r["scene_id"] for r in results.get("per_scene", [])] + list(results.get("diverged_scenes", []))
+    return sorted(scored) == sorted(Dataset(data).meta["splits"]["test"]["toss_ids"])
 
 
 def gns_eval_stage(path: Path, ckpt: Path, data: Path, costs: Costs, shape_matching: bool = True,
@@ -258,6 +262,7 @@ def run(preset: str, src: Path, out: Path, test_dir: Path | None = None) -> dict
         raise DataError(f"source folder does not exist: {src}")
     if test_dir is not None and not Path(test_dir).is_dir():
         raise DataError(f"--test-dir folder does not exist: {test_dir}")
+    check_writable(out)
     t_start = time.perf_counter()
     tosses = read_tosses(src)
     split = make_split(duplicate_groups(tosses), p.test, p.valid)
@@ -528,11 +533,14 @@ def main(argv=None) -> int:
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
     a = ap.parse_args(argv)
     out = a.out or Path("runs") / f"real_cubes_{a.preset}"
-    if a.fresh and out.exists():
-        shutil.rmtree(out)
     import torch
     torch.set_num_threads(1)  # rollouts of 8-vertex graphs: a second thread only waits on the first
-    return guarded(lambda: run(a.preset, a.src, out, a.test_dir))
+
+    def stages():
+        if a.fresh:
+            remove_output(out, OUTPUTS)
+        run(a.preset, a.src, out, a.test_dir)
+    return guarded(stages)
 
 
 if __name__ == "__main__":

@@ -117,7 +117,7 @@ def run(preset: str, src: Path, out: Path, export: Path | None = None) -> dict:
             row[e]["given_frames"] = 3 if row[e] is first3 else given
         rows[n] = row
         if export is not None:
-            export_model(run_dir / "latest.pt", export / f"gns_real_cubes_n{n}.pt")
+            export_model(run_dir / "latest.pt", export / f"gns_real_cubes_n{n}.pt", overwrite=True)
     results = {"preset": preset, "src": str(src), "stride": STRIDE, "engines": engines,
                "published": summary(base["evals"]["published"][""]), "sizes": {str(n): r for n, r in rows.items()}}
     write_json(out / "results.json", results)

@@ -29,10 +29,11 @@ from gns.config import build_config
 from gns.data import feature_spec
 from gns.evaluate import checkpoint_of, load_split, write_json
 from gns.metrics import METRICS, evaluate_scenes
-from gns.rollout import rollout_scenes
+from gns.rollout import rollout_scenes, split_diverged
 from gns.simulator import LearnedSimulator
 from gns.train import load_model, read_checkpoint
-from pipelines.common import CONFIGS, data_stage, say, train_stage
+from gns.outputs import check_writable
+from pipelines.common import CONFIGS, data_stage, guarded, say, train_stage
 
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
@@ -165,8 +166,9 @@ def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[di
                 pred += rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, batch_tracks=batch,
                                        progress=False)
             cost = (time.perf_counter() - t0) / sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes[:len(pred)])
-            if batch > 1:
-                res = evaluate_scenes([sc.every(keep) for sc in pred], true, ref.meshes, floor_z=0.0)
+            if batch > 1:  # diverged rollouts are counted, not averaged in
+                kept, kept_true, diverged = split_diverged([sc.every(keep) for sc in pred], true)
+                res = {**evaluate_scenes(kept, kept_true, ref.meshes, floor_z=0.0), "diverged": len(diverged)}
             rows.append({"family": "gns" if batch == 1 else "gns batched", "knob": knob,
                          "label": f"{run_name(run)}: L{m.message_passing_steps}xK{m.processor_repeats}, "
                                   f"latent {m.latent_size}, dt {1e3 / ds.frame_rate:.1f} ms, batch {batch}",
@@ -174,7 +176,7 @@ def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[di
                          "latent": m.latent_size, "frame_rate": ds.frame_rate, "steps": int(saved["step"]),
                          "seconds_per_simulated_second": cost})
         for r in rows[-2:]:
-            r.update({k: res[k] for k in METRICS})
+            r.update({k: res[k] for k in (*METRICS, "diverged")})
             say(f"gns: {r['label']}: {r['position_error_pct']:.2f}% position, "
                 f"{r['seconds_per_simulated_second'] * 1e3:.2f} ms")
     return rows
@@ -259,6 +261,11 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     p = PRESETS[a.preset]
     out = a.out or Path("runs") / f"speed_accuracy_{a.preset}"
+    return guarded(lambda: run(a, p, out))
+
+
+def run(a: argparse.Namespace, p: dict, out: Path) -> None:
+    check_writable(out)
     out.mkdir(parents=True, exist_ok=True)
     if a.replot:
         saved = json.loads((out / "results.json").read_text())
@@ -269,7 +276,7 @@ def main(argv=None) -> int:
         pareto_plot(rows, out / "pareto.png")
         print(table(rows))
         print(ratio)
-        return 0
+        return
     ref = reference(p, out / "reference")
     trained = [] if a.no_train else sweep_runs(p, out)
     rows = physics_sweep(p, ref) + gns_speed(p, ref) + gns_accuracy(trained + [("given", r) for r in a.runs], ref, p)
@@ -279,7 +286,6 @@ def main(argv=None) -> int:
     pareto_plot(rows, out / "pareto.png")
     print(table(rows))
     print(ratio)
-    return 0
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ import torch
 
 from gns.simulator import Sleep
 from gns.evaluate import checkpoint_of, load_split, write_json
+from gns.outputs import check_writable
 from gns.stability import REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene
 from gns.train import load_model, read_checkpoint
 from pipelines.common import guarded, say
@@ -31,6 +32,7 @@ def _verdict(ok: bool) -> str:
 
 def run(run_dir: Path, data: Path, out: Path, limit: int, factor: int, rest_steps: int) -> dict:
     torch.set_num_threads(1)
+    check_writable(out)
     ckpt = checkpoint_of(run_dir)
     saved = read_checkpoint(ckpt)
     sim, _ = load_model(saved)

@@ -214,12 +214,3 @@ def test_flops_count_collision_edges():
     net = simulator(True).network
     assert net.forward_flops(100, 300, 50) > net.forward_flops(100, 300, 0) > simulator(False).network.forward_flops(100, 300)
 
-
-def test_a_single_object_model_warns_on_scenes_of_several_objects():
-    from gns.ranges import outside_training
-    trained = {"frame_rate": 12, "gravity": [0, 0, -10], "floor": {"z": 0}, "shapes": ["cube"], "ranges": {},
-               "collision_edges": False}
-    data = {**trained, "collision_edges": True}
-    assert any("pass through each other" in w for w in outside_training(trained, data))
-    assert not outside_training(trained, trained)
-    assert not outside_training({**trained, "collision_edges": True}, data)

@@ -156,7 +156,7 @@ def test_rollout_refuses_an_output_that_overlaps_its_data_even_with_overwrite(tr
         gns_main(["rollout", "--run", str(run), "--data", str(data), "--out", str(out), "--overwrite"])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "overlaps the dataset" in err[0]
+    assert len(err) == 1 and "overlap" in err[0]
     assert sorted(p.name for p in data.glob("*.h5")) == shards and Dataset(data).num_scenes("test") == 3
 
 
@@ -181,7 +181,8 @@ def test_a_diverged_rollout_is_named_and_left_out_not_a_crash(trained, tmp_path,
     assert np.isfinite(results["position_error_pct"])
     assert "1 of 3 rollouts diverged" in capsys.readouterr().err
     gns_main(["rollout", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "roll")])
-    assert "1 of 3 rollouts diverged and are not written" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "1 of 3 rollouts diverged" in err and "not written" in err
     assert Dataset(tmp_path / "roll").num_scenes("test") == 2
 
 
