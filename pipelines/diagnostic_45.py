@@ -297,7 +297,12 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
     a = ap.parse_args(argv if argv is not None else sys.argv[1:])
-    name = a.preset if a.run is None else (a.run.stem if a.run.suffix == ".pt" else a.run.resolve().name)
+    name = a.preset
+    if a.run is not None:
+        # a run folder or its latest.pt is named by the folder holding the run (runs/X/run -> X)
+        path = a.run.resolve()
+        path = path.parent if path.suffix == ".pt" and path.stem == "latest" else path
+        name = path.parent.name if path.name == "run" else path.stem
     out = a.out or Path("runs") / f"diagnostic_45_{name}"
     if a.fresh and out.exists():
         shutil.rmtree(out)
