@@ -192,7 +192,8 @@ class LearnedSimulator(nn.Module):
         With `self.symmetrize` (a rollout option, off by default), the prediction is averaged over
         the world's floor symmetries {identity, mirror x, mirror y, half turn about z}: each maps
         the input, the network predicts, the map is undone. The result is exactly equivariant
-        to those four maps (e.g. a cube tilted 45 - d degrees mirrors one tilted 45 + d), where
+        to those four maps applied to the scene, body frames included (a cube tilted 45 + d is the mirror
+        of one tilted 45 - d only up to its body frame: docs/diagnostic_45.md), where
         the network alone is only approximately so (trained with random z rotations)."""
         if not self.symmetrize:
             return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
