@@ -7,6 +7,7 @@ crash or a full disk never leaves a half-written shard under its final name.
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
@@ -116,7 +117,9 @@ def write_shard(path: str | Path, scenes: list[Scene], meshes: dict[str, tuple[n
         frames = np.array([sc.num_frames for sc in scenes], np.int64)
         objects = np.array([sc.num_objects for sc in scenes], np.int64)
         rows = frames * objects
-        with h5py.File(tmp, "w") as f:
+        # Built in memory, then written with plain file I/O: a full disk is then one clean OSError,
+        # where HDF5 writing to a full disk prints hundreds of lines and can crash the process.
+        with h5py.File(path.name, "w", driver="core", backing_store=False) as f:
             f.attrs["format_version"] = FORMAT_VERSION
             f.attrs["quaternion_order"] = QUATERNION_ORDER
             f.attrs["num_scenes"] = len(scenes)
@@ -146,10 +149,25 @@ def write_shard(path: str | Path, scenes: list[Scene], meshes: dict[str, tuple[n
                 og.create_dataset(k, data=np.concatenate([np.asarray(getattr(sc, k), np.float64) for sc in scenes]))
             for k in OBJECT_STRINGS:
                 og.create_dataset(k, data=np.array([x for sc in scenes for x in getattr(sc, k)], dtype=h5py.string_dtype()))
+            f.flush()
+            image = f.id.get_file_image()
+        with open(tmp, "wb") as out:
+            out.write(image)
         _publish(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise write_error(path, e) from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def write_error(path: Path, e: OSError) -> DataError:
+    """One line for a failed write (a full disk above all); the partial file is already removed."""
+    if e.errno == errno.ENOSPC:
+        return DataError(f"No space left on device writing {path}; the partial file was removed "
+                         "(free some space and rerun with --resume)")
+    return DataError(f"cannot write {path}: {e.strerror or e}")
 
 
 def write_metadata(root: str | Path, meta: dict) -> None:

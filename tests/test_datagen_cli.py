@@ -263,3 +263,27 @@ def test_inspect_judges_imported_tosses_as_measurements(tmp_path, capsys):
     scenes[1].positions[5, 0, 0] = np.nan               # corruption still fails
     write_shard(out / "test-00000.h5", scenes, ds.meshes)
     assert main(["inspect", str(out)]) == 1
+
+
+def test_full_disk_at_the_file_write_is_one_line_and_resumable(tmp_path, capsys, monkeypatch):
+    import builtins
+    import datagen.shards as shards_mod
+    real_open = builtins.open
+    calls = {"n": 0}
+
+    def fills_up(file, mode="r", *a, **k):
+        f = real_open(file, mode, *a, **k)
+        if "w" in mode and ".h5." in str(file) and str(file).endswith(".tmp"):    # a shard being written
+            calls["n"] += 1
+            if calls["n"] > 1:                      # the second shard finds the disk full half-way
+                f.write(b"partial")
+                f.close()
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(file))
+        return f
+    monkeypatch.setattr(shards_mod, "open", fills_up, raising=False)
+    out = tmp_path / "d"
+    assert toss(out, "--scenes-per-shard", "1") == 2
+    only_error_line(capsys, "No space left on device", "--resume")
+    assert not [p.name for p in out.iterdir() if p.name.endswith(".tmp")]
+    monkeypatch.undo()
+    assert toss(out, "--scenes-per-shard", "1", "--resume") == 0
