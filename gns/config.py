@@ -49,6 +49,8 @@ class AugmentConfig:
     noise_std: float = 0.003           # random-walk noise, std on the last input frame, scene units
     vertex_noise: float = 0.0          # shape noise (paper Fig. 7a): std of one fixed offset per vertex, x size
     track_noise: float = 0.0           # tracking noise (Fig. 7b): std of per-frame centre noise, x its displacement
+    mirror: bool = False               # mirror half the windows in x, body frame included (gns.data)
+    body_symmetry: bool = False        # describe each object in a random one of its mesh's symmetric body frames
 
 
 @dataclass

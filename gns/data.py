@@ -10,6 +10,15 @@ windows of a batch, vectorised, as R(q) (scale * rest) + p.
 Augmentation (training only):
 - rotation of inputs and target about the world z axis by theta ~ U[-pi, pi], one per window
   (all objects of a scene rotate together, about the same axis);
+- mirror (`augment.mirror`): half the windows mirrored in x, world and body frame together
+  (x = R r + p -> M x = (M R M)(M r) + M p, M = diag(-1, 1, 1)): the mirror image of a scene is
+  a scene of the mirrored object under the same physics, and the pose stays a proper rotation.
+  With the z rotation this covers every vertical mirror plane;
+- body symmetry (`augment.body_symmetry`): each object's rest positions described in another of
+  its mesh's equivalent body frames (r -> S r, R -> R S^T, S a rotation mapping the mesh's
+  vertices onto themselves, gns.graph.mesh_symmetries): the world vertices are unchanged, only
+  the labels move, so the model learns that a cube's answer does not hang on which of its 24
+  frames describes it (docs/diagnostic_45.md);
 - random-walk position noise as in learning_to_simulate: per node, each input velocity gets
   N(0, noise_std^2 / 2) noise, accumulated over the history, so the last input frame carries
   noise of std noise_std. The target position is shifted by the last frame's noise, so the
@@ -26,7 +35,7 @@ themselves noisy, target included, and nothing corrects for it:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -160,7 +169,8 @@ class ObjectTracks:
         return self.positions[idx], torch.from_numpy(quat_to_matrix(self.quaternions[idx].numpy()))
 
     def batch(self, windows: torch.Tensor, rng: np.random.Generator | None = None, rotate: bool = False,
-              noise_std: float = 0.0, vertex_noise: float = 0.0, track_noise: float = 0.0) -> Batch:
+              noise_std: float = 0.0, vertex_noise: float = 0.0, track_noise: float = 0.0,
+              mirror: bool = False, body_symmetry: bool = False) -> Batch:
         """The graphs of the given windows (B,), packed; augmentation and noise need `rng`.
 
         Every object of a window's scene is in the batch (one graph each, grouped by window)."""
@@ -175,6 +185,17 @@ class ObjectTracks:
             rot = rz[:, None] @ rot
             pos = (rz[:, None] @ pos[..., None])[..., 0]
         graph = self.graph(tracks, window_of)
+        if body_symmetry:
+            sym = self.library.random_symmetries(self.shape_ids[tracks], rng)      # (B, 3, 3)
+            graph = replace(graph, rest=torch.einsum("nij,nj->ni", sym[graph.node_graph], graph.rest))
+            rot = rot @ sym.transpose(1, 2)[:, None]
+        if mirror:
+            flip = torch.from_numpy(rng.random(len(windows)) < 0.5)[window_of]     # (B,) per window
+            m = torch.ones(len(tracks), 3, dtype=torch.float64)
+            m[flip, 0] = -1.0
+            pos = pos * m[:, None]
+            rot = rot * m[:, None, :, None] * m[:, None, None, :]
+            graph = replace(graph, rest=graph.rest * m[graph.node_graph])
         x = vertices_from_poses(graph, pos, rot)                  # (N, window, 3)
         if vertex_noise > 0:
             size = graph_sizes(graph)[graph.node_graph]           # (N,)
@@ -216,7 +237,8 @@ class ObjectTracks:
         return float(self.contact.double().mean())
 
     def sample(self, rng: np.random.Generator, batch_size: int, rotate: bool, noise_std: float,
-               vertex_noise: float = 0.0, track_noise: float = 0.0, contact_fraction: float = 0.0) -> Batch:
+               vertex_noise: float = 0.0, track_noise: float = 0.0, contact_fraction: float = 0.0,
+               mirror: bool = False, body_symmetry: bool = False) -> Batch:
         """A random batch; with contact_fraction > 0 (after mark_contacts) that share of its windows,
         rounded at random, is drawn from the windows in contact, the rest from all windows."""
         if contact_fraction > 0 and self.contact is not None and self.contact.any():
@@ -226,7 +248,7 @@ class ObjectTracks:
                                  torch.from_numpy(rng.integers(0, self.num_windows, batch_size - n_contact))])
         else:
             windows = torch.from_numpy(rng.integers(0, self.num_windows, batch_size))
-        return self.batch(windows, rng, rotate, noise_std, vertex_noise, track_noise)
+        return self.batch(windows, rng, rotate, noise_std, vertex_noise, track_noise, mirror, body_symmetry)
 
     def track_vertices(self, tracks: torch.Tensor, frames: int) -> tuple[Graph, torch.Tensor, torch.Tensor]:
         """For rollouts: graph, vertices (N, frames, 3) and centres (B, frames, 3) from frame 0."""

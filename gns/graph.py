@@ -72,6 +72,39 @@ class Graph:
         return Graph(**moved)
 
 
+def _signed_permutations() -> np.ndarray:
+    """The 24 proper rotations that permute the coordinate axes (with signs): (24, 3, 3)."""
+    import itertools
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            m = np.zeros((3, 3))
+            m[range(3), perm] = signs
+            if np.linalg.det(m) > 0:
+                out.append(m)
+    return np.stack(out)
+
+
+def mesh_symmetries(vertices: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    """Proper rotations S among the axis permutations that map the vertex set onto itself (K, 3, 3),
+    identity first.
+
+    A vertex at rest position r may then be described as at S r (with the pose R S^T): the same
+    object, relabelled. Cubes have all 24; a cylinder about z those that keep its axis and its
+    segments; a mesh without such symmetry only the identity.
+    """
+    v = np.asarray(vertices, np.float64)
+    scale = max(float(np.abs(v).max()), 1e-12)
+    keep = []
+    for s in _signed_permutations():
+        moved = v @ s.T
+        d = np.sqrt(((moved[:, None, :] - v[None, :, :]) ** 2).sum(-1)).min(axis=1)
+        if d.max() <= tol * scale:
+            keep.append(s)
+    keep.sort(key=lambda s: not np.allclose(s, np.eye(3)))
+    return np.stack(keep)
+
+
 def _ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """For counts (B,): the owner (sum counts,) of each element and its index within its owner."""
     owner = torch.repeat_interleave(torch.arange(len(counts)), counts)
@@ -100,6 +133,19 @@ class MeshLibrary:
         self.num_faces = torch.tensor([len(f) for f in faces])
         self._face_start = torch.cumsum(self.num_faces, 0) - self.num_faces
         self._faces = torch.from_numpy(np.concatenate(faces))
+        # body-frame symmetries of each mesh (augment.body_symmetry), padded to the largest group
+        groups = [mesh_symmetries(v) for v in verts]
+        self.num_symmetries = torch.tensor([len(g) for g in groups])
+        padded = np.tile(np.eye(3), (len(groups), int(self.num_symmetries.max()), 1, 1))
+        for i, g in enumerate(groups):
+            padded[i, :len(g)] = g
+        self._symmetries = torch.from_numpy(padded)
+
+    def random_symmetries(self, shape_ids: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+        """One random body-frame symmetry of each graph's mesh (B, 3, 3) float64 (see mesh_symmetries)."""
+        count = self.num_symmetries[shape_ids]
+        pick = torch.from_numpy(np.floor(rng.random(len(shape_ids)) * count.numpy()).astype(np.int64))
+        return self._symmetries[shape_ids, pick]
 
     def shape_ids(self, names: list[str]) -> torch.Tensor:
         missing = [n for n in names if n not in self.index]

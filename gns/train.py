@@ -444,7 +444,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
             lr = learning_rate(cfg, step)
             batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std,
                                   cfg.augment.vertex_noise, cfg.augment.track_noise,
-                                  cfg.train.contact_fraction).to(device)
+                                  cfg.train.contact_fraction, cfg.augment.mirror,
+                                  cfg.augment.body_symmetry).to(device)
             try:
                 loss = train_step(sim, optimizer, batch, lr, cfg.train.grad_clip, cfg.train.loss, cfg.train.huber_delta)
             except FloatingPointError as e:
