@@ -267,7 +267,8 @@ def report(out: Path, r: dict, command: str) -> Path:
     return path
 
 
-def run(preset: str, out: Path, run_path: Path | None, seed: int, shape: str, command: str) -> dict:
+def run(preset: str, out: Path, run_path: Path | None, seed: int, shape: str, command: str,
+        sets: list[str] = ()) -> dict:
     if run_path is not None:
         read_checkpoint(checkpoint_of(run_path))  # a missing or bad checkpoint fails first, one line
     out.mkdir(parents=True, exist_ok=True)
@@ -275,7 +276,8 @@ def run(preset: str, out: Path, run_path: Path | None, seed: int, shape: str, co
     if run_path is None:
         p = PRESETS[preset]
         data = training_data_stage(out / "data", p["counts"], seed)
-        ckpt = train_stage(data.root, out / "run", p["model"], [f"train.steps={p['steps']}", f"train.seed={seed}"])
+        ckpt = train_stage(data.root, out / "run", p["model"],
+                           [f"train.steps={p['steps']}", f"train.seed={seed}", *p.get("train", ()), *sets])
     else:
         ckpt = checkpoint_of(run_path)
     results = evaluate(ckpt, drops, out, shape)
@@ -296,6 +298,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, help="output folder (default runs/diagnostic_45_<preset or run name>)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
+    ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="training config overrides after the preset's (gns train --set), e.g. augment.mirror=false")
     a = ap.parse_args(argv if argv is not None else sys.argv[1:])
     name = a.preset
     if a.run is not None:
@@ -307,7 +311,7 @@ def main(argv=None) -> int:
     if a.fresh and out.exists():
         shutil.rmtree(out)
     command = "python -m pipelines.diagnostic_45 " + " ".join(argv if argv is not None else sys.argv[1:])
-    return guarded(lambda: run(a.preset, out, a.run, a.seed, a.shape, command))
+    return guarded(lambda: run(a.preset, out, a.run, a.seed, a.shape, command, a.set))
 
 
 if __name__ == "__main__":
