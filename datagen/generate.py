@@ -162,16 +162,22 @@ def prepare_shared_output(out: Path, meta: dict, mine: list[ShardTask]) -> None:
         write_metadata(out, meta)
 
 
+def require_ray():
+    """The ray module, or one line naming the extra (checked before anything is written)."""
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("--backend ray needs Ray: pip install 'rigid-gns[ray]'") from None
+    return ray
+
+
 def _ray_tasks(jobs: list[ShardTask], cfg: dict, seed: int, out: Path, workers: int, address: str | None):
     """Run shards as Ray tasks, yielding (name, count, tunnelled ids) as each is written.
 
     A task returns its shard's bytes and the driver writes them, so the cluster's nodes need no
     shared file system with --out; with no address (and no RAY_ADDRESS) a local cluster of
     `workers` CPUs is started here and stopped afterwards."""
-    try:
-        import ray
-    except ImportError:
-        raise ConfigError("--backend ray needs Ray: pip install 'rigid-gns[ray]'") from None
+    ray = require_ray()
     import logging
     address = address or os.environ.get("RAY_ADDRESS") or None
     started = not ray.is_initialized()
@@ -232,6 +238,8 @@ def generate(cfg: dict, seed: int, counts: dict[str, int], out: str | Path, work
         raise DataError(f"--scenes-per-shard must be >= 1, got {per_shard}")
     if backend not in BACKENDS:
         raise DataError(f"unknown backend {backend!r}; use {' or '.join(BACKENDS)}")
+    if backend == "ray":
+        require_ray()
     sharded = num_shards is not None or shard_index is not None
     if sharded:
         if num_shards is None or shard_index is None:

@@ -144,6 +144,24 @@ def test_metadata_records_versions_commit_and_a_fingerprint(reference, tmp_path)
     assert Dataset(other).fingerprint != meta["fingerprint"]
 
 
+def test_inspect_names_shards_changed_since_the_fingerprint(tmp_path, capsys):
+    from datagen.shards import write_shard
+    out = tmp_path / "d"
+    assert toss(out, "--seed", "7") == 0
+    capsys.readouterr()
+    assert main(["inspect", str(out)]) == 0
+    assert "shards match their checksums" in capsys.readouterr().out
+    ds = Dataset(out)
+    scenes = ds.load("valid")
+    scenes[0].positions[2, 0, 0] += 1e-9           # still valid data, no longer the same data
+    write_shard(out / "valid-00000.h5", scenes, ds.meshes)
+    assert main(["inspect", str(out)]) == 0
+    assert "1 shard(s) changed since: valid-00000.h5" in capsys.readouterr().out
+    ds = Dataset(out)
+    del ds.meta["fingerprint"]
+    assert ds.fingerprint != Dataset(out).fingerprint     # recomputed from the shards as they are now
+
+
 def test_no_commit_outside_a_checkout(tmp_path):
     """An installed copy (no git checkout around it) records code: null instead of failing."""
     src = Path(gen_mod.__file__).with_name("provenance.py")
@@ -159,6 +177,7 @@ def test_ray_backend_without_ray_is_one_line(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)      # as if the extra were not installed
     assert toss(tmp_path / "d", "--backend", "ray") == 2
     only_error_line(capsys, "--backend ray needs Ray", "rigid-gns[ray]")
+    assert not (tmp_path / "d").exists()
 
 
 def test_ray_backend_on_a_local_cluster_gives_the_same_bytes(reference, tmp_path):
