@@ -416,9 +416,8 @@ def run_provenance(data_dir: str | Path, fingerprint: str, step: int, earlier: d
             "earlier": history}
 
 
-def _load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, ObjectTracks | None, str]:
-    """Feature spec, train tracks, (if validating and present) valid tracks of a dataset, and its
-    fingerprint."""
+def _load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, ObjectTracks | None]:
+    """Feature spec, train tracks and (if validating and present) valid tracks of a dataset."""
     dataset = Dataset(data_dir, stride=cfg.features.frame_stride)
     scenes = dataset.load("train")
     k = cfg.features.frame_stride
@@ -438,7 +437,7 @@ def _load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, O
     valid = None
     if cfg.valid.every > 0 and "valid" in dataset.splits:
         valid = ObjectTracks(dataset.load("valid"), library, "valid split")
-    return feature_spec(dataset, scenes), tracks, valid, dataset.fingerprint
+    return feature_spec(dataset, scenes), tracks, valid
 
 
 def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool = False,
@@ -459,7 +458,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     check_writable(run, "run folder")
     if cfg.train.tensorboard:
         check_tensorboard()
-    data_spec, tracks, valid, fingerprint = _load_data(data_dir, cfg)
+    data_spec, tracks, valid = _load_data(data_dir, cfg)
+    fingerprint = Dataset(data_dir).fingerprint
 
     _set_threads(cfg.train.threads, log)
     seed = cfg.train.seed
