@@ -192,7 +192,7 @@ def _ray_tasks(jobs: list[ShardTask], cfg: dict, seed: int, out: Path, workers: 
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise DataError(f"cannot start or reach {where}: {first}") from None
     try:
-        remote = ray.remote(num_cpus=1, max_retries=0)(build_task)
+        remote = ray.remote(num_cpus=1)(build_task)  # retried if a node dies: a shard is a pure function of its task
         cfg_ref = ray.put(cfg)
         pending = {remote.remote(t, cfg_ref, seed): t for t in jobs}
         while pending:
