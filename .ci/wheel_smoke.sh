@@ -19,4 +19,13 @@ set -x
 "$work/venv/bin/gns" eval --run run --data data --json eval.json
 "$work/venv/bin/python" -m pipelines.movi_a --preset tiny --out movi_tiny --workers 1
 test -s eval.json && test -s movi_tiny/report.md
+# provenance from a wheel: versions and a fingerprint, no commit (no checkout around the code)
+"$work/venv/bin/python" -c "import json; m = json.load(open('data/metadata.json')); p = m['provenance']; \
+assert p['code'] is None and p['versions']['torch'] and len(m['fingerprint']) == 64, p"
+"$work/venv/bin/gns" plot-curves run --out curves.png && test -s curves.png
+# the extras are not installed here: using one is a one-line error naming it
+if "$work/venv/bin/datagen" toss --out rayd --scenes 1 --backend ray --quiet 2> err.txt; then exit 1; fi
+grep -q "rigid-gns\[ray\]" err.txt && test "$(wc -l < err.txt)" -eq 1
+if "$work/venv/bin/gns" train --data data --out tb --config gns_tiny --tensorboard 2> err.txt; then exit 1; fi
+grep -q "rigid-gns\[tensorboard\]" err.txt && test "$(wc -l < err.txt)" -eq 1
 echo "wheel smoke test passed"

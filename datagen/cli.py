@@ -10,6 +10,8 @@ EPILOG = """examples:
   datagen toss --shapes cube,sphere --sizes small --materials metal --scenes 100 --out data/toy
   datagen toss --objects 3-10 --scenes 50 --valid 10 --test 10 --workers 2 --seed 1 --out data/multi
   datagen inspect data/toy
+  datagen toss --scenes 1000 --backend ray --workers 8 --out data/big
+  datagen toss --scenes 1000 --shard-index $SLURM_ARRAY_TASK_ID --num-shards 10 --out data/big   # one of 10 runs
 """
 
 
@@ -34,9 +36,18 @@ def cmd_toss(a) -> int:
     cfg = load_config(a.config, sets)
     counts = {"train": a.scenes, "valid": a.valid, "test": a.test}
     meta = generate(cfg, a.seed, counts, a.out, workers=a.workers, per_shard=a.scenes_per_shard,
-                    resume=a.resume, overwrite=a.overwrite, progress=not a.quiet)
+                    resume=a.resume, overwrite=a.overwrite, progress=not a.quiet, backend=a.backend,
+                    shard_index=a.shard_index, num_shards=a.num_shards, ray_address=a.ray_address)
     n = sum(v["num_scenes"] for v in meta["splits"].values())
-    print(f"wrote {n} scenes to {a.out} (" + ", ".join(f"{k} {v['num_scenes']}" for k, v in meta["splits"].items()) + ")")
+    if not meta["complete"]:
+        from pathlib import Path
+        names = [name for v in meta["splits"].values() for name in v["shards"]]
+        missing = sum(not (Path(a.out) / name).exists() for name in names)
+        print(f"wrote part {a.shard_index} of {a.num_shards} to {a.out}; {missing} of {len(names)} shards are still "
+              f"missing (other parts): the run that writes the last one completes metadata.json")
+        return 0
+    print(f"wrote {n} scenes to {a.out} (" + ", ".join(f"{k} {v['num_scenes']}" for k, v in meta["splits"].items()) + ")"
+          f", fingerprint {meta['fingerprint'][:16]}")
     return 0
 
 
@@ -85,6 +96,14 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--set", action="extend", nargs="+", metavar="KEY=VALUE",
                    help="override config keys, typed as in the preset, e.g. --set floor.friction=0.5 physics.ccd=true")
     t.add_argument("--scenes-per-shard", type=int, default=50, help="scenes per HDF5 shard (default 50)")
+    t.add_argument("--backend", choices=("process", "ray"), default="process",
+                   help="process: a pool of --workers processes (default); ray: Ray tasks, on a local cluster of "
+                        "--workers CPUs or the cluster at --ray-address / RAY_ADDRESS (the `ray` extra)")
+    t.add_argument("--ray-address", metavar="ADDR", help="with --backend ray: an existing cluster (e.g. auto, ray://host:10001)")
+    t.add_argument("--shard-index", type=int, metavar="I",
+                   help="with --num-shards K: write only shards whose number in the plan (train, valid, test "
+                        "shards in order) modulo K is I; K such runs into one --out make the whole dataset")
+    t.add_argument("--num-shards", type=int, metavar="K", help="number of runs the shards are divided among (see --shard-index)")
     g = t.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true", help="finish an interrupted run in --out (same command)")
     g.add_argument("--overwrite", action="store_true", help="replace an existing dataset in --out")

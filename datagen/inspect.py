@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .shards import METADATA_FILE, Dataset, DataError, Scene, read_shard
+from .provenance import file_sha256
 
 # A recorded frame can catch an impact between the physics step that crossed the floor and the
 # one that resolves it, so a vertex may legitimately sit one physics step of travel below the
@@ -145,6 +146,13 @@ def inspect(root: str | Path) -> tuple[list[str], dict]:
                    frames_per_scene=dict(frames), objects_per_scene=dict(objects))
     if sinks:
         summary["measured_floor_penetration"] = {"median": float(np.median(sinks)), "max": float(np.max(sinks))}
+    summary["fingerprint"] = ds.meta.get("fingerprint")
+    recorded = ds.meta.get("checksums")
+    if isinstance(recorded, dict):
+        # Reported, not a problem: an edited shard can be valid data, but it is no longer the data
+        # the fingerprint (and runs that recorded it) describe.
+        summary["changed_shards"] = sorted(name for name, digest in recorded.items()
+                                           if (root / name).is_file() and file_sha256(root / name) != digest)
     return problems, summary
 
 
@@ -157,4 +165,9 @@ def format_summary(s: dict) -> str:
         m = s["measured_floor_penetration"]
         lines.append(f"measured data: deepest point below the floor per scene, median {m['median']:.1%}, "
                      f"max {m['max']:.1%} of the object's scale (tracking, not a problem)")
+    if s.get("fingerprint"):
+        changed = s.get("changed_shards") or []
+        lines.append(f"fingerprint: {s['fingerprint']}" + (
+            f" (recorded; {len(changed)} shard(s) changed since: {', '.join(changed[:5])})" if changed
+            else ", shards match their checksums"))
     return "\n".join(lines)

@@ -19,6 +19,8 @@ from typing import Iterator
 import h5py
 import numpy as np
 
+from .provenance import file_sha256, fingerprint, provenance
+
 FORMAT_VERSION = 1
 METADATA_FILE = "metadata.json"
 QUATERNION_ORDER = "wxyz"
@@ -112,45 +114,18 @@ def write_shard(path: str | Path, scenes: list[Scene], meshes: dict[str, tuple[n
     as simulating a scene, while the packed tables cost the same for 1 or 1000 scenes.
     """
     path = Path(path)
+    try:
+        image = shard_image(scenes, meshes, attrs, path.name)
+    except OSError as e:
+        raise write_error(path, e) from None
+    write_shard_image(path, image)
+
+
+def write_shard_image(path: str | Path, image: bytes) -> None:
+    """Write a shard built by shard_image atomically (temporary file, then rename)."""
+    path = Path(path)
     tmp = _atomic_path(path)
     try:
-        frames = np.array([sc.num_frames for sc in scenes], np.int64)
-        objects = np.array([sc.num_objects for sc in scenes], np.int64)
-        rows = frames * objects
-        # Built in memory, then written with plain file I/O: a full disk is then one clean OSError,
-        # where HDF5 writing to a full disk prints hundreds of lines and can crash the process.
-        with h5py.File(path.name, "w", driver="core", backing_store=False) as f:
-            f.attrs["format_version"] = FORMAT_VERSION
-            f.attrs["quaternion_order"] = QUATERNION_ORDER
-            f.attrs["num_scenes"] = len(scenes)
-            for k, v in (attrs or {}).items():
-                f.attrs[k] = v
-            # Every shard carries all the dataset's meshes so it can be read on its own.
-            mg = f.create_group("meshes")
-            for name in sorted(meshes):
-                verts, faces = meshes[name]
-                g = mg.create_group(name)
-                g.create_dataset("vertices", data=np.asarray(verts, np.float64))
-                g.create_dataset("faces", data=np.asarray(faces, np.int32))
-            sg = f.create_group("scenes")
-            sg.create_dataset("num_frames", data=frames)
-            sg.create_dataset("num_objects", data=objects)
-            sg.create_dataset("object_start", data=np.concatenate([[0], np.cumsum(objects)[:-1]]).astype(np.int64))
-            sg.create_dataset("state_start", data=np.concatenate([[0], np.cumsum(rows)[:-1]]).astype(np.int64))
-            sg.create_dataset("attrs", data=np.array([json.dumps(sc.attrs, sort_keys=True) for sc in scenes],
-                                                     dtype=h5py.string_dtype()))
-            st = f.create_group("states")
-            for k in SCENE_ARRAYS:
-                width = 4 if k == "quaternions" else 3
-                st.create_dataset(k, data=np.concatenate(
-                    [np.asarray(getattr(sc, k), np.float64).reshape(-1, width) for sc in scenes]))
-            og = f.create_group("objects")
-            for k in OBJECT_ARRAYS:
-                og.create_dataset(k, data=np.concatenate([np.asarray(getattr(sc, k), np.float64) for sc in scenes]))
-            for k in OBJECT_STRINGS:
-                og.create_dataset(k, data=np.array([x for sc in scenes for x in getattr(sc, k)], dtype=h5py.string_dtype()))
-            f.flush()
-            image = f.id.get_file_image()
         with open(tmp, "wb") as out:
             out.write(image)
         _publish(tmp, path)
@@ -162,6 +137,49 @@ def write_shard(path: str | Path, scenes: list[Scene], meshes: dict[str, tuple[n
         raise
 
 
+def shard_image(scenes: list[Scene], meshes: dict[str, tuple[np.ndarray, np.ndarray]], attrs: dict | None = None,
+                name: str = "shard.h5") -> bytes:
+    """The bytes of a shard file, built in memory: the same bytes wherever they are built, so a
+    remote worker (the ray backend) can build a shard and the driver write it."""
+    frames = np.array([sc.num_frames for sc in scenes], np.int64)
+    objects = np.array([sc.num_objects for sc in scenes], np.int64)
+    rows = frames * objects
+    # Built in memory, then written with plain file I/O: a full disk is then one clean OSError,
+    # where HDF5 writing to a full disk prints hundreds of lines and can crash the process.
+    with h5py.File(name, "w", driver="core", backing_store=False) as f:
+        f.attrs["format_version"] = FORMAT_VERSION
+        f.attrs["quaternion_order"] = QUATERNION_ORDER
+        f.attrs["num_scenes"] = len(scenes)
+        for k, v in (attrs or {}).items():
+            f.attrs[k] = v
+        # Every shard carries all the dataset's meshes so it can be read on its own.
+        mg = f.create_group("meshes")
+        for mesh_name in sorted(meshes):
+            verts, faces = meshes[mesh_name]
+            g = mg.create_group(mesh_name)
+            g.create_dataset("vertices", data=np.asarray(verts, np.float64))
+            g.create_dataset("faces", data=np.asarray(faces, np.int32))
+        sg = f.create_group("scenes")
+        sg.create_dataset("num_frames", data=frames)
+        sg.create_dataset("num_objects", data=objects)
+        sg.create_dataset("object_start", data=np.concatenate([[0], np.cumsum(objects)[:-1]]).astype(np.int64))
+        sg.create_dataset("state_start", data=np.concatenate([[0], np.cumsum(rows)[:-1]]).astype(np.int64))
+        sg.create_dataset("attrs", data=np.array([json.dumps(sc.attrs, sort_keys=True) for sc in scenes],
+                                                 dtype=h5py.string_dtype()))
+        st = f.create_group("states")
+        for k in SCENE_ARRAYS:
+            width = 4 if k == "quaternions" else 3
+            st.create_dataset(k, data=np.concatenate(
+                [np.asarray(getattr(sc, k), np.float64).reshape(-1, width) for sc in scenes]))
+        og = f.create_group("objects")
+        for k in OBJECT_ARRAYS:
+            og.create_dataset(k, data=np.concatenate([np.asarray(getattr(sc, k), np.float64) for sc in scenes]))
+        for k in OBJECT_STRINGS:
+            og.create_dataset(k, data=np.array([x for sc in scenes for x in getattr(sc, k)], dtype=h5py.string_dtype()))
+        f.flush()
+        return f.id.get_file_image()
+
+
 def write_error(path: Path, e: OSError) -> DataError:
     """One line for a failed write (a full disk above all); the partial file is already removed."""
     if e.errno == errno.ENOSPC:
@@ -170,16 +188,32 @@ def write_error(path: Path, e: OSError) -> DataError:
     return DataError(f"cannot write {path}: {e.strerror or e}")
 
 
-def write_metadata(root: str | Path, meta: dict) -> None:
+def shard_checksums(root: str | Path, splits: dict) -> dict[str, str]:
+    """sha256 of every shard a `splits` table lists, by file name."""
     root = Path(root)
+    return {name: file_sha256(root / name) for info in splits.values() for name in info["shards"]}
+
+
+def write_metadata(root: str | Path, meta: dict) -> dict:
+    """Write metadata.json atomically, adding `provenance` (versions, code commit) and, unless
+    `complete` is false, `checksums` of the listed shards and the dataset `fingerprint`
+    (docs/data_format.md). So every writer of a dataset records them, and a copied metadata
+    (gns rollout starts from its source's) never carries another dataset's. Returns what was written."""
+    root = Path(root)
+    meta = {k: v for k, v in meta.items() if k not in ("provenance", "checksums", "fingerprint")}
+    meta = {"format_version": FORMAT_VERSION, **meta, "provenance": provenance()}
+    if meta.get("complete") is not False:
+        meta["checksums"] = shard_checksums(root, meta["splits"])
+        meta["fingerprint"] = fingerprint(meta, meta["checksums"])
     final = root / METADATA_FILE
     tmp = _atomic_path(final)
     try:
-        tmp.write_text(json.dumps({"format_version": FORMAT_VERSION, **meta}, indent=2, sort_keys=True) + "\n")
+        tmp.write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
         _publish(tmp, final)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    return meta
 
 
 def _strings(a) -> list[str]:
@@ -330,6 +364,15 @@ class Dataset:
         if self._meshes is None:
             self._meshes = {}
         self._meshes.update(meshes)
+
+    @property
+    def fingerprint(self) -> str:
+        """The dataset fingerprint (docs/data_format.md): the one metadata.json records, or, for a
+        dataset written before fingerprints existed, computed from its metadata and shards."""
+        recorded = self.meta.get("fingerprint")
+        if isinstance(recorded, str):
+            return recorded
+        return fingerprint(self.meta, shard_checksums(self.root, self.meta["splits"]))
 
     @property
     def materials_vary(self) -> bool:

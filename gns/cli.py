@@ -22,6 +22,8 @@ def cmd_train(args: argparse.Namespace) -> None:
     overrides = list(args.set or [])
     if args.steps is not None:
         overrides.append(f"train.steps={args.steps}")
+    if args.tensorboard:
+        overrides.append("train.tensorboard=true")
     cfg = resolve_config(args.out, args.resume, args.config, overrides)
     step = train(args.data, args.out, cfg, resume=args.resume, overwrite=args.overwrite)
     print(f"done at step {step}; checkpoints and metrics.jsonl in {args.out}")
@@ -37,6 +39,9 @@ def add_train_parser(sub) -> None:
     p.add_argument("--steps", type=int, metavar="N", help="train until step N (same as --set train.steps=N)")
     p.add_argument("--set", action="extend", nargs="+", metavar="KEY=VALUE",
                    help="override a config key, e.g. --set model.latent_size=64 train.batch_size=4")
+    p.add_argument("--tensorboard", action="store_true",
+                   help="also log to TensorBoard event files in RUN/tb (same as --set train.tensorboard=true; "
+                        "needs the tensorboard extra)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--resume", action="store_true", help="continue from RUN/latest.pt")
     mode.add_argument("--overwrite", action="store_true", help="delete RUN's checkpoints and start again")
@@ -46,7 +51,7 @@ def add_train_parser(sub) -> None:
 def cmd_rollout(args: argparse.Namespace) -> None:
     import time
 
-    from gns.evaluate import check_ranges, checkpoint_of, load_split
+    from gns.evaluate import check_ranges, checkpoint_of, load_split, provenance_of
     from gns.rollout import (DivergedError, check_output, diverged_line, rollout_scenes, scene_label,
                              write_rollouts)
     from gns.train import load_model, read_checkpoint
@@ -71,7 +76,8 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]),
             "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
             "given_frames": 3, "seconds": seconds,
-            "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize}
+            "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize,
+            **provenance_of(saved, ds)}
     write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
     print(f"rolled out {len(pred)} scenes in {seconds:.2f} s; wrote {len(pred) - len(diverged)} to {args.out}")
 
@@ -171,12 +177,51 @@ def add_export_parser(sub) -> None:
     x.set_defaults(run=cmd_export)
 
 
+def cmd_plot_curves(args: argparse.Namespace) -> None:
+    from pathlib import Path
+
+    from gns.outputs import check_writable
+    from gns.plots import plot_training_curves
+    from gns.train import METRICS, read_metrics
+
+    out = Path(args.out)
+    if out.suffix.lower() not in (".png", ".pdf", ".svg"):
+        raise DataError(f"--out {out}: give a .png, .pdf or .svg file name")
+    if out.is_dir():
+        raise DataError(f"--out {out} is a folder; give a file name such as {out / 'curves.png'}")
+    runs = {}
+    for run in args.runs:
+        path = Path(run)
+        path = path / METRICS if path.is_dir() else path
+        if not path.is_file():
+            raise DataError(f"no {METRICS} in {run}: not a training run folder")
+        entries = read_metrics(path)
+        if not entries:
+            raise DataError(f"{path} holds no metrics yet")
+        label = Path(run).name if Path(run).is_dir() else Path(run).parent.name
+        runs[label if label not in runs else str(run)] = entries
+    check_writable(out.parent, "output folder")
+    plot_training_curves(runs, out, log_loss=not args.linear)
+    print(f"wrote {out} ({len(runs)} run{'s' if len(runs) > 1 else ''})")
+
+
+def add_plot_parser(sub) -> None:
+    c = sub.add_parser("plot-curves", help="plot training curves (loss, validation, learning rate) of runs",
+                       description="Draw the training and validation loss, the validation rollout error and "
+                                   "the learning rate against the step, from each run's metrics.jsonl.")
+    c.add_argument("runs", nargs="+", metavar="RUN", help="run folders (or metrics.jsonl files); several are overlaid")
+    c.add_argument("--out", required=True, metavar="FILE", help="output image: .png, .pdf or .svg")
+    c.add_argument("--linear", action="store_true", help="linear loss axes (default logarithmic)")
+    c.set_defaults(run=cmd_plot_curves)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gns", description="Graph network simulator for rigid bodies.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add_train_parser(sub)
     add_eval_parsers(sub)
     add_export_parser(sub)
+    add_plot_parser(sub)
     return parser
 
 

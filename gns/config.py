@@ -79,6 +79,7 @@ class TrainConfig:
     all_phases: bool = False
     loss: str = "mse"                  # "mse" (paper), "huber" or "l1" on the normalised acceleration
     huber_delta: float = 1.0           # huber: quadratic within this many normalised units
+    tensorboard: bool = False          # also write TensorBoard event files to RUN/tb (the tensorboard extra)
 
 
 @dataclass

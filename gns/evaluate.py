@@ -88,8 +88,18 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
                    outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
                    diverged_scenes=diverged, num_diverged=len(diverged), symmetrize=symmetrize,
-                   at_data_rate=at_data_rate, model_stride=model_stride)
+                   at_data_rate=at_data_rate, model_stride=model_stride, **provenance_of(saved, ds))
     return results, pred, scenes, ds
+
+
+def provenance_of(saved: dict, ds: Dataset) -> dict:
+    """What an evaluation or rollout records of where it came from: this code's versions and
+    commit, the fingerprint of the data it ran on, and of the data the model was trained on
+    (None for a checkpoint written before runs recorded it), so a mismatch can be seen."""
+    from datagen.provenance import provenance
+    trained = saved.get("provenance") if isinstance(saved.get("provenance"), dict) else {}
+    return {"provenance": provenance(), "data_fingerprint": ds.fingerprint,
+            "trained_on_fingerprint": (trained.get("data") or {}).get("fingerprint")}
 
 
 def _warn(line: str) -> None:

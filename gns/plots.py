@@ -337,3 +337,51 @@ def plot_bars(labels: Sequence[str], panels: Mapping[str, Sequence[float]], path
         fig.suptitle(title)
     fig.tight_layout()
     return _save(fig, path, dpi)
+
+
+def plot_training_curves(runs: Mapping[str, Sequence[Mapping]], path, log_loss: bool = True, dpi: int = 110) -> Path:
+    """Training curves of runs {label: metrics.jsonl entries}: training loss (solid) and
+    validation loss (dashed) against the step, the validation rollout error, the learning rate.
+    Panels with no data in any run say so rather than vanish, so figures of runs stay alike.
+    Written atomically (a temporary file, then renamed): a reader never sees half an image."""
+    import os
+    import tempfile
+    panels = (("loss", "normalised acceleration loss"), ("valid_rollout_position_error", "valid rollout centre error [scene units]"),
+              ("lr", "learning rate"))
+    fig = _figure((13, 3.8))
+    axes = fig.subplots(1, len(panels))
+    for i, (label, entries) in enumerate(runs.items()):
+        color = f"C{i % 10}"
+        for ax, (key, title) in zip(axes, panels):
+            keys = (key, "valid_loss") if key == "loss" else (key,)
+            for k in keys:
+                pts = [(e["step"], e[k]) for e in entries if isinstance(e.get(k), (int, float))]
+                if pts:
+                    xs, ys = zip(*pts)
+                    ax.plot(xs, ys, color=color, ls="--" if k == "valid_loss" else "-",
+                            marker="o" if len(pts) < 3 else None, ms=3,
+                            label=f"{label}, {'valid' if k == 'valid_loss' else 'train'}" if key == "loss" else label)
+    for ax, (key, title) in zip(axes, panels):
+        ax.set_title(title)
+        ax.set_xlabel("step")
+        ax.grid(alpha=0.3)
+        if not ax.lines:
+            ax.text(0.5, 0.5, "not logged", ha="center", va="center", transform=ax.transAxes, color="gray")
+            continue
+        if key == "lr" or (log_loss and key == "loss"):
+            ax.set_yscale("log")
+    if axes[0].lines:
+        axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=dpi)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

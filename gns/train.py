@@ -1,7 +1,9 @@
 """The training loop: sample windows, one Adam step on the per-node MSE, validate, checkpoint.
 
 A run folder holds `ckpt-NNNNNN.pt` (the newest `train.keep_checkpoints`), `latest.pt`,
-`metrics.jsonl` (one JSON object a line) and `config.json`. A checkpoint alone rebuilds the model
+`metrics.jsonl` (one JSON object a line), `config.json`, `provenance.json` (library versions,
+code commit, the data's path and fingerprint; also in every checkpoint) and, with
+`train.tensorboard`, TensorBoard event files in `tb/`. A checkpoint alone rebuilds the model
 (`load_model`) and resumes training exactly: it holds the model with its normalisers, the
 optimiser, the step, the RNG states, the full config and the dataset's feature spec. The
 learning rate is a function of the step and the train.lr_* keys, so there is no separate
@@ -9,6 +11,7 @@ scheduler state to save.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -34,6 +37,8 @@ from gns.simulator import HISTORY, LearnedSimulator, shape_match_packed
 CHECKPOINT_FORMAT = 1
 LATEST = "latest.pt"
 METRICS = "metrics.jsonl"
+PROVENANCE = "provenance.json"
+TENSORBOARD_DIR = "tb"
 
 
 class TrainingError(Exception):
@@ -156,7 +161,7 @@ def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool =
             raise DataError(f"{out} exists and is not an exported gns model; refusing to replace it")
     check_writable(out.parent, "output folder")
     out.parent.mkdir(parents=True, exist_ok=True)
-    slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model")}
+    slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance") if k in ckpt}
     _atomic_write(out, lambda p: torch.save(slim, p))
     return out
 
@@ -295,7 +300,8 @@ def _restore_rng(state: dict, rng: np.random.Generator) -> None:
 
 def _check_run(run: Path, resume: bool, overwrite: bool) -> list[Path]:
     """Refuse to start over a run's checkpoints unless asked; returns the files to delete."""
-    existing = checkpoint_paths(run) + [p for p in (run / LATEST, run / METRICS) if p.exists()]
+    existing = checkpoint_paths(run) + [p for p in (run / LATEST, run / METRICS, run / PROVENANCE) if p.exists()]
+    existing += sorted((run / TENSORBOARD_DIR).glob("events.out.tfevents.*"))
     if resume:
         return []
     if any(p.suffix == ".pt" for p in existing) and not overwrite:
@@ -353,6 +359,63 @@ def _set_threads(threads: int, log: Callable[[str], None]) -> None:
             f"if steps/s collapse, use --set train.threads=1")
 
 
+def read_metrics(path: str | Path) -> list[dict]:
+    """The entries of a metrics.jsonl, in order; lines that are not JSON objects with a step (a
+    crash mid-write tears the last one) are skipped."""
+    entries = []
+    for line in Path(path).read_text(errors="replace").splitlines():
+        try:
+            entry = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(entry, dict) and isinstance(entry.get("step"), int):
+            entries.append(entry)
+    return entries
+
+
+def _tensorboard_writer(run: Path, purge_step: int | None):
+    """A SummaryWriter on RUN/tb. On resume, events after the checkpoint's step (logged before a
+    crash, trained again now) are purged, as _drop_metrics_after drops their metrics lines."""
+    from torch.utils.tensorboard import SummaryWriter
+    return SummaryWriter(log_dir=str(run / TENSORBOARD_DIR), purge_step=purge_step)
+
+
+def check_tensorboard() -> None:
+    """train.tensorboard needs the extra; checked before any work, one line."""
+    try:
+        import tensorboard  # noqa: F401
+    except ImportError:
+        raise ConfigError("train.tensorboard=true needs TensorBoard: pip install 'rigid-gns[tensorboard]'") from None
+
+
+def tensorboard_tag(key: str) -> str:
+    """metrics.jsonl key -> TensorBoard tag, grouped as TensorBoard shows them: train/, valid/, speed/."""
+    if key.startswith("valid_"):
+        return "valid/" + key[len("valid_"):]
+    if key.endswith("_per_sec"):
+        return "speed/" + key
+    return "train/" + key
+
+
+def _log_scalars(writer, entry: dict) -> None:
+    for key, value in entry.items():
+        if key in ("step", "time") or isinstance(value, bool) or not isinstance(value, (int, float)):
+            continue   # None (all rollouts diverged) is not a scalar; counts and rates are
+        writer.add_scalar(tensorboard_tag(key), value, entry["step"])
+    writer.flush()
+
+
+def run_provenance(data_dir: str | Path, fingerprint: str, step: int, earlier: dict | None) -> dict:
+    """What a run records of where it came from: versions, code commit, the data it trained on;
+    the sessions before a resume are kept in `earlier`, oldest first."""
+    from datagen.provenance import provenance
+    history = []
+    if isinstance(earlier, dict):
+        history = [*earlier.get("earlier", []), {k: v for k, v in earlier.items() if k != "earlier"}]
+    return {**provenance(), "data": {"path": str(data_dir), "fingerprint": fingerprint}, "start_step": step,
+            "earlier": history}
+
+
 def _load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, ObjectTracks | None]:
     """Feature spec, train tracks and (if validating and present) valid tracks of a dataset."""
     dataset = Dataset(data_dir, stride=cfg.features.frame_stride)
@@ -393,7 +456,10 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
         if note:
             log(note)
     check_writable(run, "run folder")
+    if cfg.train.tensorboard:
+        check_tensorboard()
     data_spec, tracks, valid = _load_data(data_dir, cfg)
+    fingerprint = Dataset(data_dir).fingerprint
 
     _set_threads(cfg.train.threads, log)
     seed = cfg.train.seed
@@ -423,10 +489,13 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
         _drop_metrics_after(run / METRICS, step, log)
     config_dict = config_to_dict(cfg)
     _atomic_write(run / "config.json", lambda p: p.write_text(json.dumps(config_dict, indent=2) + "\n"))
+    provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance") if ckpt else None)
+    _atomic_write(run / PROVENANCE, lambda p: p.write_text(json.dumps(provenance, indent=2) + "\n"))
 
     def state() -> dict:
         return {"format": CHECKPOINT_FORMAT, "step": step, "seed": seed, "config": config_dict, "spec": spec,
-                "model": sim.state_dict(), "optimizer": optimizer.state_dict(), "rng": _rng_state(rng)}
+                "model": sim.state_dict(), "optimizer": optimizer.state_dict(), "rng": _rng_state(rng),
+                "provenance": provenance}
 
     n_params = sum(p.numel() for p in sim.parameters())
     contact = (f" ({float(tracks.contact.double().mean()):.0%} in contact, drawn as {cfg.train.contact_fraction:.0%})"
@@ -438,7 +507,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     last_good = resumed_from if ckpt else None
     loss_sum, loss_count, busy, t_mark = 0.0, 0, 0.0, time.perf_counter()
     bar = tqdm(total=cfg.train.steps, initial=step, unit="step", disable=None, dynamic_ncols=True)
-    with bar, open(run / METRICS, "a") as metrics:
+    writer = _tensorboard_writer(run, step + 1 if ckpt else None) if cfg.train.tensorboard else None
+    with bar, open(run / METRICS, "a") as metrics, (writer or contextlib.nullcontext()):
         while step < cfg.train.steps:
             t0 = time.perf_counter()
             lr = learning_rate(cfg, step)
@@ -467,6 +537,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
                     entry.update(validate(sim, valid, cfg, device))
                 metrics.write(json.dumps(entry) + "\n")
                 metrics.flush()
+                if writer is not None:
+                    _log_scalars(writer, entry)
                 loss_sum, loss_count, busy = 0.0, 0, 0.0
             if step % cfg.train.checkpoint_every == 0 or step == cfg.train.steps:
                 if not all(torch.isfinite(p).all() for p in sim.parameters()):
