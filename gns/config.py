@@ -80,6 +80,9 @@ class TrainConfig:
     loss: str = "mse"                  # "mse" (paper), "huber" or "l1" on the normalised acceleration
     huber_delta: float = 1.0           # huber: quadratic within this many normalised units
     tensorboard: bool = False          # also write TensorBoard event files to RUN/tb (the tensorboard extra)
+    # Start a new run from another run's weights and normalisers (a run folder or .pt): fine-tuning,
+    # e.g. on real tosses after training on an engine's. Same architecture, features, frame rate.
+    init_from: str = ""
 
 
 @dataclass

@@ -199,6 +199,24 @@ def _merge_ranges(old: dict, new: dict) -> dict:
     return {**new, "ranges": ranges, "shapes": sorted(set(old["shapes"]) | set(new["shapes"]))}
 
 
+def _init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: dict) -> dict:
+    """Load another run's weights and normalisers into a new run's simulator (fine-tuning); returns
+    the spec with the two datasets' ranges united. The loaded normalisers have spent their
+    accumulation budget, so they stay as the weights were trained with."""
+    path = Path(source)
+    path = path / LATEST if path.is_dir() else path
+    init = read_checkpoint(path)
+    problems = [_incompatibility(init, cfg, spec)]
+    for key in ("frame_rate", "gravity"):
+        if init["spec"].get(key) != spec.get(key):
+            problems.append(f"{key} is {init['spec'].get(key)} there, {spec.get(key)} in this data")
+    problem = "; ".join(p for p in problems if p)
+    if problem:
+        raise CheckpointError(f"cannot start from {path} (train.init_from): {problem}")
+    sim.load_state_dict(init["model"])
+    return _merge_ranges(init["spec"], spec)
+
+
 def _incompatibility(ckpt: dict, cfg: Config, spec: dict) -> str | None:
     diffs = architecture_differences(ckpt["config"], cfg)
     for key in ("node_features", "edge_features", "collision_features"):
@@ -471,6 +489,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     spec = _with_layout(data_spec, sim)
     optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
     step = 0
+    if ckpt is None and cfg.train.init_from:
+        spec = _init_from(sim, cfg.train.init_from, cfg, spec)
     if ckpt is not None:
         problem = _incompatibility(ckpt, cfg, spec)
         if problem:
