@@ -61,6 +61,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     saved = read_checkpoint(ckpt)
     sim, _ = load_model(saved)
     sim.symmetrize = args.symmetrize
+    sim.body_frames = args.body_frames
     ds, scenes = load_split(args.data, args.split, args.limit, saved["spec"]["frame_rate"])
     check_ranges(saved["spec"], ds, scenes)
     t0 = time.perf_counter()
@@ -76,7 +77,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]),
             "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
             "given_frames": 3, "seconds": seconds,
-            "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize,
+            "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize, "body_frames": args.body_frames,
             **provenance_of(saved, ds)}
     write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
     print(f"rolled out {len(pred)} scenes in {seconds:.2f} s; wrote {len(pred) - len(diverged)} to {args.out}")
@@ -92,7 +93,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
     results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit,
                                shape_matching=not args.no_shape_matching, plots_dir=args.plots,
                                batch_tracks=args.batch, sleep=_sleep(args), symmetrize=args.symmetrize,
-                               at_data_rate=args.at_data_rate)
+                               at_data_rate=args.at_data_rate, body_frames=args.body_frames)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched")
@@ -132,6 +133,9 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--symmetrize", action="store_true",
                    help="average each step's prediction over the floor's mirror and half-turn symmetries: exactly "
                         "mirror-equivariant rollouts at 4x the network cost")
+    p.add_argument("--body-frames", action="store_true",
+                   help="also average over each object's equivalent body frames (a cube's 24 rotations onto "
+                        "itself): exactly invariant to which one describes it, at that many times the cost")
     p.add_argument("--sleep-fraction", type=float, default=0.1, metavar="F",
                    help="--sleep: an object is at rest when no vertex moved F x |g| dt^2 in either input step "
                         "(default 0.1)")

@@ -52,7 +52,7 @@ def write_json(path: str | Path, obj) -> None:
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
                  shape_matching: bool = True, plots_dir: str | Path | None = None, progress: bool = True,
                  batch_tracks: int = 256, sleep=None, symmetrize: bool = False,
-                 at_data_rate: bool = False) -> tuple[dict, list, list, Dataset]:
+                 at_data_rate: bool = False, body_frames: bool = False) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it.
 
     A model trained at every k-th frame rolls out at its own rate from frames 0, k, 2k; it is
@@ -66,6 +66,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     saved = read_checkpoint(ckpt)
     sim, _ = load_model(saved)
     sim.symmetrize = symmetrize
+    sim.body_frames = body_frames
     if plots_dir is not None:
         check_writable(plots_dir, "plots folder")
     ds, scenes = load_split(data, split, limit, saved["spec"]["frame_rate"])
@@ -88,6 +89,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
                    outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
                    diverged_scenes=diverged, num_diverged=len(diverged), symmetrize=symmetrize,
+                   body_frames=body_frames,
                    at_data_rate=at_data_rate, model_stride=model_stride, **provenance_of(saved, ds))
     return results, pred, scenes, ds
 

@@ -52,6 +52,9 @@ class Graph:
     graph_scene: torch.Tensor | None = None       # (G,) int64 scene (within the batch) of each graph
     collision_edges: EdgeSet | None = None        # between objects of a scene; see `collision_edges`
     faces: torch.Tensor | None = None             # (F, 3) int64 node indices of each object's triangles
+    # body-frame symmetries of each graph's rest shape (G, K, 3, 3), padded; with their counts (G,)
+    symmetries: torch.Tensor | None = None
+    num_symmetries: torch.Tensor | None = None
 
     @property
     def num_nodes(self) -> int:
@@ -103,6 +106,20 @@ def mesh_symmetries(vertices: np.ndarray, tol: float = 1e-6) -> np.ndarray:
             keep.append(s)
     keep.sort(key=lambda s: not np.allclose(s, np.eye(3)))
     return np.stack(keep)
+
+
+def with_symmetries(graph: "Graph") -> "Graph":
+    """A copy of graph carrying each graph's body-frame symmetry group (mesh_symmetries of its
+    rest shape), for predictions averaged over them (LearnedSimulator.body_frames)."""
+    rest = graph.rest.detach().cpu().numpy()
+    owner = graph.node_graph.cpu().numpy()
+    groups = [mesh_symmetries(rest[owner == g]) for g in range(graph.num_graphs)]
+    k = max(len(x) for x in groups)
+    padded = np.tile(np.eye(3), (graph.num_graphs, k, 1, 1))
+    for g, x in enumerate(groups):
+        padded[g, :len(x)] = x
+    return replace(graph, symmetries=torch.from_numpy(padded).to(graph.rest),
+                   num_symmetries=torch.tensor([len(x) for x in groups], device=graph.rest.device))
 
 
 def _ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -15,7 +15,7 @@ from torch import nn
 from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_collision_features,
                           raw_edge_features, raw_node_features)
 from gns.contacts import surface_edges
-from gns.graph import EdgeSet, Graph, collision_edges, per_graph
+from gns.graph import EdgeSet, Graph, collision_edges, per_graph, with_symmetries
 from gns.network import EncodeProcessDecode
 
 
@@ -123,6 +123,7 @@ class LearnedSimulator(nn.Module):
     """GNS for rigid meshes. `spec` is the dataset's feature spec (see gns.data.feature_spec)."""
 
     symmetrize: bool = False  # average predictions over FLOOR_SYMMETRIES (rollouts; not saved)
+    body_frames: bool = False  # and over each object's equivalent body frames (graph.symmetries)
 
     def __init__(self, model_cfg, features_cfg, spec: dict):
         super().__init__()
@@ -194,18 +195,34 @@ class LearnedSimulator(nn.Module):
         the input, the network predicts, the map is undone. The result is exactly equivariant
         to those four maps applied to the scene, body frames included (a cube tilted 45 + d is the mirror
         of one tilted 45 - d only up to its body frame: docs/diagnostic_45.md), where
-        the network alone is only approximately so (trained with random z rotations)."""
-        if not self.symmetrize:
+        the network alone is only approximately so (trained with random z rotations).
+        With `self.body_frames` too, each object's rest shape is also described in every one of
+        its equivalent body frames (graph.symmetries, the rotations mapping its mesh onto itself,
+        e.g. a cube's 24) and the predictions averaged: exactly invariant to which frame describes
+        an object, at that many times the cost."""
+        syms = graph.symmetries if self.body_frames else None
+        if not self.symmetrize and syms is None:
             return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
+        floors = FLOOR_SYMMETRIES if self.symmetrize else FLOOR_SYMMETRIES[:1]
+        frames = 1 if syms is None else syms.shape[1]
         total = torch.zeros_like(history[:, -1])
-        for m in FLOOR_SYMMETRIES:
-            g = torch.tensor(m, dtype=history.dtype, device=history.device)
-            # the body frame is mapped too (x = R rest + p -> (g R g) (g rest) + g p): the network
-            # sees a proper rotation, as in training, and the average is exactly equivariant
-            mapped = replace(graph, rest=graph.rest * g, collision_edges=None)
-            a = self.target_normalizer.inverse(self(history * g, mapped).to(torch.float64))
-            total = total + a * g
-        return total / len(FLOOR_SYMMETRIES)
+        for k in range(frames):
+            if syms is None:
+                rest, weight = graph.rest, 1.0
+            else:
+                # the same world vertices described in the k-th equivalent body frame (r -> S r):
+                # the answer may not hang on which one, so average over all of each object's group
+                rest = torch.einsum("nij,nj->ni", syms[graph.node_graph, k], graph.rest)
+                counts = graph.num_symmetries[graph.node_graph]
+                weight = ((k < counts).to(history.dtype) / counts.to(history.dtype))[:, None]
+            for m in floors:
+                g = torch.tensor(m, dtype=history.dtype, device=history.device)
+                # the body frame is mapped too (x = R rest + p -> (g R g) (g rest) + g p): the network
+                # sees a proper rotation, as in training, and the average is exactly equivariant
+                mapped = replace(graph, rest=rest * g, collision_edges=None)
+                a = self.target_normalizer.inverse(self(history * g, mapped).to(torch.float64))
+                total = total + a * g * weight
+        return total / len(floors)
 
     def predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: Graph) -> torch.Tensor:
         """Vertex positions (N, 3) float64 at t-2, t-1, t -> positions at t+1 (N, 3) float64."""
@@ -223,6 +240,8 @@ class LearnedSimulator(nn.Module):
         """
         if sleep is not None and not self.gravity_step:
             raise ValueError("sleeping needs the model's gravity and frame rate (spec)")
+        if self.body_frames and graph.symmetries is None:
+            graph = with_symmetries(graph)
         frames = list(history.unbind(1))
         out = []
         for _ in range(steps):
