@@ -49,8 +49,8 @@ def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
 def surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     """Edges from the surface of one object to the vertices of another within `radius` of it
     (or inside it); `vectors` (E, 3) = x_r - closest point, `signed` (E, 1) signed distance."""
-    empty = EdgeSet(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64),
-                    torch.zeros(0, 3, dtype=x.dtype), torch.zeros(0, 1, dtype=x.dtype))
+    empty = EdgeSet(torch.zeros(0, dtype=torch.int64, device=x.device), torch.zeros(0, dtype=torch.int64, device=x.device),
+                    torch.zeros(0, 3, dtype=x.dtype, device=x.device), torch.zeros(0, 1, dtype=x.dtype, device=x.device))
     if graph.faces is None:
         raise ValueError("surface collision edges need the graph's faces")
     near = _near_pairs(x, graph, radius)
@@ -77,7 +77,7 @@ def surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     # the nearest face of each query vertex: sort by distance, then stably by query
     order = torch.argsort(dist)
     order = order[torch.argsort(query[order], stable=True)]
-    first = torch.ones(len(order), dtype=torch.bool)
+    first = torch.ones(len(order), dtype=torch.bool, device=x.device)
     first[1:] = query[order][1:] != query[order][:-1]
     best = order[first]
     normal = torch.linalg.cross(v1[best] - v0[best], v2[best] - v0[best])

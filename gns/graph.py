@@ -107,9 +107,9 @@ def mesh_symmetries(vertices: np.ndarray, tol: float = 1e-6) -> np.ndarray:
 
 def _ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """For counts (B,): the owner (sum counts,) of each element and its index within its owner."""
-    owner = torch.repeat_interleave(torch.arange(len(counts)), counts)
+    owner = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
     starts = torch.cumsum(counts, 0) - counts
-    return owner, torch.arange(int(counts.sum())) - starts[owner]
+    return owner, torch.arange(int(counts.sum()), device=counts.device) - starts[owner]
 
 
 class MeshLibrary:
