@@ -151,7 +151,7 @@ class MeshLibrary:
         missing = [n for n in names if n not in self.index]
         if missing:
             raise ValueError(f"shape {missing[0]!r} has no mesh; meshes: {', '.join(self.names)}")
-        return torch.tensor([self.index[n] for n in names], dtype=torch.int64)
+        return torch.tensor([self.index[n] for n in names], dtype=torch.int64, device=self._vertices.device)
 
     def pack(self, shape_ids: torch.Tensor, scale: torch.Tensor, friction: torch.Tensor,
              restitution: torch.Tensor, graph_scene: torch.Tensor | None = None) -> Graph:
