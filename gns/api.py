@@ -22,6 +22,7 @@ into independent scenes, which are rolled out batched in one network call per st
 """
 from __future__ import annotations
 
+import numbers
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -207,7 +208,7 @@ class Model:
             hq = self._quat_in(_as_tensor(history[1], "history quaternions", (HISTORY - 1, b, 4), dev))
             past_pos, past_rot = torch.cat([hp, pos[None]]), torch.cat([quat_to_matrix(hq), rot[None]])
         if warn:
-            self._warn_outside(shapes, past_pos, past_rot, scale, mat)
+            self._warn_outside(shapes, past_pos, past_rot, scale, mat, group)
         cpu = lambda t: t.detach().cpu()  # noqa: E731  packing indexes the library on the CPU
         ones = torch.ones(b, dtype=torch.float64, device="cpu")
         graph = self._library.pack(self._library.shape_ids(shapes), ones, cpu(mat[0]), cpu(mat[1]), cpu(group)).to(dev)
@@ -229,7 +230,7 @@ class Model:
         r = _as_tensor(self.ranges["restitution"][0] if restitution is None else restitution, "restitution", (b,), self.device)
         return f, r
 
-    def _warn_outside(self, shapes, past_pos, past_rot, scale, mat) -> None:
+    def _warn_outside(self, shapes, past_pos, past_rot, scale, mat, group) -> None:
         p = past_pos.detach().cpu().numpy()
         speed = np.linalg.norm(p[-1] - p[-2], axis=-1) * self.frame_rate
         rel = (past_rot[-1] @ past_rot[-2].transpose(-1, -2)).detach().cpu().numpy()
@@ -244,10 +245,9 @@ class Model:
                                   restitution=span(mat[1].detach().cpu().numpy()))
         for problem in outside_training(self.spec, data):
             warnings.warn(f"outside training: {problem}", stacklevel=3)
-        groups = self.simulator.layout.collisions
-        if not groups and len(shapes) > 1:
+        if not self.collisions and len(torch.unique(group)) < len(shapes):
             warnings.warn("the model was trained on single-object scenes and has no collision edges: "
-                          "objects will pass through each other", stacklevel=3)
+                          "objects of one scene will pass through each other", stacklevel=3)
 
     def step(self, state: State, shape_matching: bool = True) -> State:
         """The state one model step (dt) later. Keeps the autograd graph when grad is enabled
@@ -268,7 +268,7 @@ class Model:
                 shape_matching: bool = True, differentiable: bool = False) -> Trajectory:
         """Roll B objects out for `steps` model steps (arguments as `state`). differentiable=True
         keeps the autograd graph from the inputs (tensors with requires_grad) to every output."""
-        if not isinstance(steps, int) or steps < 0:
+        if not isinstance(steps, numbers.Integral) or steps < 0:
             raise DataError(f"steps must be a whole number >= 0, got {steps!r}")
         with torch.set_grad_enabled(differentiable):
             state = self.state(shapes, positions, quaternions, velocities, angular_velocities, scales=scales,

@@ -221,6 +221,17 @@ def test_inputs_outside_training_warn():
                       velocities=[[5.0, 0, 0]], steps=1)
 
 
+def test_objects_of_one_scene_warn_with_a_model_without_collision_edges():
+    model = gns.load("gns_real_cubes_n256")
+    two = dict(shapes=["cube", "cube"], scales=2.0, positions=[[0, 0, 3], [5, 0, 3]], quaternions=[[1, 0, 0, 0]] * 2,
+               steps=1)
+    with pytest.warns(UserWarning, match="no collision edges"):
+        model.rollout(**two)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model.rollout(**two, scene=[0, 1])       # two scenes of one object: nothing to warn about
+
+
 def test_hot_path_creates_no_tensor_off_the_inputs_device(run):
     """Every tensor of a rollout (API, features, collision edges, shape matching) follows its
     inputs' device: with the default device set to `meta`, a tensor created without device=
