@@ -48,8 +48,13 @@ def start(world: World, device: torch.device) -> None:
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
 
 
-def stop(world: World) -> None:
+def stop(world: World, together: bool = True) -> None:
+    """Leave the process group; `together` (after a finished training) waits for every process
+    first, since rank 0 hosts the group's store. A process leaving on an error does not wait
+    for the others, which may never get there: torchrun stops them when it exits."""
     if world.size > 1 and dist.is_initialized():
+        if together:
+            dist.barrier()
         dist.destroy_process_group()
 
 

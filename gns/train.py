@@ -464,11 +464,17 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     if world.size > 1:
         from torch.nn.parallel import DistributedDataParallel
         sim.distribute(DistributedDataParallel(sim.network, device_ids=[device.index] if device.type == "cuda" else None))
+    finished = False
     try:
-        return _train_loop(run, cfg, sim, optimizer, tracks, valid, spec, step, seed, rng, device, world,
+        step = _train_loop(run, cfg, sim, optimizer, tracks, valid, spec, step, seed, rng, device, world,
                            stale, ckpt is not None and resumed_from, log)
+        finished = True
+        return step
     finally:
-        parallel.stop(world)
+        # the DDP reducer must go before its process group: freed after it (when train returned),
+        # its destructor hung 3 runs in ~45 (none in 80 since)
+        sim.distribute(None)
+        parallel.stop(world, together=finished)
 
 
 def _quiet(line: str) -> None:
