@@ -166,7 +166,8 @@ class Model:
         return q[..., [1, 2, 3, 0]] if self.quaternion_order == "xyzw" else q
 
     def state(self, shapes: list[str], positions, quaternions, velocities=None, angular_velocities=None, *,
-              scales=1.0, friction=None, restitution=None, scene=None, history=None, warn: bool = True) -> State:
+              scales=1.0, friction=None, restitution=None, scene=None, history=None, warn: bool = True,
+              _caller_depth: int = 0) -> State:
         """The start of a rollout: B objects, one row each.
 
         shapes: B mesh names (model.meshes); positions (B, 3); quaternions (B, 4); velocities and
@@ -208,7 +209,7 @@ class Model:
             hq = self._quat_in(_as_tensor(history[1], "history quaternions", (HISTORY - 1, b, 4), dev))
             past_pos, past_rot = torch.cat([hp, pos[None]]), torch.cat([quat_to_matrix(hq), rot[None]])
         if warn:
-            self._warn_outside(shapes, past_pos, past_rot, scale, mat, group)
+            self._warn_outside(shapes, past_pos, past_rot, scale, mat, group, 3 + _caller_depth)
         cpu = lambda t: t.detach().cpu()  # noqa: E731  packing indexes the library on the CPU
         ones = torch.ones(b, dtype=torch.float64, device="cpu")
         graph = self._library.pack(self._library.shape_ids(shapes), ones, cpu(mat[0]), cpu(mat[1]), cpu(group)).to(dev)
@@ -230,7 +231,8 @@ class Model:
         r = _as_tensor(self.ranges["restitution"][0] if restitution is None else restitution, "restitution", (b,), self.device)
         return f, r
 
-    def _warn_outside(self, shapes, past_pos, past_rot, scale, mat, group) -> None:
+    def _warn_outside(self, shapes, past_pos, past_rot, scale, mat, group, stacklevel: int) -> None:
+        """One UserWarning per input outside the training ranges, attributed to the user's line."""
         p = past_pos.detach().cpu().numpy()
         speed = np.linalg.norm(p[-1] - p[-2], axis=-1) * self.frame_rate
         rel = (past_rot[-1] @ past_rot[-2].transpose(-1, -2)).detach().cpu().numpy()
@@ -244,10 +246,10 @@ class Model:
             data["ranges"].update(friction=span(mat[0].detach().cpu().numpy()),
                                   restitution=span(mat[1].detach().cpu().numpy()))
         for problem in outside_training(self.spec, data):
-            warnings.warn(f"outside training: {problem}", stacklevel=3)
+            warnings.warn(f"outside training: {problem}", stacklevel=stacklevel)
         if not self.collisions and len(torch.unique(group)) < len(shapes):
             warnings.warn("the model was trained on single-object scenes and has no collision edges: "
-                          "objects of one scene will pass through each other", stacklevel=3)
+                          "objects of one scene will pass through each other", stacklevel=stacklevel)
 
     def step(self, state: State, shape_matching: bool = True) -> State:
         """The state one model step (dt) later. Keeps the autograd graph when grad is enabled
@@ -272,7 +274,8 @@ class Model:
             raise DataError(f"steps must be a whole number >= 0, got {steps!r}")
         with torch.set_grad_enabled(differentiable):
             state = self.state(shapes, positions, quaternions, velocities, angular_velocities, scales=scales,
-                               friction=friction, restitution=restitution, scene=scene, history=history)
+                               friction=friction, restitution=restitution, scene=scene, history=history,
+                               _caller_depth=1)
             states = [state]
             for _ in range(steps):
                 states.append(self.step(states[-1], shape_matching))

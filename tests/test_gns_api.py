@@ -212,9 +212,10 @@ def test_scipy_quaternion_order_in_and_out(run):
 
 def test_inputs_outside_training_warn():
     model = gns.load("gns_real_cubes_n256")
-    with pytest.warns(UserWarning, match="outside training: speed"):
+    with pytest.warns(UserWarning, match="outside training: speed") as caught:
         model.rollout(shapes=["cube"], scales=2.0, positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]],
                       velocities=[[500.0, 0, 0]], steps=1)
+    assert caught[0].filename == __file__                # the warning names the caller's line
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         model.rollout(shapes=["cube"], scales=2.0, positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]],
