@@ -129,6 +129,20 @@ def test_api_rollout_equals_the_cli_rollout_of_the_same_scene(run, tmp_path):
     assert api.vertices.shape == (steps + 1, start.graph.num_nodes, 3)
 
 
+def test_true_past_poses_can_replace_the_velocities(run):
+    model = gns.load(run / "run")
+    s = three_cubes()
+    from_velocity = model.rollout(**s, steps=3)
+    t = lambda a: torch.tensor(a, dtype=torch.float64)  # noqa: E731
+    pos, rot = history_poses(t(s["positions"]), quat_to_matrix(t(s["quaternions"])), t(s["velocities"]),
+                             t(s["angular_velocities"]), model.dt, torch.as_tensor(model.gravity))
+    past = {k: v for k, v in s.items() if k not in ("velocities", "angular_velocities")}
+    from_history = model.rollout(**past, history=(pos[:2], matrix_to_quat(rot[:2])), steps=3)
+    torch.testing.assert_close(from_history.positions, from_velocity.positions, rtol=0, atol=1e-12)
+    with pytest.raises(DataError, match="either velocities or history"):
+        model.rollout(**s, history=(pos[:2], matrix_to_quat(rot[:2])), steps=1)
+
+
 def test_objects_given_together_are_one_scene_and_collide(run):
     model = gns.load(run / "run")
     s = three_cubes()
