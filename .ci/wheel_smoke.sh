@@ -17,6 +17,12 @@ set -x
 "$work/venv/bin/datagen" inspect data
 "$work/venv/bin/gns" train --data data --out run --config gns_tiny --set train.steps=20 valid.every=0
 "$work/venv/bin/gns" eval --run run --data data --json eval.json
+# the Python API on the trained run (its checkpoint holds the meshes) and on a shipped model
+"$work/venv/bin/python" -c "import gns; m = gns.load('run'); \
+out = m.rollout(shapes=m.shapes[:1], positions=[[0, 0, 2]], quaternions=[[1, 0, 0, 0]], velocities=[[5, 0, 0]], \
+friction=0.5, restitution=0.5, steps=3); assert out.positions.shape == (4, 1, 3)"
+"$work/venv/bin/python" -c "import gns; out = gns.load('gns_real_cubes_n16').rollout(shapes=['cube'], scales=2.0, \
+positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]], steps=3); assert out.positions.shape == (4, 1, 3)"
 "$work/venv/bin/python" -m pipelines.movi_a --preset tiny --out movi_tiny --workers 1
 test -s eval.json && test -s movi_tiny/report.md
 # provenance from a wheel: versions and a fingerprint, no commit (no checkout around the code)

@@ -7,6 +7,7 @@ timed in the same run, so the fraction says how well the small MLPs use the hard
 
     python benchmarks/bench_train.py                      # synthetic MOVi-like tosses
     python benchmarks/bench_train.py --data data/movi_a   # a real dataset's train split
+    python benchmarks/bench_train.py --autocast --rounds 3   # float32 against bf16 autocast, alternated
 """
 from __future__ import annotations
 
@@ -60,7 +61,8 @@ def matmul_gflops(size: int = 1024, seconds: float = 1.0) -> float:
     return 2 * size ** 3 * n / (time.perf_counter() - start) / 1e9
 
 
-def bench_preset(name: str, tracks: ObjectTracks, spec: dict, steps: int, warmup: int, threads: int | None) -> dict:
+def bench_preset(name: str, tracks: ObjectTracks, spec: dict, steps: int, warmup: int, threads: int | None,
+                 autocast: str = "none") -> dict:
     cfg = build_config(path=CONFIGS / f"gns_{name}.toml",
                        overrides=[] if threads is None else [f"train.threads={threads}"])
     threads = cfg.train.threads or os.cpu_count()
@@ -68,6 +70,7 @@ def bench_preset(name: str, tracks: ObjectTracks, spec: dict, steps: int, warmup
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     sim = build_simulator(cfg, spec).train()
+    sim.autocast = torch.bfloat16 if autocast == "bf16" else None
     optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
 
     def step(i):
@@ -85,7 +88,7 @@ def bench_preset(name: str, tracks: ObjectTracks, spec: dict, steps: int, warmup
         flops += 3 * sim.network.forward_flops(n, e)
     elapsed = time.perf_counter() - start
     m = cfg.model
-    return {"preset": name, "threads": threads, "LxK": f"{m.message_passing_steps}x{m.processor_repeats}", "latent": m.latent_size,
+    return {"preset": name + ("+bf16" if autocast == "bf16" else ""), "threads": threads, "LxK": f"{m.message_passing_steps}x{m.processor_repeats}", "latent": m.latent_size,
             "batch": cfg.train.batch_size, "nodes": nodes / steps, "edges": edges / steps,
             "steps_per_sec": steps / elapsed, "graphs_per_sec": steps * cfg.train.batch_size / elapsed,
             "gflop_per_step": flops / steps / 1e9, "gflops": flops / elapsed / 1e9}
@@ -99,6 +102,10 @@ def main(argv=None) -> None:
     p.add_argument("--steps", type=int, default=20, help="timed steps per preset")
     p.add_argument("--warmup", type=int, default=3, help="untimed steps per preset")
     p.add_argument("--threads", type=int, help="torch threads for every preset (default: the preset's)")
+    p.add_argument("--autocast", action="store_true",
+                   help="time every preset in float32 and under bf16 autocast (train.autocast=bf16), alternated")
+    p.add_argument("--rounds", type=int, default=1,
+                   help="with --autocast: alternate the two this many times and keep each one's best")
     args = p.parse_args(argv)
 
     if args.data:
@@ -110,21 +117,35 @@ def main(argv=None) -> None:
         tracks, spec = synthetic_tracks()
         source = "synthetic tosses of " + ", ".join(SHAPES)
     print(f"data: {source}; load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
-    header = (f"{'preset':<7}{'threads':>8}{'LxK':>6}{'latent':>7}{'batch':>6}{'nodes':>7}{'edges':>7}{'steps/s':>9}"
+    header = (f"{'preset':<11}{'threads':>8}{'LxK':>6}{'latent':>7}{'batch':>6}{'nodes':>7}{'edges':>7}{'steps/s':>9}"
               f"{'graphs/s':>10}{'GFLOP/step':>11}{'GFLOP/s':>9}{'matmul':>8}{'of peak':>9}")
     print(header)
     print("-" * len(header))
     peaks = {}
+    kinds = ("none", "bf16") if args.autocast else ("none",)
+    rows = []
     for name in args.presets.split(","):
-        r = bench_preset(name.strip(), tracks, spec, args.steps, args.warmup, args.threads)
+        # alternated, so that a change of the machine's load hits both alike
+        best = {}
+        for _ in range(args.rounds if args.autocast else 1):
+            for kind in kinds:
+                r = bench_preset(name.strip(), tracks, spec, args.steps, args.warmup, args.threads, kind)
+                if kind not in best or r["steps_per_sec"] > best[kind]["steps_per_sec"]:
+                    best[kind] = r
+        rows += [best[k] for k in kinds]
+    for r in rows:
         if r["threads"] not in peaks:
             peaks[r["threads"]] = matmul_gflops()  # torch's thread count is still the preset's
         peak = peaks[r["threads"]]
-        print(f"{r['preset']:<7}{r['threads']:>8}{r['LxK']:>6}{r['latent']:>7}{r['batch']:>6}{r['nodes']:>7.0f}"
+        print(f"{r['preset']:<11}{r['threads']:>8}{r['LxK']:>6}{r['latent']:>7}{r['batch']:>6}{r['nodes']:>7.0f}"
               f"{r['edges']:>7.0f}{r['steps_per_sec']:>9.2f}{r['graphs_per_sec']:>10.1f}{r['gflop_per_step']:>11.3f}"
               f"{r['gflops']:>9.2f}{peak:>8.1f}{r['gflops'] / peak:>9.1%}")
     print("\nGFLOP counts Linear layers only, training step = 3x forward; matmul = measured float32 "
           "1024^3 GFLOP/s with the same threads.")
+    if args.autocast:
+        for name in args.presets.split(","):
+            base, bf16 = (next(r for r in rows if r["preset"] == name.strip() + suffix) for suffix in ("", "+bf16"))
+            print(f"{name.strip()}: bf16 autocast {bf16['steps_per_sec'] / base['steps_per_sec']:.2f}x the float32 steps/s")
 
 
 if __name__ == "__main__":

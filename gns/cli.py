@@ -17,6 +17,7 @@ EXIT_BAD_INPUT = 2
 
 
 def cmd_train(args: argparse.Namespace) -> None:
+    from gns.parallel import world_from_env
     from gns.train import resolve_config, train
 
     overrides = list(args.set or [])
@@ -24,9 +25,14 @@ def cmd_train(args: argparse.Namespace) -> None:
         overrides.append(f"train.steps={args.steps}")
     if args.tensorboard:
         overrides.append("train.tensorboard=true")
+    if args.device is not None:
+        overrides.append(f"train.device={args.device}")
+    if args.autocast is not None:
+        overrides.append(f"train.autocast={args.autocast}")
     cfg = resolve_config(args.out, args.resume, args.config, overrides)
     step = train(args.data, args.out, cfg, resume=args.resume, overwrite=args.overwrite)
-    print(f"done at step {step}; checkpoints and metrics.jsonl in {args.out}")
+    if world_from_env().main:
+        print(f"done at step {step}; checkpoints and metrics.jsonl in {args.out}")
 
 
 def add_train_parser(sub) -> None:
@@ -42,6 +48,10 @@ def add_train_parser(sub) -> None:
     p.add_argument("--tensorboard", action="store_true",
                    help="also log to TensorBoard event files in RUN/tb (same as --set train.tensorboard=true; "
                         "needs the tensorboard extra)")
+    p.add_argument("--device", metavar="DEV", help="cpu, cuda or cuda:N (same as --set train.device=DEV); "
+                   "under torchrun each process takes cuda:LOCAL_RANK")
+    p.add_argument("--autocast", choices=["none", "bf16"],
+                   help="run the network (only) under bfloat16 autocast (same as --set train.autocast=...)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--resume", action="store_true", help="continue from RUN/latest.pt")
     mode.add_argument("--overwrite", action="store_true", help="delete RUN's checkpoints and start again")
@@ -54,12 +64,13 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     from gns.evaluate import check_ranges, checkpoint_of, load_split, provenance_of
     from gns.rollout import (DivergedError, check_output, diverged_line, rollout_scenes, scene_label,
                              write_rollouts)
-    from gns.train import load_model, read_checkpoint
+    from gns.train import load_model, parse_device, read_checkpoint
 
+    device = parse_device(args.device, "--device")
     check_output(args.out, args.overwrite, args.data)
     ckpt = checkpoint_of(args.run_dir)
     saved = read_checkpoint(ckpt)
-    sim, _ = load_model(saved)
+    sim, _ = load_model(saved, device)
     sim.symmetrize = args.symmetrize
     sim.body_frames = args.body_frames
     ds, scenes = load_split(args.data, args.split, args.limit, saved["spec"]["frame_rate"])
@@ -93,7 +104,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
     results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit,
                                shape_matching=not args.no_shape_matching, plots_dir=args.plots,
                                batch_tracks=args.batch, sleep=_sleep(args), symmetrize=args.symmetrize,
-                               at_data_rate=args.at_data_rate, body_frames=args.body_frames)
+                               at_data_rate=args.at_data_rate, body_frames=args.body_frames, device=args.device)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched")
@@ -125,6 +136,7 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--split", default="test", help="split to roll out (default test)")
     p.add_argument("--limit", type=int, metavar="N", help="only the first N scenes")
     p.add_argument("--batch", type=int, default=256, metavar="B", help="object tracks rolled out together (default 256)")
+    p.add_argument("--device", default="cpu", metavar="DEV", help="cpu, cuda or cuda:N (default cpu)")
     p.add_argument("--no-shape-matching", action="store_true",
                    help="feed raw predictions back (the paper's -sm ablation); default projects onto the rigid shape")
     p.add_argument("--sleep", action="store_true",

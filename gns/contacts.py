@@ -46,16 +46,16 @@ def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
 
 
 @torch.no_grad()
-def surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
-    """Edges from the surface of one object to the vertices of another within `radius` of it
-    (or inside it); `vectors` (E, 3) = x_r - closest point, `signed` (E, 1) signed distance."""
-    empty = EdgeSet(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64),
-                    torch.zeros(0, 3, dtype=x.dtype), torch.zeros(0, 1, dtype=x.dtype))
+def _surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> tuple[EdgeSet, torch.Tensor, torch.Tensor]:
+    """surface_edges, with the triangle (E, 3) and the sign (E, 1) of each edge."""
+    none = torch.zeros(0, 3, dtype=torch.int64, device=x.device)
+    empty = EdgeSet(torch.zeros(0, dtype=torch.int64, device=x.device), torch.zeros(0, dtype=torch.int64, device=x.device),
+                    torch.zeros(0, 3, dtype=x.dtype, device=x.device), torch.zeros(0, 1, dtype=x.dtype, device=x.device))
     if graph.faces is None:
         raise ValueError("surface collision edges need the graph's faces")
     near = _near_pairs(x, graph, radius)
     if near is None:
-        return empty
+        return empty, none, empty.signed
     a, b, low, high = near
     face_graph = graph.node_graph[graph.faces[:, 0]]
     face_counts = torch.bincount(face_graph, minlength=graph.num_graphs)
@@ -65,7 +65,7 @@ def surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     other = torch.cat([b, a])
     pair, node = _vertices_near(x, graph, own, other, low, high, radius)
     if len(node) == 0:
-        return empty
+        return empty, none, empty.signed
     # every query vertex against every face of the other object
     query, k = _ragged_arange(face_counts[other[pair]])
     face = face_start[other[pair[query]]] + k
@@ -77,7 +77,7 @@ def surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     # the nearest face of each query vertex: sort by distance, then stably by query
     order = torch.argsort(dist)
     order = order[torch.argsort(query[order], stable=True)]
-    first = torch.ones(len(order), dtype=torch.bool)
+    first = torch.ones(len(order), dtype=torch.bool, device=x.device)
     first[1:] = query[order][1:] != query[order][:-1]
     best = order[first]
     normal = torch.linalg.cross(v1[best] - v0[best], v2[best] - v0[best])
@@ -90,4 +90,19 @@ def surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     tri = tri[best]
     corner = (x[tri] - closest[best][:, None]).norm(dim=-1).argmin(dim=1)
     sender = tri.gather(1, corner[:, None])[:, 0]
-    return EdgeSet(sender, node[query[best]], d, signed)
+    return EdgeSet(sender, node[query[best]], d, signed), tri, torch.sign(signed)
+
+
+def surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
+    """Edges from the surface of one object to the vertices of another within `radius` of it
+    (or inside it); `vectors` (E, 3) = x_r - closest point, `signed` (E, 1) signed distance.
+
+    Which edges is decided without gradient; their geometry is computed again from x for the
+    chosen triangles (the same numbers), so that a differentiable rollout's gradient flows
+    through the contact features too."""
+    edges, tri, sign = _surface_edges(x, graph, radius)
+    if not (torch.is_grad_enabled() and x.requires_grad) or len(edges.senders) == 0:
+        return edges
+    q = x[edges.receivers]
+    d = q - closest_point_on_triangle(q, x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
+    return EdgeSet(edges.senders, edges.receivers, d, sign * d.norm(dim=-1, keepdim=True))

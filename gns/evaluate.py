@@ -15,7 +15,7 @@ from gns.outputs import check_writable
 from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene
 from gns.data import feature_spec
 from gns.ranges import outside_training
-from gns.train import LATEST, load_model, read_checkpoint
+from gns.train import LATEST, load_model, parse_device, read_checkpoint
 
 
 SHIPPED_MODELS = Path(__file__).resolve().parent / "models"
@@ -52,7 +52,8 @@ def write_json(path: str | Path, obj) -> None:
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
                  shape_matching: bool = True, plots_dir: str | Path | None = None, progress: bool = True,
                  batch_tracks: int = 256, sleep=None, symmetrize: bool = False,
-                 at_data_rate: bool = False, body_frames: bool = False) -> tuple[dict, list, list, Dataset]:
+                 at_data_rate: bool = False, body_frames: bool = False,
+                 device: str = "cpu") -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it.
 
     A model trained at every k-th frame rolls out at its own rate from frames 0, k, 2k; it is
@@ -62,9 +63,10 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     Returns (results, predicted scenes, true scenes, dataset). Results hold the metrics of
     gns.metrics.evaluate_scenes plus where they came from and what the rollouts cost.
     """
+    device = parse_device(device, "--device")
     ckpt = checkpoint_of(run)
     saved = read_checkpoint(ckpt)
-    sim, _ = load_model(saved)
+    sim, _ = load_model(saved, device)
     sim.symmetrize = symmetrize
     sim.body_frames = body_frames
     if plots_dir is not None:
@@ -89,8 +91,8 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
                    outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
                    diverged_scenes=diverged, num_diverged=len(diverged), symmetrize=symmetrize,
-                   body_frames=body_frames,
-                   at_data_rate=at_data_rate, model_stride=model_stride, **provenance_of(saved, ds))
+                   body_frames=body_frames, at_data_rate=at_data_rate, model_stride=model_stride,
+                   device=str(device), **provenance_of(saved, ds))
     return results, pred, scenes, ds
 
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from gns import parallel
 from gns.config import ConfigError
 from gns.graph import Graph
 
@@ -49,12 +50,18 @@ class Normalizer(nn.Module):
 
     def accumulate(self, x: torch.Tensor) -> None:
         """x (M, size). Adds its rows to the statistics unless the budget of calls is spent."""
-        if int(self.accumulations) >= self.max_accumulations or x.shape[0] == 0:
+        if int(self.accumulations) >= self.max_accumulations:
             return
         x = x.detach().to(torch.float64)
-        self.count += x.shape[0]
-        self.sum += x.sum(0)
-        self.sum_squared += (x * x).sum(0)
+        size = self.sum.shape[0]
+        # one vector, summed over the processes of a multi-process run, so that every process
+        # holds the statistics of the whole global batch (identical to one process training it)
+        stats = parallel.sum_over_processes(torch.cat([x.sum(0), (x * x).sum(0), x.new_full((1,), x.shape[0])]))
+        if stats[-1] == 0:
+            return
+        self.count += stats[-1]
+        self.sum += stats[:size]
+        self.sum_squared += stats[size:2 * size]
         self.accumulations += 1
 
     @property

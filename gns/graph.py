@@ -124,9 +124,9 @@ def with_symmetries(graph: "Graph") -> "Graph":
 
 def _ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """For counts (B,): the owner (sum counts,) of each element and its index within its owner."""
-    owner = torch.repeat_interleave(torch.arange(len(counts)), counts)
+    owner = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
     starts = torch.cumsum(counts, 0) - counts
-    return owner, torch.arange(int(counts.sum())) - starts[owner]
+    return owner, torch.arange(int(counts.sum()), device=counts.device) - starts[owner]
 
 
 class MeshLibrary:
@@ -168,7 +168,7 @@ class MeshLibrary:
         missing = [n for n in names if n not in self.index]
         if missing:
             raise ValueError(f"shape {missing[0]!r} has no mesh; meshes: {', '.join(self.names)}")
-        return torch.tensor([self.index[n] for n in names], dtype=torch.int64)
+        return torch.tensor([self.index[n] for n in names], dtype=torch.int64, device=self._vertices.device)
 
     def pack(self, shape_ids: torch.Tensor, scale: torch.Tensor, friction: torch.Tensor,
              restitution: torch.Tensor, graph_scene: torch.Tensor | None = None) -> Graph:

@@ -61,7 +61,10 @@ def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Ten
     truth, the rest predicted.
     """
     graph, verts, _ = tracks.track_vertices(which, HISTORY)
-    pred = sim.rollout(verts, graph, length - HISTORY, shape_matching=shape_matching, sleep=sleep)  # (S, N, 3)
+    device = next(sim.parameters()).device
+    # the whole rollout runs on the model's device; only the poses come back
+    pred = sim.rollout(verts.to(device), graph.to(device), length - HISTORY, shape_matching=shape_matching,
+                       sleep=sleep).cpu()  # (S, N, 3)
     steps = pred.shape[0]
     rot = torch.empty(steps, graph.num_graphs, 3, 3, dtype=torch.float64)
     centre = torch.empty(steps, graph.num_graphs, 3, dtype=torch.float64)

@@ -46,6 +46,36 @@ def _rotation_from_covariance(h: torch.Tensor) -> torch.Tensor:
     return torch.where(finite[:, None, None], rot, torch.nan)
 
 
+POLAR_ITERATIONS = 12
+
+
+def _rotation_differentiable(h: torch.Tensor) -> torch.Tensor:
+    """`_rotation_from_covariance` with a finite gradient: the polar factor by scaled Newton
+    iteration X <- (g X + X^-T / g) / 2 (Higham), which converges quadratically and to double
+    precision within POLAR_ITERATIONS for any well-conditioned h. The SVD's gradient divides by
+    differences of singular values, and a cube's isotropic rest shape makes them all equal, so
+    it is infinite exactly where rigid objects need it. A covariance whose polar factor is a
+    reflection (det h < 0, a prediction turned inside out) takes the SVD's rotation, without
+    gradient."""
+    finite = torch.isfinite(h).all(dim=(1, 2))
+    eye = torch.eye(3, dtype=h.dtype, device=h.device)
+    x = torch.where(finite[:, None, None], h, eye)
+    x = x / x.norm(dim=(1, 2), keepdim=True)
+    for _ in range(POLAR_ITERATIONS):
+        inv_t = torch.linalg.inv(x).transpose(1, 2)
+        g = (inv_t.norm(dim=(1, 2), keepdim=True) / x.norm(dim=(1, 2), keepdim=True)).sqrt()
+        x = 0.5 * (g * x + inv_t / g)
+    proper = (torch.linalg.det(x) > 0)[:, None, None]
+    rot = torch.where(proper, x, _rotation_from_covariance(h.detach()))
+    return torch.where(finite[:, None, None], rot, torch.nan)
+
+
+def _rotation(h: torch.Tensor) -> torch.Tensor:
+    if torch.is_grad_enabled() and h.requires_grad:
+        return _rotation_differentiable(h)
+    return _rotation_from_covariance(h)
+
+
 def shape_match(x: torch.Tensor, rest: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Best rigid transform of the rest shape onto the points, batched.
 
@@ -55,7 +85,7 @@ def shape_match(x: torch.Tensor, rest: torch.Tensor) -> tuple[torch.Tensor, torc
     """
     cx, cr = x.mean(1, keepdim=True), rest.mean(1, keepdim=True)
     h = (x - cx).transpose(1, 2) @ (rest - cr)
-    rot = _rotation_from_covariance(h)
+    rot = _rotation(h)
     t = cx[:, 0] - (rot @ cr[:, 0, :, None])[..., 0]
     return rot, t, rest @ rot.transpose(1, 2) + t[:, None]
 
@@ -73,7 +103,7 @@ def shape_match_packed(x: torch.Tensor, rest: torch.Tensor, node_graph: torch.Te
     p, q = x - cx[node_graph], rest - cr[node_graph]
     h = torch.zeros(num_graphs, 3, 3, dtype=x.dtype, device=x.device).index_add_(
         0, node_graph, p[:, :, None] * q[:, None, :])
-    rot = _rotation_from_covariance(h)
+    rot = _rotation(h)
     t = cx - (rot @ cr[:, :, None])[..., 0]
     x_proj = (rot[node_graph] @ rest[:, :, None])[..., 0] + t[node_graph]
     return rot, t, x_proj
@@ -101,7 +131,7 @@ class Sleep:
                contacts: EdgeSet | None) -> torch.Tensor:
         """Node mask (N,) of the objects that sleep this step; `step` = |g| dt^2 (units per frame)."""
         if floor_z is None:
-            return torch.zeros(graph.num_nodes, dtype=torch.bool)
+            return torch.zeros(graph.num_nodes, dtype=torch.bool, device=graph.rest.device)
         x = frames[-1]
         moved = torch.maximum((x - frames[-2]).norm(dim=-1), (frames[-2] - frames[-3]).norm(dim=-1))
         size = 2 * per_graph(graph.rest.norm(dim=-1), graph, "amax")  # diameter of the sphere about the centre
@@ -109,7 +139,7 @@ class Sleep:
         slow = (per_graph(moved, graph, "amax") < self.fraction * step) & on_floor
         if contacts is not None and len(contacts.senders):
             awake_sender = ~slow[graph.node_graph[contacts.senders]]
-            woken = torch.zeros(graph.num_graphs, dtype=torch.bool)
+            woken = torch.zeros(graph.num_graphs, dtype=torch.bool, device=slow.device)
             woken[graph.node_graph[contacts.receivers[awake_sender]]] = True
             slow = slow & ~woken
         return slow[graph.node_graph]
@@ -124,6 +154,7 @@ class LearnedSimulator(nn.Module):
 
     symmetrize: bool = False  # average predictions over FLOOR_SYMMETRIES (rollouts; not saved)
     body_frames: bool = False  # and over each object's equivalent body frames (graph.symmetries)
+    autocast: torch.dtype | None = None  # the network (only) runs in this dtype under autocast (train.autocast)
 
     def __init__(self, model_cfg, features_cfg, spec: dict):
         super().__init__()
@@ -147,6 +178,22 @@ class LearnedSimulator(nn.Module):
             hidden=model_cfg.hidden_size, hidden_layers=model_cfg.hidden_layers,
             message_passing_steps=model_cfg.message_passing_steps,
             processor_repeats=model_cfg.processor_repeats, collision_edge_in=self.layout.collision_size)
+
+    def distribute(self, wrapper: nn.Module | None) -> None:
+        """Train the network through `wrapper` (a DistributedDataParallel of self.network, which
+        averages gradients over processes). Kept out of the module tree, so state_dict keys and
+        checkpoints stay those of one process; eval mode calls the network directly."""
+        self.__dict__["_parallel"] = wrapper
+
+    def run_network(self, *args: torch.Tensor) -> torch.Tensor:
+        wrapper = self.__dict__.get("_parallel")
+        network = wrapper if wrapper is not None and self.training else self.network
+        if self.autocast is None:
+            return network(*args)
+        # features, normalisers, the integrator and shape matching stay outside, in float32/float64
+        with torch.autocast(args[0].device.type, dtype=self.autocast):
+            out = network(*args)
+        return out.to(torch.float32)
 
     def collision_edges(self, x: torch.Tensor, graph: Graph) -> EdgeSet:
         """The graph's collision edges if given, else built from positions x (N, 3)."""
@@ -179,13 +226,13 @@ class LearnedSimulator(nn.Module):
         """
         nodes, edges = self._inputs(history, graph)
         if not self.layout.collisions:
-            return self.network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers)
+            return self.run_network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers)
         c = self.collision_edges(history[:, -1], graph)
         raw = raw_collision_features(history, c)
         c_features = torch.cat([self.collision_normalizers[n](raw[n], self.training)
                                 for n, _ in self.layout.collision_groups], -1)
-        return self.network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers,
-                            c_features, c.senders, c.receivers)
+        return self.run_network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers,
+                                c_features, c.senders, c.receivers)
 
     def predict_acceleration(self, history: torch.Tensor, graph: Graph) -> torch.Tensor:
         """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2.

@@ -11,7 +11,6 @@ scheduler state to save.
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
@@ -28,6 +27,7 @@ import torch
 from tqdm import tqdm
 
 from datagen.shards import Dataset, DataError
+from gns import parallel
 from gns.config import Config, ConfigError, architecture_differences, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
@@ -170,8 +170,8 @@ def build_simulator(cfg: Config, spec: dict) -> LearnedSimulator:
     return LearnedSimulator(cfg.model, cfg.features, spec)
 
 
-def load_model(checkpoint: str | Path | dict) -> tuple[LearnedSimulator, Config]:
-    """Rebuild a trained simulator (in eval mode, on the CPU) and its config from a checkpoint
+def load_model(checkpoint: str | Path | dict, device: str | torch.device = "cpu") -> tuple[LearnedSimulator, Config]:
+    """Rebuild a trained simulator (in eval mode, on `device`) and its config from a checkpoint
     file, or from one already read with read_checkpoint (its spec and step need no second read)."""
     ckpt = checkpoint if isinstance(checkpoint, dict) else read_checkpoint(checkpoint)
     cfg = build_config(base=ckpt["config"])
@@ -182,7 +182,7 @@ def load_model(checkpoint: str | Path | dict) -> tuple[LearnedSimulator, Config]
         where = "" if isinstance(checkpoint, dict) else f"{checkpoint}: "
         raise CheckpointError(f"{where}damaged checkpoint, its weights do not fit its model "
                               f"({str(e).splitlines()[1].strip() if len(str(e).splitlines()) > 1 else e})") from None
-    sim.eval()
+    sim.to(device).eval()
     return sim, cfg
 
 
@@ -196,7 +196,8 @@ def _merge_ranges(old: dict, new: dict) -> dict:
     """The spec of training on old data then new data: value ranges and shapes united."""
     ranges = {k: [min(old["ranges"][k][0], v[0]), max(old["ranges"][k][1], v[1])]
               for k, v in new["ranges"].items()}
-    return {**new, "ranges": ranges, "shapes": sorted(set(old["shapes"]) | set(new["shapes"]))}
+    return {**new, "ranges": ranges, "shapes": sorted(set(old["shapes"]) | set(new["shapes"])),
+            "meshes": {**old.get("meshes", {}), **new.get("meshes", {})}}
 
 
 def _init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: dict) -> dict:
@@ -229,23 +230,34 @@ def _incompatibility(ckpt: dict, cfg: Config, spec: dict) -> str | None:
 
 
 def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: Batch, lr: float,
-               grad_clip: float, loss_kind: str = "mse", huber_delta: float = 1.0) -> float:
+               grad_clip: float, loss_kind: str = "mse", huber_delta: float = 1.0,
+               fraction: float = 1.0, processes: int = 1) -> float:
     """One Adam step on the per-node MSE of a batch; returns the loss.
 
+    On several processes `batch` is this process's share of the global batch, holding
+    `fraction` of its nodes. Each process weights its mean by fraction x processes, so the
+    average of the gradients (DistributedDataParallel) is the gradient of the global batch's
+    per-node mean, as one process training on the whole batch; the returned loss is that mean.
     Raises FloatingPointError, before the weights change, if the loss or the gradient is not finite.
     """
     for group in optimizer.param_groups:
         group["lr"] = lr
     loss = unrolled_loss(sim, batch, loss_kind, huber_delta)
-    if not torch.isfinite(loss):
-        raise FloatingPointError(f"the loss is {loss.item()}")
+    if processes > 1:
+        # every process sees the same global loss, so all stop together on a NaN
+        total = parallel.sum_over_processes(loss.detach() * fraction)
+        loss = loss * (fraction * processes)
+    else:
+        total = loss
+    if not torch.isfinite(total):
+        raise FloatingPointError(f"the loss is {total.item()}")
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     norm = torch.nn.utils.clip_grad_norm_(sim.parameters(), grad_clip or math.inf)
     if not torch.isfinite(norm):
         raise FloatingPointError(f"the gradient norm is {norm.item()}")
     optimizer.step()
-    return loss.item()
+    return total.item()
 
 
 def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta: float = 1.0) -> torch.Tensor:
@@ -349,19 +361,30 @@ def _drop_metrics_after(path: Path, step: int, log: Callable[[str], None] = prin
     _atomic_write(path, lambda p: p.write_text("".join(line + "\n" for line in kept)))
 
 
-def _device(name: str) -> torch.device:
-    """train.device as a torch device, checked before any work: one line, not torch's assertion."""
+def parse_device(name: str, what: str = "train.device") -> torch.device:
+    """A device name as a torch device, checked before any work: one line, not torch's assertion."""
     try:
         device = torch.device(name)
     except RuntimeError:
-        raise ConfigError(f"train.device={name!r} is not a torch device; use 'cpu' or 'cuda'") from None
+        raise ConfigError(f"{what}={name!r} is not a torch device; use 'cpu' or 'cuda'") from None
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"train.device={name} but CUDA is not available in this torch build "
-                          f"(torch {torch.__version__}); use train.device=cpu")
+        raise ConfigError(f"{what}={name} but CUDA is not available in this torch build "
+                          f"(torch {torch.__version__}); use {what}=cpu")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise ConfigError(f"{what}={name} but this machine has {torch.cuda.device_count()} CUDA device(s)")
     if device.type == "mps" and not torch.backends.mps.is_available():
-        raise ConfigError(f"train.device={name} but MPS is not available here; use train.device=cpu")
+        raise ConfigError(f"{what}={name} but MPS is not available here; use {what}=cpu")
     if device.type not in ("cpu", "cuda", "mps"):
-        raise ConfigError(f"train.device={name}: only cpu, cuda and mps are supported")
+        raise ConfigError(f"{what}={name}: only cpu, cuda and mps are supported")
+    return device
+
+
+def _device(name: str, world: parallel.World = parallel.World()) -> torch.device:
+    device = parse_device(name)
+    if world.size > 1 and device.type == "cuda":
+        return torch.device("cuda", world.local_rank)  # torchrun: one GPU per process
+    if world.size > 1 and device.type == "mps":
+        raise ConfigError("training on several processes runs on cpu or cuda, not mps")
     return device
 
 
@@ -455,25 +478,42 @@ def _load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, O
     valid = None
     if cfg.valid.every > 0 and "valid" in dataset.splits:
         valid = ObjectTracks(dataset.load("valid"), library, "valid split")
-    return feature_spec(dataset, scenes), tracks, valid
+    spec = feature_spec(dataset, scenes)
+    # the meshes travel with the model: gns.load rolls out without the dataset
+    spec["meshes"] = {name: {"vertices": torch.as_tensor(np.asarray(v, np.float64)),
+                             "faces": torch.as_tensor(np.asarray(f, np.int64))}
+                      for name, (v, f) in dataset.meshes.items()}
+    return spec, tracks, valid
 
 
 def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool = False,
           overwrite: bool = False, log: Callable[[str], None] = print) -> int:
     """Train until cfg.train.steps; returns the final step.
 
+    Launched by torchrun with WORLD_SIZE > 1, each process trains on its share of every global
+    batch of cfg.train.batch_size windows (DistributedDataParallel; see gns.parallel): the
+    same updates as one process with that batch, in 1/WORLD_SIZE of the network time. Only
+    rank 0 writes the run folder and logs.
+
     Raises DataError, CheckpointError or TrainingError with one-line messages. Nothing in the
     run folder changes until the data, config and checkpoint have all been checked.
     """
+    world = parallel.world_from_env()
+    if world.size > 1 and cfg.train.batch_size < world.size:
+        raise ConfigError(f"train.batch_size={cfg.train.batch_size} is the global batch, split over "
+                          f"{world.size} processes: it must be at least {world.size}")
+    if not world.main:
+        log = _quiet
     run = Path(run_dir)
     stale = _check_run(run, resume, overwrite)
-    device = _device(cfg.train.device)
+    device = _device(cfg.train.device, world)
     ckpt = None
     if resume:
         resumed_from, ckpt, note = resume_point(run)
         if note:
             log(note)
-    check_writable(run, "run folder")
+    if world.main:
+        check_writable(run, "run folder")
     if cfg.train.tensorboard:
         check_tensorboard()
     data_spec, tracks, valid = _load_data(data_dir, cfg)
@@ -481,6 +521,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
 
     _set_threads(cfg.train.threads, log)
     seed = cfg.train.seed
+    # the same seed in every process: all draw the same global batches and keep their share
     torch.manual_seed(seed)
     random.seed(seed)
     rng = np.random.default_rng(seed)
@@ -501,16 +542,44 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
         spec = _merge_ranges(ckpt["spec"], spec)
         _restore_rng(ckpt["rng"], rng)
     sim.to(device).train()
+    sim.autocast = torch.bfloat16 if cfg.train.autocast == "bf16" else None
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    parallel.start(world, device)
+    if world.size > 1:
+        from torch.nn.parallel import DistributedDataParallel
+        sim.distribute(DistributedDataParallel(sim.network, device_ids=[device.index] if device.type == "cuda" else None))
+    finished = False
+    try:
+        provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance") if ckpt else None)
+        step = _train_loop(run, cfg, sim, optimizer, tracks, valid, spec, step, seed, rng, device, world,
+                           stale, ckpt is not None and resumed_from, provenance, log)
+        finished = True
+        return step
+    finally:
+        # the DDP reducer must go before its process group: freed after it (when train returned),
+        # its destructor hung 3 runs in ~45 (none in 80 since)
+        sim.distribute(None)
+        parallel.stop(world, together=finished)
 
-    for p in stale:
-        p.unlink()
-    run.mkdir(parents=True, exist_ok=True)
-    if ckpt is not None:
-        _drop_metrics_after(run / METRICS, step, log)
+
+def _quiet(line: str) -> None:
+    """The log of processes other than rank 0: one copy of every line is enough."""
+
+
+def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer,
+                tracks: ObjectTracks, valid: ObjectTracks | None, spec: dict, step: int, seed: int,
+                rng: np.random.Generator, device: torch.device, world: parallel.World, stale: list[Path],
+                resumed_from: Path | None, provenance: dict, log: Callable[[str], None]) -> int:
     config_dict = config_to_dict(cfg)
-    _atomic_write(run / "config.json", lambda p: p.write_text(json.dumps(config_dict, indent=2) + "\n"))
-    provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance") if ckpt else None)
-    _atomic_write(run / PROVENANCE, lambda p: p.write_text(json.dumps(provenance, indent=2) + "\n"))
+    if world.main:
+        for p in stale:
+            p.unlink()
+        run.mkdir(parents=True, exist_ok=True)
+        if resumed_from:
+            _drop_metrics_after(run / METRICS, step, log)
+        _atomic_write(run / "config.json", lambda p: p.write_text(json.dumps(config_dict, indent=2) + "\n"))
+        _atomic_write(run / PROVENANCE, lambda p: p.write_text(json.dumps(provenance, indent=2) + "\n"))
 
     def state() -> dict:
         return {"format": CHECKPOINT_FORMAT, "step": step, "seed": seed, "config": config_dict, "spec": spec,
@@ -520,24 +589,35 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     n_params = sum(p.numel() for p in sim.parameters())
     contact = (f" ({float(tracks.contact.double().mean()):.0%} in contact, drawn as {cfg.train.contact_fraction:.0%})"
                if tracks.contact is not None else "")
-    log(f"{'resuming' if ckpt else 'training'} at step {step} of {cfg.train.steps}: {tracks.num_windows} "
-        f"windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
+    processes = f" on {world.size} processes" if world.size > 1 else ""
+    log(f"{'resuming' if resumed_from else 'training'} at step {step} of {cfg.train.steps}{processes}: "
+        f"{tracks.num_windows} windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
         f"node features {spec['node_features']}, edge features {spec['edge_features']}")
 
-    last_good = resumed_from if ckpt else None
+    lo, hi = parallel.share(cfg.train.batch_size, world)
+    last_good = resumed_from or None
     loss_sum, loss_count, busy, t_mark = 0.0, 0, 0.0, time.perf_counter()
-    bar = tqdm(total=cfg.train.steps, initial=step, unit="step", disable=None, dynamic_ncols=True)
-    writer = _tensorboard_writer(run, step + 1 if ckpt else None) if cfg.train.tensorboard else None
-    with bar, open(run / METRICS, "a") as metrics, (writer or contextlib.nullcontext()):
+    bar = tqdm(total=cfg.train.steps, initial=step, unit="step", disable=None if world.main else True,
+               dynamic_ncols=True)
+    metrics = open(run / METRICS, "a") if world.main else None
+    writer = (_tensorboard_writer(run, step + 1 if resumed_from else None)
+              if cfg.train.tensorboard and world.main else None)
+    try:
         while step < cfg.train.steps:
             t0 = time.perf_counter()
             lr = learning_rate(cfg, step)
             batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std,
                                   cfg.augment.vertex_noise, cfg.augment.track_noise,
                                   cfg.train.contact_fraction, cfg.augment.mirror,
-                                  cfg.augment.body_symmetry).to(device)
+                                  cfg.augment.body_symmetry)
+            fraction = 1.0
+            if world.size > 1:
+                nodes = batch.graph.num_nodes
+                batch = batch.windows(lo, hi)
+                fraction = batch.graph.num_nodes / nodes
             try:
-                loss = train_step(sim, optimizer, batch, lr, cfg.train.grad_clip, cfg.train.loss, cfg.train.huber_delta)
+                loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, cfg.train.loss,
+                                  cfg.train.huber_delta, fraction, world.size)
             except FloatingPointError as e:
                 raise TrainingError(_stopped(str(e), step + 1, last_good)) from None
             step += 1
@@ -548,7 +628,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
             bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
 
             validating = valid is not None and step % cfg.valid.every == 0
-            if step % cfg.train.log_every == 0 or validating or step == cfg.train.steps:
+            if world.main and (step % cfg.train.log_every == 0 or validating or step == cfg.train.steps):
                 entry = {"step": step, "loss": loss_sum / loss_count, "lr": lr,
                          "steps_per_sec": loss_count / busy,
                          "graphs_per_sec": loss_count * cfg.train.batch_size / busy,
@@ -563,7 +643,14 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
             if step % cfg.train.checkpoint_every == 0 or step == cfg.train.steps:
                 if not all(torch.isfinite(p).all() for p in sim.parameters()):
                     raise TrainingError(_stopped("a weight is not finite", step, last_good))
-                last_good = save_checkpoint(run, state(), cfg.train.keep_checkpoints)
+                if world.main:
+                    last_good = save_checkpoint(run, state(), cfg.train.keep_checkpoints)
+    finally:
+        bar.close()
+        if metrics is not None:
+            metrics.close()
+        if writer is not None:
+            writer.close()
     return step
 
 

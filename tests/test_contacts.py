@@ -70,6 +70,18 @@ def test_objects_apart_get_no_surface_edges_and_translation_changes_nothing():
     assert torch.allclose(e0.vectors, e1.vectors, atol=1e-9) and torch.allclose(e0.signed, e1.signed, atol=1e-9)
 
 
+def test_surface_edge_geometry_carries_the_gradient_of_the_positions():
+    graph, x = cubes([1.05, 0.5, 0.1])
+    plain = surface_edges(x, graph, 0.15)
+    x = x.clone().requires_grad_()
+    e = surface_edges(x, graph, 0.15)
+    assert torch.equal(e.vectors, plain.vectors) and torch.equal(e.signed, plain.signed)
+    e.signed.sum().backward()
+    # the upper cube moving along +x opens the gaps, the lower one closes them
+    upper = graph.node_graph == 1
+    assert torch.isfinite(x.grad).all() and x.grad[upper, 0].sum() > 0 and x.grad[~upper, 0].sum() < 0
+
+
 def test_collision_mode_is_checked():
     with pytest.raises(ConfigError, match="collision_mode"):
         build_config(overrides=["features.collision_mode=faces"])

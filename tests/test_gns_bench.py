@@ -39,3 +39,15 @@ def test_bench_collision_edges_matches_the_brute_force(capsys):
     assert [r["edges"] for r in rows if r["layout"] == "apart"] == [0, 0]
     touching = [r["edges"] for r in rows if r["layout"] == "touching"]
     assert 0 < touching[0] < touching[1]  # more contacts, more edges
+
+
+def test_bench_train_times_float32_against_bf16_autocast(capsys):
+    spec = importlib.util.spec_from_file_location("bench_train", BENCH)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    bench.main(["--presets", "tiny", "--steps", "2", "--warmup", "1", "--autocast", "--rounds", "2"])
+    out = capsys.readouterr().out
+    rows = [line.split() for line in out.splitlines() if line.startswith("tiny")]
+    assert [r[0] for r in rows] == ["tiny", "tiny+bf16", "tiny:"]
+    ratio = float(rows[2][3].rstrip("x"))
+    assert abs(ratio - float(rows[1][7]) / float(rows[0][7])) < 0.02   # the ratio of the rows printed
