@@ -139,3 +139,17 @@ def test_presets_resolve_by_name_and_a_missing_one_lists_them():
     assert build_config(path="configs/gns_tiny.toml").model.latent_size == build_config(path="gns_tiny").model.latent_size
     with pytest.raises(ConfigError, match="presets: gns_cpu, gns_paper, gns_tiny, movi_a"):
         build_config(path="gns_huge")
+
+
+def test_eval_and_rollout_threads(data, tmp_path, capsys):
+    run("--data", data, "--out", tmp_path / "r", "--config", TINY, "--steps", 2, "--set", "valid.every=0")
+    for cmd in (["eval"], ["rollout", "--out", str(tmp_path / "roll")]):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as exc:
+            main([*cmd, "--run", str(tmp_path / "r"), "--data", data, "--split", "valid", "--threads", "0"])
+        assert exc.value.code == 2
+        assert capsys.readouterr().err.strip() == "error: --threads must be >= 1, got 0"
+    main(["eval", "--run", str(tmp_path / "r"), "--data", data, "--split", "valid", "--threads", "2"])
+    assert torch.get_num_threads() == 2
+    main(["eval", "--run", str(tmp_path / "r"), "--data", data, "--split", "valid"])
+    assert torch.get_num_threads() == 1
