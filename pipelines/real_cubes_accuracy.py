@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from datagen.shards import DataError
 from gns.evaluate import evaluate_baseline, evaluate_run, write_json
 from gns.train import export_model, read_checkpoint
 from pipelines.common import done, guarded, say, train_stage
+from pipelines.engine_pretrain import synthetic_stage
 from pipelines.real_cubes import (Costs, duplicate_groups, import_stage, make_split, read_tosses, summary,
                                   training_ids)
 from pipelines.real_cubes_baselines import LABELS, available_engines, baselines_stage
@@ -36,7 +37,8 @@ from pipelines.real_cubes_baselines import LABELS, available_engines, baselines_
 STRIDE = 8
 _TRAIN = ("train.threads=1", "train.batch_size=32", "train.lr_init=1e-3", "augment.noise_std=0.001",
           "valid.rollout_scenes=8", "valid.rollout_steps=50", "valid.every=5000", "train.checkpoint_every=5000",
-          f"features.frame_stride={STRIDE}", "train.all_phases=true")
+          f"features.frame_stride={STRIDE}", "train.all_phases=true", "augment.mirror=true",
+          "augment.body_symmetry=true")
 
 
 @dataclass(frozen=True)
@@ -48,11 +50,15 @@ class Preset:
     baseline_budget: int = 120
     baseline_tosses: int | None = 64
     train: tuple[str, ...] = _TRAIN
+    # training sizes that also get a GNS trained with the tuned MuJoCo's tosses (pipelines/engine_pretrain.py):
+    # size -> (synthetic tosses, copies of each real toss in the same training set)
+    engine_data: dict = field(default_factory=dict)
 
 
 PRESETS = {
     "tiny": Preset(test=1, valid=0, steps={2: 30}, model="tiny", baseline_budget=3, baseline_tosses=None,
-                   train=tuple(o for o in _TRAIN if not o.startswith("valid.every")) + ("valid.every=0",)),
+                   train=tuple(o for o in _TRAIN if not o.startswith("valid.every")) + ("valid.every=0",),
+                   engine_data={2: (4, 2)}),
     # ~40 min per 10k steps on one busy core; lr decays 10x every third of the steps
     "accuracy": Preset(test=96, valid=32, steps={16: 20000, 64: 30000, 256: 40000}),
 }
@@ -115,9 +121,21 @@ def run(preset: str, src: Path, out: Path, export: Path | None = None) -> dict:
                                              params, given))
             row[e] = min(first3, later, key=lambda r: r["position_error_pct"] + r["rotation_error_deg"])
             row[e]["given_frames"] = 3 if row[e] is first3 else given
+        if n in p.engine_data and "mujoco" in engines:
+            count, copies = p.engine_data[n]
+            mixed = synthetic_stage(out / "data" / f"mujoco_n{n}_s0", datasets[n][0], "mujoco",
+                                    base["fits"]["mujoco"][f"n{n}_s0"]["params"], count, 0, copies)
+            mixed_run = out / "runs" / f"gns_mujoco_n{n}"
+            train_stage(mixed.root, mixed_run, p.model, [f"train.steps={steps}", f"train.lr_decay_steps={decay}",
+                                                         *p.train])
+            row["gns_engine_data"] = summary(gns_stage(out / "eval" / f"gns_mujoco_n{n}.json", mixed_run, test))
+            row["engine_data"] = {"synthetic": count, "real_copies": copies}
         rows[n] = row
         if export is not None:
             export_model(run_dir / "latest.pt", export / f"gns_real_cubes_n{n}.pt", overwrite=True)
+            if "gns_engine_data" in row:
+                export_model(out / "runs" / f"gns_mujoco_n{n}" / "latest.pt",
+                             export / f"gns_real_cubes_mujoco_n{n}.pt", overwrite=True)
     results = {"preset": preset, "src": str(src), "stride": STRIDE, "engines": engines,
                "published": summary(base["evals"]["published"][""]), "sizes": {str(n): r for n, r in rows.items()}}
     write_json(out / "results.json", results)
@@ -136,6 +154,10 @@ def plot(path: Path, results: dict) -> Path:
     for ax, key, label in zip(axes, ("position_error_pct", "rotation_error_deg"),
                               ("position error [% of width]", "rotation error [deg]")):
         ax.plot(sizes, [results["sizes"][str(n)]["gns"][key] for n in sizes], "o-", label="GNS")
+        mixed = [n for n in sizes if "gns_engine_data" in results["sizes"][str(n)]]
+        if mixed:
+            ax.plot(mixed, [results["sizes"][str(n)]["gns_engine_data"][key] for n in mixed], "^-",
+                    label="GNS + tuned-MuJoCo tosses")
         for e in results["engines"]:
             ax.plot(sizes, [results["sizes"][str(n)][e][key] for n in sizes], "s--", label=f"{LABELS[e]} (tuned)")
         ax.axhline(results["published"][key], color="gray", lw=0.8, ls=":", label="PyBullet (published constants)")
@@ -162,6 +184,10 @@ def report(out: Path, results: dict) -> Path:
              "|---|---|---|---|---|---|"]
     for n, row in results["sizes"].items():
         lines.append(f"| {n} | GNS | {row['steps']} | {f(row['gns'])} |")
+        if "gns_engine_data" in row:
+            e = row["engine_data"]
+            lines.append(f"| {n} | GNS on the real tosses x{e['real_copies']} + {e['synthetic']} tuned-MuJoCo tosses "
+                         f"| {row['steps']} | {f(row['gns_engine_data'])} |")
         for e in results["engines"]:
             lines.append(f"| {n} | {LABELS[e]} tuned (from {row[e]['given_frames']} frames) | - | {f(row[e])} |")
     lines += ["", f"PyBullet with the published constants: {f(results['published'])}.", "",

@@ -19,8 +19,15 @@ def test_tiny_preset_end_to_end_and_rerun(tmp_path, capsys):
     assert row["pybullet"]["given_frames"] in (3, 17)
     assert (out / "plots" / "accuracy.png").stat().st_size > 1000
     assert "| 2 | GNS |" in (out / "report.md").read_text()
+    # the GNS trained on the real tosses (x2) and 4 tosses of the MuJoCo tuned on them
+    assert row["gns_engine_data"]["num_scenes"] == 1 and row["engine_data"] == {"synthetic": 4, "real_copies": 2}
+    from datagen.shards import Dataset
+    mixed = Dataset(out / "data" / "mujoco_n2_s0")
+    assert mixed.num_scenes("train") == 4 + 2 * 2
+    assert "tuned-MuJoCo tosses" in (out / "report.md").read_text()
     sim, cfg = load_model(export / "gns_real_cubes_n2.pt")   # the shipped form loads alone
-    assert cfg.features.frame_stride == 8 and cfg.train.all_phases
+    assert cfg.features.frame_stride == 8 and cfg.train.all_phases and cfg.augment.body_symmetry
+    load_model(export / "gns_real_cubes_mujoco_n2.pt")
     capsys.readouterr()
     before = (out / "eval" / "gns_n2.json").stat().st_mtime_ns
     assert real_cubes_accuracy.main(args) == 0                 # everything done: nothing retrained
