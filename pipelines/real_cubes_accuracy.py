@@ -60,7 +60,7 @@ PRESETS = {
                    train=tuple(o for o in _TRAIN if not o.startswith("valid.every")) + ("valid.every=0",),
                    engine_data={2: (4, 2)}),
     # ~40 min per 10k steps on one busy core; lr decays 10x every third of the steps
-    "accuracy": Preset(test=96, valid=32, steps={16: 20000, 64: 30000, 256: 40000}),
+    "accuracy": Preset(test=96, valid=32, steps={16: 20000, 64: 30000, 256: 40000}, engine_data={16: (2000, 40)}),
 }
 
 
