@@ -77,13 +77,14 @@ def merge(base: dict, override: dict, prefix: str = "") -> dict:
                 raise ConfigError(f"config key {key!r} is a table, got {v!r}")
             out[k] = merge(out[k], v, key + ".")
         else:
-            out[k] = _typed(key, v, out[k])
+            out[k] = typed_value(key, v, out[k])
     return out
 
 
-def _typed(key: str, value, default):
-    """value checked against the type of the preset's value: a string where a boolean belongs
-    ("no", "False" from a shell) must not be taken as true. Ints are accepted for floats."""
+def typed_value(key: str, value, default, where: str = ""):
+    """value checked against the type of the default's (the preset's or the dataclass's): a
+    string where a boolean belongs ("no" from a shell) must not be taken as true. Ints are
+    accepted for floats. The one typing rule of datagen's and gns's configs."""
     expected = type(default)
     if expected is bool:
         ok = isinstance(value, bool)
@@ -103,7 +104,7 @@ def _typed(key: str, value, default):
     if not ok:
         want = {bool: "true or false", float: "a number", int: "a whole number", list: "a list like the preset's",
                 str: "a string"}.get(expected, expected.__name__)
-        raise ConfigError(f"config key {key!r} must be {want}, got {value!r}")
+        raise ConfigError(f"config key {key!r}{' ' + where if where else ''} must be {want}, got {value!r}")
     return value
 
 

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 
-from datagen.config import ConfigError  # noqa: E402  one class for datagen and gns: `except ConfigError` catches both
+# one error class, one value parser and one typing rule for datagen's and gns's configs
+from datagen.config import ConfigError, parse_value, typed_value  # noqa: E402
 
 
 @dataclass
@@ -125,22 +125,6 @@ def _unknown_key(key: str, where: str) -> ConfigError:
     return ConfigError(f"unknown config key '{key}' {where}{hint}")
 
 
-def _coerce(key: str, value, default, where: str):
-    # bool is a subclass of int, so it is checked first; ints are accepted where floats are expected.
-    expected = type(default)
-    if expected is bool:
-        ok = isinstance(value, bool)
-    elif expected is float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-    elif expected is int:
-        ok = isinstance(value, int) and not isinstance(value, bool)
-    else:
-        ok = isinstance(value, expected)
-    if not ok:
-        raise ConfigError(f"config key '{key}' {where} must be {expected.__name__}, got {value!r}")
-    return expected(value)
-
-
 def apply_dict(cfg: Config, data: dict, where: str) -> Config:
     """Set every key of a nested dict {section: {key: value}} on cfg, strictly."""
     sections = {f.name for f in dataclasses.fields(cfg)}
@@ -155,21 +139,18 @@ def apply_dict(cfg: Config, data: dict, where: str) -> Config:
             name = f"{section}.{key}"
             if key not in {f.name for f in dataclasses.fields(sub)}:
                 raise _unknown_key(name, where)
-            setattr(sub, key, _coerce(name, value, getattr(sub, key), where))
+            setattr(sub, key, typed_value(name, value, getattr(sub, key), where))
     return cfg
 
 
 def parse_override(text: str) -> dict:
-    """'section.key=value' -> {section: {key: value}}. The value is read as TOML, else as a string."""
+    """'section.key=value' -> {section: {key: value}}; the value read as datagen's --set reads it."""
     if "=" not in text:
         raise ConfigError(f"override '{text}' is not of the form section.key=value")
     key, raw = (s.strip() for s in text.split("=", 1))
     if key.count(".") != 1:
         raise _unknown_key(key, "in --set")
-    try:
-        value = tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = raw
+    value = parse_value(raw)
     section, name = key.split(".")
     return {section: {name: value}}
 
