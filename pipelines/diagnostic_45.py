@@ -17,7 +17,8 @@ Stages (each skipped on rerun when its output is complete):
            within a few degrees of 45; random heading, place, size, material), half MOVi-A
            cube tosses, all simulated by datagen, in OUT/data
   train    (no --run) gns.train on the preset's model, in OUT/run
-  eval     sides per angle, plain and symmetrized: OUT/results.json, OUT/report.md,
+  eval     sides per angle, plain, symmetrized (floor mirrors) and symmetrized over the cube's
+           24 body frames too (--body-frames): OUT/results.json, OUT/report.md,
            OUT/plots/fig3.png (centre x against time, GNS dashed beside PyBullet solid)
 
 Presets:
@@ -55,11 +56,15 @@ from pipelines.common import guarded, say, train_stage
 ANGLES = (43.0, 44.0, 44.5, 44.75, 45.25, 45.5, 46.0, 47.0)
 FRAMES = 36   # 3 s at 12 fps: PyBullet's 44.75-degree cube has fallen by frame 30
 SIZE, MATERIAL = "large", "metal"
-VERSION = 3  # of results.json: older results are recomputed
+VERSION = 4  # of results.json: older results are recomputed
+# rollouts compared: (name, averaged over the floor's mirrors, and over the cube's 24 body frames)
+VARIANTS = (("plain", False, False), ("symmetrized", True, False), ("body frames", True, True))
 
 PRESETS = {
     "tiny": dict(counts={"train": 8, "valid": 2}, model="tiny", steps=40),
-    "quick": dict(counts={"train": 400, "valid": 20}, model="cpu", steps=24000),
+    # mirror and body-symmetry augmentation: with --body-frames rollouts, 8 of 8 (docs/diagnostic_45.md)
+    "quick": dict(counts={"train": 400, "valid": 20}, model="cpu", steps=24000,
+                  train=("augment.mirror=true", "augment.body_symmetry=true")),
 }
 
 
@@ -218,13 +223,12 @@ def evaluate(ckpt: Path, drops: Dataset, out: Path, shape: str) -> dict:
                "size": float(drops.meta["config"]["sizes"][SIZE]), "material": MATERIAL, "frames": FRAMES,
                "trained_shapes": saved["spec"]["shapes"]}
     curves = {}
-    for sym in (False, True):
-        name = "symmetrized" if sym else "plain"
+    for name, sym, body in VARIANTS:
         say(f"eval: rolling out the drops ({name})")
-        res, pred, true, _ = evaluate_run(ckpt, drops.root, "test", symmetrize=sym, progress=False)
+        res, pred, true, _ = evaluate_run(ckpt, drops.root, "test", symmetrize=sym, body_frames=body, progress=False)
         results[name] = sides(pred, true, angles)
         sim, _ = load_model(saved)
-        sim.symmetrize = sym
+        sim.symmetrize, sim.body_frames = sym, body
         mirror_check(sim, drops, true, angles, results[name])
         results["outside_training"] = res["outside_training"]
         curves[name] = pred
@@ -245,7 +249,7 @@ def report(out: Path, r: dict, command: str) -> Path:
              "-1 over the edge (above 45), 0 not fallen.", ""]
     if r["outside_training"]:
         lines += [f"Outside training: {'; '.join(r['outside_training'])}.", ""]
-    for name in ("plain", "symmetrized"):
+    for name, *_ in VARIANTS:
         x = r[name]
         lines += [f"## {name.capitalize()} rollout: {x['agree']} of {x['total']} on PyBullet's side", "",
                   "| angle | PyBullet | GNS | agree | final x PyBullet | final x GNS |", "|---|---|---|---|---|---|"]
@@ -282,7 +286,7 @@ def run(preset: str, out: Path, run_path: Path | None, seed: int, shape: str, co
         ckpt = checkpoint_of(run_path)
     results = evaluate(ckpt, drops, out, shape)
     say(f"report: {report(out, results, command)}")
-    for name in ("plain", "symmetrized"):
+    for name, *_ in VARIANTS:
         x = results[name]
         print(f"{name}: {x['agree']}/{x['total']} on PyBullet's side; " + ", ".join(
             f"{row['angle']:g}: {row['pybullet']:+d}/{row['gns']:+d}" for row in x["rows"]))

@@ -87,7 +87,7 @@ def test_tiny_pipeline_end_to_end_and_rerun_skips(tmp_path, capsys):
     results = json.loads((out / "results.json").read_text())
     assert (out / "report.md").exists() and (out / "plots" / "fig3.png").stat().st_size > 1000
     assert results["angles"] == list(diagnostic_45.ANGLES)
-    for name in ("plain", "symmetrized"):
+    for name in ("plain", "symmetrized", "body frames"):
         assert [r["pybullet"] for r in results[name]["rows"]] == [1, 1, 1, 1, -1, -1, -1, -1]
         assert len(results[name]["pairs"]) == 4
     assert "| 44.75 |" in (out / "report.md").read_text()
