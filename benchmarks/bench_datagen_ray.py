@@ -21,14 +21,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from datagen.config import load_config  # noqa: E402
 from datagen.generate import generate  # noqa: E402
 
-
-def best_of(repeats, fn):
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return min(times)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_datagen import best_of  # noqa: E402
 
 
 def main(argv=None):

@@ -108,18 +108,23 @@ def mesh_symmetries(vertices: np.ndarray, tol: float = 1e-6) -> np.ndarray:
     return np.stack(keep)
 
 
+def padded_groups(groups: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Symmetry groups of different sizes (K_i, 3, 3) -> padded (len, max K, 3, 3) float64 (identity
+    beyond each group) and their sizes (len,)."""
+    counts = [len(g) for g in groups]
+    padded = np.tile(np.eye(3), (len(groups), max(counts), 1, 1))
+    for i, g in enumerate(groups):
+        padded[i, :len(g)] = g
+    return torch.from_numpy(padded), torch.tensor(counts)
+
+
 def with_symmetries(graph: "Graph") -> "Graph":
     """A copy of graph carrying each graph's body-frame symmetry group (mesh_symmetries of its
     rest shape), for predictions averaged over them (LearnedSimulator.body_frames)."""
     rest = graph.rest.detach().cpu().numpy()
     owner = graph.node_graph.cpu().numpy()
-    groups = [mesh_symmetries(rest[owner == g]) for g in range(graph.num_graphs)]
-    k = max(len(x) for x in groups)
-    padded = np.tile(np.eye(3), (graph.num_graphs, k, 1, 1))
-    for g, x in enumerate(groups):
-        padded[g, :len(x)] = x
-    return replace(graph, symmetries=torch.from_numpy(padded).to(graph.rest),
-                   num_symmetries=torch.tensor([len(x) for x in groups], device=graph.rest.device))
+    padded, counts = padded_groups([mesh_symmetries(rest[owner == g]) for g in range(graph.num_graphs)])
+    return replace(graph, symmetries=padded.to(graph.rest), num_symmetries=counts.to(graph.rest.device))
 
 
 def _ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -151,12 +156,7 @@ class MeshLibrary:
         self._face_start = torch.cumsum(self.num_faces, 0) - self.num_faces
         self._faces = torch.from_numpy(np.concatenate(faces))
         # body-frame symmetries of each mesh (augment.body_symmetry), padded to the largest group
-        groups = [mesh_symmetries(v) for v in verts]
-        self.num_symmetries = torch.tensor([len(g) for g in groups])
-        padded = np.tile(np.eye(3), (len(groups), int(self.num_symmetries.max()), 1, 1))
-        for i, g in enumerate(groups):
-            padded[i, :len(g)] = g
-        self._symmetries = torch.from_numpy(padded)
+        self._symmetries, self.num_symmetries = padded_groups([mesh_symmetries(v) for v in verts])
 
     def random_symmetries(self, shape_ids: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
         """One random body-frame symmetry of each graph's mesh (B, 3, 3) float64 (see mesh_symmetries)."""

@@ -44,6 +44,18 @@ def data_stage(out: Path, scene_sets: list[str], counts: dict[str, int], seed: i
     return Dataset(out)
 
 
+def finished_dataset(out: Path, key: str, value, what: str) -> Dataset | None:
+    """The dataset in `out` if its metadata records `key` = value (what it was made from), else None."""
+    try:
+        ds = Dataset(out)
+    except DataError:
+        return None
+    if ds.meta.get(key) != value:
+        return None
+    say(f"{what}: {out} is complete, skipping")
+    return ds
+
+
 def guarded(stages) -> int:
     """Run a pipeline's stages; a user error ends it with one `error:` line and exit status 2."""
     from gns.config import ConfigError

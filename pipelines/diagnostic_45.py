@@ -45,13 +45,13 @@ import numpy as np
 from datagen.config import load_config
 from datagen.generate import metadata, plan
 from datagen.shapes import get_shape
-from datagen.shards import Dataset, DataError, write_metadata, write_shard
+from datagen.shards import Dataset, write_metadata, write_shard
 from datagen.simulate import simulate
 from datagen.tilted import side, tilted_scene, training_scene
 from gns.evaluate import checkpoint_of, evaluate_run, write_json
 from gns.rollout import rollout_scenes
 from gns.train import load_model, read_checkpoint
-from pipelines.common import guarded, say, train_stage
+from pipelines.common import finished_dataset, guarded, say, train_stage
 
 ANGLES = (43.0, 44.0, 44.5, 44.75, 45.25, 45.5, 46.0, 47.0)
 FRAMES = 36   # 3 s at 12 fps: PyBullet's 44.75-degree cube has fallen by frame 30
@@ -97,13 +97,9 @@ def write_dataset(out: Path, cfg: dict, seed: int, specs: dict[str, list], extra
 
 
 def dataset_stage(out: Path, what: str, extra: dict, make) -> Dataset:
-    try:
-        ds = Dataset(out)
-        if ds.meta.get("diagnostic_45") == extra:
-            say(f"{what}: {out} is complete, skipping")
-            return ds
-    except DataError:
-        pass
+    ds = finished_dataset(out, "diagnostic_45", extra, what)
+    if ds is not None:
+        return ds
     say(f"{what}: simulating into {out}")
     return make()
 

@@ -17,8 +17,8 @@ from pathlib import Path
 
 from datagen.baseline import GRAVITY, baseline_engine
 from datagen.engine_tosses import engine_tosses
-from datagen.shards import METADATA_FILE, Dataset, DataError, shard_name, write_metadata, write_shard
-from pipelines.common import say
+from datagen.shards import METADATA_FILE, Dataset, shard_name, write_metadata, write_shard
+from pipelines.common import finished_dataset, say
 
 SHARD_SCENES = 100
 
@@ -28,14 +28,9 @@ def synthetic_stage(out: Path, real_data: Path, engine: str, params: dict, count
     real = Dataset(real_data)
     made_from = {"engine": engine, "params": params, "count": count, "seed": seed,
                  "real_fingerprint": real.fingerprint, "real_copies": real_copies}
-    if (out / METADATA_FILE).exists():
-        try:
-            ds = Dataset(out)
-            if ds.meta.get("made_from") == made_from:
-                say(f"synthetic: {out} is complete, skipping")
-                return ds
-        except DataError:
-            pass
+    ds = finished_dataset(out, "made_from", made_from, "synthetic")
+    if ds is not None:
+        return ds
     say(f"synthetic: {count} {engine} tosses from perturbed starts of {real.num_scenes('train')} real ones"
         + (f", and those real ones {real_copies} times" if real_copies else ""))
     scenes = engine_tosses(real.load("train"), engine, baseline_engine(engine)[0](**params), count, seed,
