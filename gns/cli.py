@@ -88,7 +88,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     check_ranges(saved["spec"], ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=not args.no_shape_matching,
-                          batch_tracks=args.batch, sleep=_sleep(args))
+                          batch_tracks=args.batch, sleep=_sleep(args), free_flight=args.free_flight)
     seconds = time.perf_counter() - t0
     diverged = [scene_label(sc, i) for i, (p, sc) in enumerate(zip(pred, scenes)) if "diverged_at_frame" in p.attrs]
     if len(diverged) == len(pred):
@@ -100,7 +100,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
             "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
             "given_frames": 3, "seconds": seconds,
             "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize, "body_frames": args.body_frames,
-            **provenance_of(saved, ds)}
+            "free_flight": args.free_flight, "object_steps": sim.rollout_counts, **provenance_of(saved, ds)}
     write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
     print(f"rolled out {len(pred)} scenes in {seconds:.2f} s; wrote {len(pred) - len(diverged)} to {args.out}")
 
@@ -116,10 +116,15 @@ def cmd_eval(args: argparse.Namespace) -> None:
     results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit,
                                shape_matching=not args.no_shape_matching, plots_dir=args.plots,
                                batch_tracks=args.batch, sleep=_sleep(args), symmetrize=args.symmetrize,
-                               at_data_rate=args.at_data_rate, body_frames=args.body_frames, device=args.device)
+                               at_data_rate=args.at_data_rate, body_frames=args.body_frames, device=args.device,
+                               free_flight=args.free_flight)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched")
+    c = results.get("object_steps") or {}
+    if c.get("object_steps"):
+        print(f"object-steps through the network: {c['network']} of {c['object_steps']} "
+              f"({100 * c['network'] / c['object_steps']:.1f}%; free flight {c['free_flight']}, asleep {c['asleep']})")
     if args.json:
         summary = {k: v for k, v in results.items() if k != "per_scene"}
         try:
@@ -162,6 +167,9 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--body-frames", action="store_true",
                    help="also average over each object's equivalent body frames (a cube's 24 rotations onto "
                         "itself): exactly invariant to which one describes it, at that many times the cost")
+    p.add_argument("--free-flight", action="store_true",
+                   help="objects out of reach of the floor and of other objects follow the exact inertial update "
+                        "(gravity, constant spin) instead of the network, which then runs only on the others")
     p.add_argument("--sleep-fraction", type=float, default=0.1, metavar="F",
                    help="--sleep: an object is at rest when no vertex moved F x |g| dt^2 in either input step "
                         "(default 0.1)")

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-from gns.graph import EdgeSet, Graph, _near_pairs, _ragged_arange, _vertices_near, graph_centres
+from gns.graph import EdgeSet, Graph, near_pairs, _ragged_arange, _vertices_near, graph_centres
 
 
 def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
@@ -53,7 +53,7 @@ def _surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> tuple[EdgeSe
                     torch.zeros(0, 3, dtype=x.dtype, device=x.device), torch.zeros(0, 1, dtype=x.dtype, device=x.device))
     if graph.faces is None:
         raise ValueError("surface collision edges need the graph's faces")
-    near = _near_pairs(x, graph, radius)
+    near = near_pairs(x, graph, radius)
     if near is None:
         return empty, none, empty.signed
     a, b, low, high = near

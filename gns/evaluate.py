@@ -53,7 +53,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                  shape_matching: bool = True, plots_dir: str | Path | None = None, progress: bool = True,
                  batch_tracks: int = 256, sleep=None, symmetrize: bool = False,
                  at_data_rate: bool = False, body_frames: bool = False,
-                 device: str = "cpu") -> tuple[dict, list, list, Dataset]:
+                 device: str = "cpu", free_flight: bool = False) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it.
 
     A model trained at every k-th frame rolls out at its own rate from frames 0, k, 2k; it is
@@ -75,8 +75,9 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     warnings = check_ranges(saved["spec"], ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
-                          batch_tracks=batch_tracks, progress=progress, sleep=sleep)
+                          batch_tracks=batch_tracks, progress=progress, sleep=sleep, free_flight=free_flight)
     seconds = time.perf_counter() - t0
+    counts = dict(sim.rollout_counts)
     kept = [i for i, p in enumerate(pred) if "diverged_at_frame" not in p.attrs]
     pred, scenes, diverged = split_diverged(pred, scenes)
     if diverged:
@@ -92,6 +93,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                    outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
                    diverged_scenes=diverged, num_diverged=len(diverged), symmetrize=symmetrize,
                    body_frames=body_frames, at_data_rate=at_data_rate, model_stride=model_stride,
+                   free_flight=free_flight, object_steps=counts,
                    device=str(device), **provenance_of(saved, ds))
     return results, pred, scenes, ds
 

@@ -238,7 +238,7 @@ def graph_sizes(graph: Graph) -> torch.Tensor:
     return (per_graph(graph.rest, graph, "amax") - per_graph(graph.rest, graph, "amin")).max(dim=1).values
 
 
-def _near_pairs(x: torch.Tensor, graph: Graph, radius: float):
+def near_pairs(x: torch.Tensor, graph: Graph, radius: float):
     """Broad phase: object pairs (a < b) of a scene whose bounds, one expanded by `radius`,
     overlap; returns (a, b, low, high) with every graph's bounds (G, 3), or None if none."""
     if graph.graph_scene is None or graph.num_graphs < 2:
@@ -276,7 +276,7 @@ def collision_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     """
     empty = EdgeSet(torch.zeros(0, dtype=torch.int64, device=x.device),
                     torch.zeros(0, dtype=torch.int64, device=x.device))
-    near = _near_pairs(x, graph, radius)
+    near = near_pairs(x, graph, radius)
     if near is None:
         return empty
     a, b, low, high = near
@@ -296,6 +296,34 @@ def collision_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     close = (x[i] - x[j]).norm(dim=1) < radius
     i, j = i[close], j[close]
     return EdgeSet(torch.cat([i, j]), torch.cat([j, i]))
+
+
+def select_graphs(graph: Graph, keep: torch.Tensor) -> tuple[Graph, torch.Tensor]:
+    """The batch of the graphs with keep (G,) True, renumbered, and the (n,) indices of its nodes
+    in `graph`. Edges (mesh, collision) and faces are kept where both ends are kept: a graph left
+    out must share no collision edge with one kept (the caller's rule), else the kept one would
+    lose its contact."""
+    node_keep = keep[graph.node_graph]
+    nodes = node_keep.nonzero()[:, 0]
+    new_node = torch.cumsum(node_keep, 0) - 1       # index of a kept node in the selection
+    new_graph = torch.cumsum(keep, 0) - 1
+
+    def edges(e: EdgeSet | None) -> EdgeSet | None:
+        if e is None:
+            return None
+        ok = node_keep[e.senders] & node_keep[e.receivers]
+        return EdgeSet(new_node[e.senders[ok]], new_node[e.receivers[ok]],
+                       None if e.vectors is None else e.vectors[ok], None if e.signed is None else e.signed[ok])
+
+    faces = None
+    if graph.faces is not None:
+        faces = new_node[graph.faces[node_keep[graph.faces[:, 0]]]]
+    return replace(graph, mesh_edges=edges(graph.mesh_edges), rest=graph.rest[nodes], material=graph.material[nodes],
+                   node_graph=new_graph[graph.node_graph[nodes]], num_graphs=int(keep.sum()),
+                   graph_scene=None if graph.graph_scene is None else graph.graph_scene[keep],
+                   collision_edges=edges(graph.collision_edges), faces=faces,
+                   symmetries=None if graph.symmetries is None else graph.symmetries[keep],
+                   num_symmetries=None if graph.num_symmetries is None else graph.num_symmetries[keep]), nodes
 
 
 def with_collision_edges(graph: Graph, x: torch.Tensor, radius: float) -> Graph:

@@ -23,7 +23,7 @@ from gns.geometry import matrix_to_quat
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
 from gns.outputs import check_writable, overlapping
-from gns.simulator import HISTORY, LearnedSimulator, Sleep, shape_match_packed
+from gns.simulator import HISTORY, LearnedSimulator, Sleep
 
 
 def _continuous(quat: np.ndarray) -> np.ndarray:
@@ -53,7 +53,8 @@ def _angular_velocity(quat: np.ndarray, dt: float) -> np.ndarray:
 
 @torch.no_grad()
 def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Tensor, length: int,
-                   shape_matching: bool = True, sleep: Sleep | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   shape_matching: bool = True, sleep: Sleep | None = None,
+                   free_flight: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Roll out tracks `which` (B,), all `length` frames long. Tracks of one scene interact
     (collision edges), so pass every track of the scenes wanted.
 
@@ -63,13 +64,10 @@ def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Ten
     graph, verts, _ = tracks.track_vertices(which, HISTORY)
     device = next(sim.parameters()).device
     # the whole rollout runs on the model's device; only the poses come back
-    pred = sim.rollout(verts.to(device), graph.to(device), length - HISTORY, shape_matching=shape_matching,
-                       sleep=sleep).cpu()  # (S, N, 3)
-    steps = pred.shape[0]
-    rot = torch.empty(steps, graph.num_graphs, 3, 3, dtype=torch.float64)
-    centre = torch.empty(steps, graph.num_graphs, 3, dtype=torch.float64)
-    for s in range(steps):
-        rot[s], centre[s], _ = shape_match_packed(pred[s], graph.rest, graph.node_graph, graph.num_graphs)
+    # the poses come from the rollout's own shape matching (one per step, not a second pass)
+    _, rot, centre = sim.rollout(verts.to(device), graph.to(device), length - HISTORY, shape_matching=shape_matching,
+                                 sleep=sleep, free_flight=free_flight, poses=True)
+    rot, centre = rot.cpu(), centre.cpu()
     idx = (tracks.start[which])[:, None] + torch.arange(HISTORY)
     true_pos = tracks.positions[idx].permute(1, 0, 2).numpy()
     true_quat = tracks.quaternions[idx].permute(1, 0, 2).numpy()
@@ -86,8 +84,10 @@ def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Ten
 
 def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, frame_rate: float,
                    shape_matching: bool = True, batch_tracks: int = 256, progress: bool = True,
-                   sleep: Sleep | None = None) -> list[Scene]:
-    """Predicted copies of `scenes`: same objects, poses rolled out from the first 3 frames."""
+                   sleep: Sleep | None = None, free_flight: bool = False) -> list[Scene]:
+    """Predicted copies of `scenes`: same objects, poses rolled out from the first 3 frames.
+    `sleep` and `free_flight`: see LearnedSimulator.rollout; the share of object-steps that
+    entered the network is left in `sim.rollout_counts` (summed over batches)."""
     sim.eval()
     tracks = ObjectTracks(scenes, MeshLibrary(meshes), name="rollout scenes")
     if int(tracks.length.min()) <= HISTORY:
@@ -112,16 +112,20 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
     if current:
         batches.append(current)
     bar = tqdm(total=B, unit="track", desc="rollout", disable=not progress)
+    counts: dict[str, int] = {}
     for batch_scenes in batches:
         ids = torch.cat([tracks.scene_first_track[i] + torch.arange(int(tracks.scene_num_tracks[i]))
                          for i in batch_scenes])
         lengths = tracks.length[ids].tolist()
-        p, q = rollout_tracks(sim, tracks, ids, max(lengths), shape_matching, sleep)
+        p, q = rollout_tracks(sim, tracks, ids, max(lengths), shape_matching, sleep, free_flight)
+        for key, value in sim.rollout_counts.items():
+            counts[key] = counts.get(key, 0) + value
         for j, (i, length) in enumerate(zip(ids.tolist(), lengths)):
             positions[:length, i] = p[:length, j]
             quaternions[:length, i] = q[:length, j]
         bar.update(len(ids))
     bar.close()
+    sim.rollout_counts = counts
     dt = 1.0 / frame_rate
     out, first = [], 0
     for sc in scenes:

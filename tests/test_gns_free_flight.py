@@ -1,0 +1,159 @@
+"""Free flight in rollouts (issue 12): objects out of reach of the floor and of other objects
+follow the exact inertial update, and the network runs only on the others.
+
+The bypass must (1) move a free object exactly (a parabola and a constant spin, whatever the
+network's weights), (2) leave every other object's trajectory as the network alone makes it,
+whatever else shares the batch, and (3) hand the network only the objects that need it.
+"""
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from datagen.shapes import get_shape
+from gns.config import build_config
+from gns.data import ObjectTracks
+from gns.graph import EdgeSet, MeshLibrary, collision_edges, select_graphs
+from gns.simulator import LearnedSimulator, Sleep
+from gns.stability import resting_scene
+from gns.train import load_model
+
+MODEL = Path(__file__).parent / "data" / "gns_movi_a_small.pt"
+FRAME_RATE, G = 12.0, 10.0
+SPEC = {"frame_rate": FRAME_RATE, "gravity": [0.0, 0.0, -G], "floor": {"z": 0.0}, "materials_vary": False}
+
+
+def meshes(*names):
+    return {n: (get_shape(n).vertices, get_shape(n).faces) for n in names}
+
+
+def untrained(collisions=False, seed=0) -> LearnedSimulator:
+    """Random weights: any answer the network gives is wrong, so an exact trajectory can only
+    come from the inertial update."""
+    torch.manual_seed(seed)
+    cfg = build_config(path="configs/gns_tiny.toml")
+    return LearnedSimulator(cfg.model, cfg.features, {**SPEC, "collision_edges": collisions}).eval()
+
+
+def flying_frames(lib, graph, centre0, velocity, spin, frames):
+    """Vertices (N, frames, 3) of one object in exact free flight: c(t) = c0 + v t + g t^2 / 2,
+    R(t) = exp(t w) R0."""
+    dt = 1.0 / FRAME_RATE
+    r0 = Rotation.from_euler("xyz", [0.3, -0.7, 1.1])
+    out = []
+    for k in range(frames):
+        t = k * dt
+        rot = (Rotation.from_rotvec(np.asarray(spin) * t) * r0).as_matrix()
+        c = np.asarray(centre0) + np.asarray(velocity) * t + 0.5 * np.array([0, 0, -G]) * t * t
+        out.append(graph.rest.numpy() @ rot.T + c)
+    return torch.from_numpy(np.stack(out, axis=1)), r0
+
+
+def test_a_free_object_follows_the_parabola_and_keeps_its_spin_whatever_the_network():
+    lib = MeshLibrary(meshes("beveled_cube"))
+    graph = lib.pack(lib.shape_ids(["beveled_cube"]), torch.tensor([1.4], dtype=torch.float64),
+                     torch.tensor([0.5]), torch.tensor([0.5]))
+    steps = 40
+    frames, _ = flying_frames(lib, graph, [1.0, -2.0, 500.0], [3.0, 1.0, 4.0], [0.5, -2.0, 3.0], 3 + steps)
+    sim = untrained()
+    pred, rot, centre = sim.rollout(frames[:, :3], graph, steps, free_flight=True, poses=True)
+    np.testing.assert_allclose(pred.numpy(), frames[:, 3:].permute(1, 0, 2).numpy(), rtol=0, atol=1e-8)
+    assert sim.rollout_counts == {"object_steps": steps, "network": 0, "free_flight": steps, "asleep": 0}
+    # the same network without the bypass is nowhere near it
+    plain = sim.rollout(frames[:, :3], graph, steps)
+    assert float((plain - frames[:, 3:].permute(1, 0, 2)).abs().max()) > 1.0
+
+
+def test_an_object_near_the_floor_enters_the_network_and_moves_as_without_the_bypass():
+    torch.set_num_threads(1)
+    sim, _ = load_model(MODEL)
+    ms = meshes("beveled_cube", "cylinder", "sphere")
+    sc = resting_scene("cylinder", 1.4, ms, floor_z=0.0)
+    sc.positions[..., 2] += 0.2  # within the floor feature's reach: not free
+    sc.positions[:, 0, 0] += np.arange(sc.num_frames) * 0.1
+    graph, verts, _ = ObjectTracks([sc], MeshLibrary(ms)).track_vertices(torch.arange(1), 3)
+    plain = sim.rollout(verts, graph, 12)
+    bypass = sim.rollout(verts, graph, 12, free_flight=True)
+    assert torch.equal(plain, bypass)
+    assert sim.rollout_counts["free_flight"] == 0 and sim.rollout_counts["network"] == 12
+
+
+def test_what_shares_the_batch_does_not_change_an_object_the_network_moves():
+    """A sliding object rolled out alone, and in one batch with two objects flying high above
+    it: the flying ones leave the network call (select_graphs renumbers the rest), and the
+    sliding one's trajectory must not notice."""
+    torch.set_num_threads(1)
+    sim, _ = load_model(MODEL)
+    ms = meshes("beveled_cube", "cylinder", "sphere")
+    low = resting_scene("beveled_cube", 0.7, ms, floor_z=0.0)
+    low.positions[:, 0, :2] += np.arange(low.num_frames)[:, None] * np.array([0.15, -0.05])
+    scenes = [low]
+    for shape in ("sphere", "cylinder"):
+        high = resting_scene(shape, 1.4, ms, floor_z=0.0)
+        high.positions[:, 0, 2] += 50.0 - 0.5 * G * (np.arange(high.num_frames) / FRAME_RATE) ** 2
+        scenes.append(high)
+    tracks = ObjectTracks(scenes, MeshLibrary(ms))
+    alone_graph, alone_verts, _ = tracks.track_vertices(torch.arange(1), 3)
+    alone = sim.rollout(alone_verts, alone_graph, 10)
+    graph, verts, _ = tracks.track_vertices(torch.tensor([1, 0, 2]), 3)  # the low one in the middle
+    mixed = sim.rollout(verts, graph, 10, free_flight=True)
+    middle = graph.node_graph == 1
+    np.testing.assert_allclose(mixed[:, middle].numpy(), alone.numpy(), rtol=0, atol=1e-9)
+    assert sim.rollout_counts == {"object_steps": 30, "network": 10, "free_flight": 20, "asleep": 0}
+
+
+def test_select_graphs_renumbers_nodes_edges_and_faces():
+    lib = MeshLibrary(meshes("cube", "sphere"))
+    graph = lib.pack(lib.shape_ids(["sphere", "cube", "cube"]), torch.tensor([1.0, 2.0, 2.0], dtype=torch.float64),
+                     torch.tensor([0.1, 0.2, 0.3]), torch.tensor([0.4, 0.5, 0.6]), graph_scene=torch.tensor([0, 0, 0]))
+    x = graph.rest + torch.tensor([[-10.0, 0, 0], [0.0, 0, 0], [2.2, 0, 0]], dtype=torch.float64)[graph.node_graph]
+    with_edges = type(graph)(**{**graph.__dict__, "collision_edges": collision_edges(x, graph, 0.5)})
+    assert len(with_edges.collision_edges.senders)  # the two cubes touch
+    sub, nodes = select_graphs(with_edges, torch.tensor([False, True, True]))
+    assert sub.num_graphs == 2 and torch.equal(sub.rest, graph.rest[nodes])
+    assert torch.equal(sub.node_graph, graph.node_graph[nodes] - 1)
+    for old, new in ((with_edges.mesh_edges, sub.mesh_edges), (with_edges.collision_edges, sub.collision_edges)):
+        kept = (graph.node_graph[old.senders] > 0) & (graph.node_graph[old.receivers] > 0)
+        assert torch.equal(nodes[new.senders], old.senders[kept])
+        assert torch.equal(nodes[new.receivers], old.receivers[kept])
+    assert torch.equal(nodes[sub.faces], graph.faces[graph.node_graph[graph.faces[:, 0]] > 0])
+    assert torch.equal(sub.material, graph.material[nodes])
+
+
+def test_objects_near_each_other_stay_in_the_network_and_far_ones_leave_it():
+    """Multi-object scene high above the floor: two cubes about to touch must be moved by the
+    network (a collision edge may appear within the step), a third far away flies freely."""
+    sim = untrained(collisions=True)
+    lib = MeshLibrary(meshes("cube"))
+    graph = lib.pack(lib.shape_ids(["cube"] * 3), torch.ones(3, dtype=torch.float64), torch.full((3,), .5),
+                     torch.full((3,), .5), graph_scene=torch.zeros(3, dtype=torch.int64))
+    dt = 1.0 / FRAME_RATE
+    start = torch.tensor([[0.0, 0, 100], [1.3, 0, 100], [30.0, 0, 100]], dtype=torch.float64)
+    velocity = torch.tensor([[1.0, 0, 0], [-1.0, 0, 0], [0.0, 0, 0]], dtype=torch.float64)
+    frames = torch.stack([graph.rest + (start + velocity * k * dt)[graph.node_graph]
+                          + torch.tensor([0, 0, -0.5 * G * (k * dt) ** 2], dtype=torch.float64)
+                          for k in range(3)], dim=1)
+    sim.rollout(frames, graph, 1, free_flight=True)
+    assert sim.rollout_counts == {"object_steps": 3, "network": 2, "free_flight": 1, "asleep": 0}
+
+
+def test_sleeping_objects_stay_out_of_the_network_and_keep_their_pose():
+    torch.set_num_threads(1)
+    sim, _ = load_model(MODEL)
+    ms = meshes("beveled_cube", "cylinder", "sphere")
+    scenes = [resting_scene(s, 1.4, ms, floor_z=0.0) for s in ("beveled_cube", "cylinder", "sphere")]
+    graph, verts, _ = ObjectTracks(scenes, MeshLibrary(ms)).track_vertices(torch.arange(3), 3)
+    pred = sim.rollout(verts, graph, 20, sleep=Sleep(), free_flight=True)
+    assert float((pred[-1] - verts[:, -1]).abs().max()) < 1e-12  # shape matching rounds, nothing more
+    assert sim.rollout_counts == {"object_steps": 60, "network": 0, "free_flight": 0, "asleep": 60}
+
+
+def test_free_flight_needs_gravity_and_frame_rate():
+    cfg = build_config(path="configs/gns_tiny.toml")
+    sim = LearnedSimulator(cfg.model, cfg.features, {"floor": None, "materials_vary": False}).eval()
+    lib = MeshLibrary(meshes("cube"))
+    graph = lib.pack(lib.shape_ids(["cube"]), torch.ones(1, dtype=torch.float64), torch.ones(1), torch.ones(1))
+    with pytest.raises(ValueError, match="free flight needs the model's gravity"):
+        sim.rollout(torch.stack([graph.rest] * 3, 1), graph, 1, free_flight=True)
