@@ -193,9 +193,17 @@ class LearnedSimulator(nn.Module):
         checkpoints stay those of one process; eval mode calls the network directly."""
         self.__dict__["_parallel"] = wrapper
 
+    def compile_network(self) -> None:
+        """Run the network through torch.compile (dynamic shapes: every batch has its own node
+        and edge counts). Kept out of the module tree like `distribute`, so state_dict keys and
+        checkpoints are unchanged. The first calls compile (tens of seconds on a CPU); measured
+        in benchmarks/bench_learned_vs_physics.py and bench_train.py."""
+        self.__dict__["_compiled"] = torch.compile(self.network, dynamic=True)
+
     def run_network(self, *args: torch.Tensor) -> torch.Tensor:
         wrapper = self.__dict__.get("_parallel")
-        network = wrapper if wrapper is not None and self.training else self.network
+        network = wrapper if wrapper is not None and self.training else \
+            self.__dict__.get("_compiled", self.network)
         if self.autocast is None:
             return network(*args)
         # features, normalisers, the integrator and shape matching stay outside, in float32/float64

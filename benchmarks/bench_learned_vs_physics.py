@@ -1,0 +1,149 @@
+"""Learned rollouts against PyBullet on the same test scenes: cost and accuracy, in one run.
+
+PyBullet simulates the test scenes of a `datagen toss` dataset again, from the dataset's own
+config and seed (build + step, as `benchmarks/bench_datagen.py` times bare PyBullet, one scene at
+a time on one thread); the GNS rolls the same scenes out from their first 3 frames, all scenes
+batched, in each variant asked:
+
+  plain     the network on every object, float32
+  free      objects out of reach of the floor and of other objects follow the exact inertial
+            update, the network runs on the others (`gns eval --free-flight`)
+  sleep     resting objects keep their pose and leave the network call (`--sleep`)
+  bf16      the network under bfloat16 autocast (`--autocast bf16`)
+  compile   the network through torch.compile (`--compile`; compiled before timing)
+
+joined with "+" (e.g. free+bf16). Cost is wall-clock ms per simulated second per trajectory
+(best of --repeats); "x PyBullet" is PyBullet's cost over the variant's (above 1: faster than
+PyBullet); accuracy is the MOVi-A metrics against the dataset (PyBullet's own scenes, so
+PyBullet's error is 0 by construction). One thread throughout.
+
+    python benchmarks/bench_learned_vs_physics.py --run gns_movi_a_long --data runs/data/movi_a_4000
+    python benchmarks/bench_learned_vs_physics.py --run RUN --data DIR --variants plain,free,free+bf16 --json out.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from datagen.scenes import sample_scene  # noqa: E402
+from datagen.simulate import step_only  # noqa: E402
+from gns.evaluate import checkpoint_of, load_split  # noqa: E402
+from gns.metrics import evaluate_scenes  # noqa: E402
+from gns.rollout import rollout_scenes  # noqa: E402
+from gns.simulator import Sleep  # noqa: E402
+from gns.train import load_model, read_checkpoint  # noqa: E402
+
+KNOWN = ("plain", "free", "sleep", "bf16", "compile")
+
+
+def parse_variants(text: str) -> list[tuple[str, set[str]]]:
+    out = []
+    for name in text.split(","):
+        parts = set(name.strip().split("+"))
+        unknown = parts - set(KNOWN)
+        if unknown:
+            raise SystemExit(f"error: unknown variant part {sorted(unknown)[0]!r}; known: {', '.join(KNOWN)}")
+        out.append((name.strip(), parts))
+    return out
+
+
+def best_of(repeats: int, fn) -> tuple[float, object]:
+    best, out = float("inf"), None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def pybullet_specs(ds, scenes, split: str) -> tuple[dict, list]:
+    """The scenes' PyBullet specs from the dataset's config and seed, checked against frame 0."""
+    cfg, seed = ds.meta["config"], int(ds.meta["seed"])
+    specs = [sample_scene(cfg, seed, split, int(sc.attrs["index"])) for sc in scenes]
+    for spec, sc in zip(specs, scenes):
+        start = np.array([o.position for o in spec.objects])
+        if not np.allclose(start, sc.positions[0], atol=1e-9):
+            raise SystemExit(f"error: scene {sc.attrs.get('scene_id')} does not start where the dataset's config "
+                             "and seed put it; the dataset was not made by this datagen")
+    return cfg, specs
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", required=True, help="run folder, checkpoint or shipped model name")
+    p.add_argument("--data", required=True, help="a datagen toss dataset (its config and seed remake the scenes)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--limit", type=int, help="first N scenes only")
+    p.add_argument("--repeats", type=int, default=3, help="timed repeats, best taken (default 3)")
+    p.add_argument("--variants", default="plain,free,bf16,free+bf16,compile,free+bf16+compile",
+                   help="comma list of +-joined parts: " + ", ".join(KNOWN))
+    p.add_argument("--json", help="also write the rows here")
+    a = p.parse_args(argv)
+    variants = parse_variants(a.variants)
+    torch.set_num_threads(1)
+
+    saved = read_checkpoint(checkpoint_of(a.run))
+    sim, _ = load_model(saved, "cpu")
+    sim.eval()
+    ds, scenes = load_split(a.data, a.split, a.limit, saved["spec"]["frame_rate"])
+    if ds.stride != 1:
+        raise SystemExit("error: the model steps at a stride of the data's frames; this benchmark compares "
+                         "at the data's own rate")
+    cfg, specs = pybullet_specs(ds, scenes, a.split)
+
+    physics_seconds, _ = best_of(a.repeats, lambda: [step_only(s, cfg) for s in specs])
+    physics_simulated = sum((sc.num_frames - 1) / ds.frame_rate for sc in scenes)
+    physics_ms = 1e3 * physics_seconds / physics_simulated
+    simulated = sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
+    rows = [{"variant": f"PyBullet {cfg['physics']['rate']} Hz, {cfg['physics']['solver_iterations']} iterations",
+             "ms_per_simulated_second": physics_ms, "x_pybullet": 1.0, "network_share_pct": None,
+             "position_error_pct": 0.0, "rotation_error_deg": 0.0, "penetration_pct": None}]
+    for name, parts in variants:
+        sim.autocast = torch.bfloat16 if "bf16" in parts else None
+        sim.__dict__.pop("_compiled", None)
+        if "compile" in parts:
+            sim.compile_network()
+
+        def roll():
+            return rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, progress=False,
+                                  free_flight="free" in parts, sleep=Sleep() if "sleep" in parts else None)
+        t0 = time.perf_counter()
+        roll()  # warm-up: compiles, fills caches
+        warm = time.perf_counter() - t0
+        seconds, pred = best_of(a.repeats, roll)
+        counts = sim.rollout_counts
+        r = evaluate_scenes(pred, scenes, ds.meshes, floor_z=float(ds.floor["z"]) if ds.floor else 0.0)
+        ms = 1e3 * seconds / simulated
+        rows.append({"variant": f"GNS {name}", "ms_per_simulated_second": ms, "x_pybullet": physics_ms / ms,
+                     "network_share_pct": 100.0 * counts["network"] / counts["object_steps"],
+                     "position_error_pct": r["position_error_pct"], "rotation_error_deg": r["rotation_error_deg"],
+                     "penetration_pct": r["penetration_pct"], "first_call_seconds": warm, "counts": counts})
+        print(f"  {name}: {ms:.2f} ms per simulated s", file=sys.stderr, flush=True)
+
+    print(f"{len(scenes)} {a.split} scenes of {a.data} ({ds.frame_rate:g} fps), model {a.run}; "
+          f"one thread, best of {a.repeats}; GNS scenes batched")
+    print("| simulator | ms per simulated s | x PyBullet throughput | object-steps in the network | "
+          "position % | rotation deg | penetration % |")
+    print("|---|---|---|---|---|---|---|")
+    fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
+    for r in rows:
+        print(f"| {r['variant']} | {r['ms_per_simulated_second']:.2f} | {r['x_pybullet']:.2f} | "
+              f"{fmt(r['network_share_pct'], '.1f')}{'' if r['network_share_pct'] is None else '%'} | "
+              f"{fmt(r['position_error_pct'], '.2f')} | {fmt(r['rotation_error_deg'], '.2f')} | "
+              f"{fmt(r['penetration_pct'], '.3f')} |")
+    if a.json:
+        Path(a.json).write_text(json.dumps({"run": a.run, "data": a.data, "split": a.split, "scenes": len(scenes),
+                                            "repeats": a.repeats, "rows": rows}, indent=2, default=float) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
