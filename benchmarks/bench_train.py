@@ -8,6 +8,12 @@ timed in the same run, so the fraction says how well the small MLPs use the hard
     python benchmarks/bench_train.py                      # synthetic MOVi-like tosses
     python benchmarks/bench_train.py --data data/movi_a   # a real dataset's train split
     python benchmarks/bench_train.py --autocast --rounds 3   # float32 against bf16 autocast, alternated
+    python benchmarks/bench_train.py --presets cpu --variants fp32,bf16,compile,bf16+compile --batch 32
+
+A variant joins with "+": bf16 (the network under bfloat16 autocast, train.autocast=bf16) and
+compile (the network through torch.compile, compiled during the untimed warm-up steps). Each
+row's achieved rate is also given against the matmul peak of its own dtype (bf16 rows: a
+bfloat16 1024^3 matmul), so a faster number type does not pass for better use of the hardware.
 """
 from __future__ import annotations
 
@@ -50,8 +56,8 @@ def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0) -> tuple
     return ObjectTracks(out, MeshLibrary(meshes)), spec
 
 
-def matmul_gflops(size: int = 1024, seconds: float = 1.0) -> float:
-    a, b = torch.randn(size, size), torch.randn(size, size)
+def matmul_gflops(size: int = 1024, seconds: float = 1.0, dtype=torch.float32) -> float:
+    a, b = torch.randn(size, size, dtype=dtype), torch.randn(size, size, dtype=dtype)
     for _ in range(3):
         a @ b
     n, start = 0, time.perf_counter()
@@ -62,15 +68,19 @@ def matmul_gflops(size: int = 1024, seconds: float = 1.0) -> float:
 
 
 def bench_preset(name: str, tracks: ObjectTracks, spec: dict, steps: int, warmup: int, threads: int | None,
-                 autocast: str = "none") -> dict:
-    cfg = build_config(path=CONFIGS / f"gns_{name}.toml",
-                       overrides=[] if threads is None else [f"train.threads={threads}"])
+                 autocast: str = "none", compile: bool = False, batch: int | None = None) -> dict:
+    overrides = [] if threads is None else [f"train.threads={threads}"]
+    if batch is not None:
+        overrides.append(f"train.batch_size={batch}")
+    cfg = build_config(path=CONFIGS / f"gns_{name}.toml", overrides=overrides)
     threads = cfg.train.threads or os.cpu_count()
     torch.set_num_threads(threads)
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     sim = build_simulator(cfg, spec).train()
     sim.autocast = torch.bfloat16 if autocast == "bf16" else None
+    if compile:
+        sim.compile_network()
     optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
 
     def step(i):
@@ -88,7 +98,8 @@ def bench_preset(name: str, tracks: ObjectTracks, spec: dict, steps: int, warmup
         flops += 3 * sim.network.forward_flops(n, e)
     elapsed = time.perf_counter() - start
     m = cfg.model
-    return {"preset": name + ("+bf16" if autocast == "bf16" else ""), "threads": threads, "LxK": f"{m.message_passing_steps}x{m.processor_repeats}", "latent": m.latent_size,
+    return {"preset": name + ("+bf16" if autocast == "bf16" else "") + ("+compile" if compile else ""),
+            "dtype": "bf16" if autocast == "bf16" else "fp32", "threads": threads, "LxK": f"{m.message_passing_steps}x{m.processor_repeats}", "latent": m.latent_size,
             "batch": cfg.train.batch_size, "nodes": nodes / steps, "edges": edges / steps,
             "steps_per_sec": steps / elapsed, "graphs_per_sec": steps * cfg.train.batch_size / elapsed,
             "gflop_per_step": flops / steps / 1e9, "gflops": flops / elapsed / 1e9}
@@ -104,8 +115,11 @@ def main(argv=None) -> None:
     p.add_argument("--threads", type=int, help="torch threads for every preset (default: the preset's)")
     p.add_argument("--autocast", action="store_true",
                    help="time every preset in float32 and under bf16 autocast (train.autocast=bf16), alternated")
+    p.add_argument("--variants", help="comma list of fp32, bf16, compile, bf16+compile (default fp32; "
+                                      "--autocast = fp32,bf16)")
+    p.add_argument("--batch", type=int, help="training batch size for every preset (default: the preset's)")
     p.add_argument("--rounds", type=int, default=1,
-                   help="with --autocast: alternate the two this many times and keep each one's best")
+                   help="with several variants: alternate them this many times and keep each one's best")
     args = p.parse_args(argv)
 
     if args.data:
@@ -122,30 +136,37 @@ def main(argv=None) -> None:
     print(header)
     print("-" * len(header))
     peaks = {}
-    kinds = ("none", "bf16") if args.autocast else ("none",)
+    variants = (args.variants or ("fp32,bf16" if args.autocast else "fp32")).split(",")
+    for v in variants:
+        if set(v.split("+")) - {"fp32", "bf16", "compile"}:
+            raise SystemExit(f"error: unknown variant {v!r}; parts are fp32, bf16, compile")
     rows = []
     for name in args.presets.split(","):
-        # alternated, so that a change of the machine's load hits both alike
+        # alternated, so that a change of the machine's load hits all alike
         best = {}
-        for _ in range(args.rounds if args.autocast else 1):
-            for kind in kinds:
-                r = bench_preset(name.strip(), tracks, spec, args.steps, args.warmup, args.threads, kind)
-                if kind not in best or r["steps_per_sec"] > best[kind]["steps_per_sec"]:
-                    best[kind] = r
-        rows += [best[k] for k in kinds]
+        for _ in range(args.rounds):
+            for v in variants:
+                parts = set(v.split("+"))
+                r = bench_preset(name.strip(), tracks, spec, args.steps, args.warmup, args.threads,
+                                 "bf16" if "bf16" in parts else "none", "compile" in parts, args.batch)
+                if v not in best or r["steps_per_sec"] > best[v]["steps_per_sec"]:
+                    best[v] = r
+        rows += [best[v] for v in variants]
     for r in rows:
-        if r["threads"] not in peaks:
-            peaks[r["threads"]] = matmul_gflops()  # torch's thread count is still the preset's
-        peak = peaks[r["threads"]]
+        key = (r["threads"], r["dtype"])
+        if key not in peaks:
+            peaks[key] = matmul_gflops(dtype=torch.bfloat16 if r["dtype"] == "bf16" else torch.float32)
+        peak = peaks[key]
         print(f"{r['preset']:<11}{r['threads']:>8}{r['LxK']:>6}{r['latent']:>7}{r['batch']:>6}{r['nodes']:>7.0f}"
               f"{r['edges']:>7.0f}{r['steps_per_sec']:>9.2f}{r['graphs_per_sec']:>10.1f}{r['gflop_per_step']:>11.3f}"
               f"{r['gflops']:>9.2f}{peak:>8.1f}{r['gflops'] / peak:>9.1%}")
-    print("\nGFLOP counts Linear layers only, training step = 3x forward; matmul = measured float32 "
-          "1024^3 GFLOP/s with the same threads.")
-    if args.autocast:
-        for name in args.presets.split(","):
-            base, bf16 = (next(r for r in rows if r["preset"] == name.strip() + suffix) for suffix in ("", "+bf16"))
-            print(f"{name.strip()}: bf16 autocast {bf16['steps_per_sec'] / base['steps_per_sec']:.2f}x the float32 steps/s")
+    print("\nGFLOP counts Linear layers only, training step = 3x forward; matmul = measured 1024^3 "
+          "GFLOP/s of the row's dtype (float32, or bfloat16 for bf16 rows) with the same threads.")
+    for name in args.presets.split(","):
+        base = next(r for r in rows if r["preset"] == name.strip() or r["preset"].startswith(name.strip() + "+"))
+        for r in rows:
+            if r is not base and r["preset"].split("+")[0] == name.strip():
+                print(f"{r['preset']}: {r['steps_per_sec'] / base['steps_per_sec']:.2f}x the steps/s of {base['preset']}")
 
 
 if __name__ == "__main__":

@@ -65,6 +65,7 @@ class TrainConfig:
     threads: int = 0                   # torch threads; 0 = all cores
     device: str = "cpu"                # with torchrun on CUDA each process takes cuda:LOCAL_RANK
     autocast: str = "none"             # "bf16": the network (only) runs under bfloat16 autocast
+    compile: bool = False              # the network through torch.compile (with bf16: 2.1x steps/s, bench_train.py)
     log_every: int = 100
     checkpoint_every: int = 1000
     keep_checkpoints: int = 3          # numbered checkpoints kept besides latest.pt; 0 keeps all

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors, per_scene_means
@@ -53,7 +54,8 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                  shape_matching: bool = True, plots_dir: str | Path | None = None, progress: bool = True,
                  batch_tracks: int = 256, sleep=None, symmetrize: bool = False,
                  at_data_rate: bool = False, body_frames: bool = False,
-                 device: str = "cpu", free_flight: bool = False) -> tuple[dict, list, list, Dataset]:
+                 device: str = "cpu", free_flight: bool = False, autocast: str = "none",
+                 compile: bool = False) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it.
 
     A model trained at every k-th frame rolls out at its own rate from frames 0, k, 2k; it is
@@ -69,6 +71,9 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     sim, _ = load_model(saved, device)
     sim.symmetrize = symmetrize
     sim.body_frames = body_frames
+    sim.autocast = torch.bfloat16 if autocast == "bf16" else None
+    if compile:
+        sim.compile_network()
     if plots_dir is not None:
         check_writable(plots_dir, "plots folder")
     ds, scenes = load_split(data, split, limit, saved["spec"]["frame_rate"])
@@ -93,7 +98,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                    outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
                    diverged_scenes=diverged, num_diverged=len(diverged), symmetrize=symmetrize,
                    body_frames=body_frames, at_data_rate=at_data_rate, model_stride=model_stride,
-                   free_flight=free_flight, object_steps=counts,
+                   free_flight=free_flight, object_steps=counts, autocast=autocast, compile=compile,
                    device=str(device), **provenance_of(saved, ds))
     return results, pred, scenes, ds
 

@@ -543,6 +543,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
         _restore_rng(ckpt["rng"], rng)
     sim.to(device).train()
     sim.autocast = torch.bfloat16 if cfg.train.autocast == "bf16" else None
+    if cfg.train.compile:
+        sim.compile_network()
     if device.type == "cuda":
         torch.cuda.set_device(device)
     parallel.start(world, device)

@@ -157,3 +157,53 @@ def test_free_flight_needs_gravity_and_frame_rate():
     graph = lib.pack(lib.shape_ids(["cube"]), torch.ones(1, dtype=torch.float64), torch.ones(1), torch.ones(1))
     with pytest.raises(ValueError, match="free flight needs the model's gravity"):
         sim.rollout(torch.stack([graph.rest] * 3, 1), graph, 1, free_flight=True)
+
+
+# --- the speed options as a user reaches them: gns eval / rollout / train flags -------------
+
+def test_eval_records_free_flight_bf16_and_the_share_of_object_steps(tmp_path, capsys):
+    import json
+
+    from gns_fixtures import write_toss_dataset
+    from gns.cli import main
+    data = str(write_toss_dataset(tmp_path / "d", train=2, valid=3, frames=12))
+    out = {}
+    for name, extra in (("plain", []), ("fast", ["--free-flight", "--autocast", "bf16"])):
+        main(["eval", "--run", str(MODEL), "--data", data, "--split", "valid", "--json", str(tmp_path / f"{name}.json"),
+              *extra])
+        out[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    text = capsys.readouterr().out
+    assert "object-steps through the network: " in text
+    fast, plain = out["fast"], out["plain"]
+    assert fast["free_flight"] and fast["autocast"] == "bf16" and not plain["free_flight"]
+    assert plain["object_steps"]["network"] == plain["object_steps"]["object_steps"] == 3 * 9
+    assert fast["object_steps"]["free_flight"] > 0  # the fixture's cubes start 1.5-3 units up
+    assert fast["object_steps"]["network"] + fast["object_steps"]["free_flight"] == 3 * 9
+
+
+def test_a_compiled_network_rolls_out_as_the_eager_one():
+    sim = untrained()
+    lib = MeshLibrary(meshes("cube"))
+    graph = lib.pack(lib.shape_ids(["cube", "cube"]), torch.tensor([1.0, 2.0], dtype=torch.float64),
+                     torch.full((2,), .5), torch.full((2,), .5))
+    frames, _ = flying_frames(lib, lib.pack(lib.shape_ids(["cube"]), torch.ones(1, dtype=torch.float64),
+                                            torch.ones(1), torch.ones(1)), [0, 0, 0.8], [1, 0, 0], [0, 1, 0], 3)
+    history = torch.cat([frames, frames * 2 + 0.5], dim=0)[: graph.num_nodes]
+    eager = sim.rollout(history, graph, 4)
+    sim.compile_network()
+    compiled = sim.rollout(history, graph, 4)
+    assert "_compiled" not in dict(sim.named_modules())  # checkpoints keep their keys
+    np.testing.assert_allclose(compiled.numpy(), eager.numpy(), rtol=0, atol=1e-5)
+
+
+def test_train_with_compile_and_bf16_writes_a_checkpoint_that_loads_uncompiled(tmp_path):
+    from gns_fixtures import write_toss_dataset
+    from gns.cli import main
+    from gns.train import read_checkpoint
+    data = str(write_toss_dataset(tmp_path / "d", train=3, valid=1, frames=8))
+    main(["train", "--data", data, "--out", str(tmp_path / "r"), "--config", "gns_tiny", "--steps", "3",
+          "--compile", "--autocast", "bf16", "--set", "valid.every=0"])
+    saved = read_checkpoint(tmp_path / "r" / "latest.pt")
+    assert saved["config"]["train"]["compile"] is True and saved["step"] == 3
+    sim, _ = load_model(saved)  # keys of the plain network: nothing of the compiled wrapper
+    assert all("_orig_mod" not in k for k in saved["model"])
