@@ -31,6 +31,9 @@ class FeatureConfig:
     velocity: bool = True              # 2 finite-difference velocities per node
     floor_distance: bool = True        # used only when the dataset has a floor
     floor_clip: float = 0.5            # floor distance clipped to [0, floor_clip], scene units
+    # clip to [-floor_clip, floor_clip]: a vertex below the floor shows how deep (a rollout's
+    # penetration), instead of reading as touching
+    floor_signed: bool = False
     material: bool = True              # friction, restitution; used only when materials vary
     rest_position: bool = True         # body-frame rest position of each vertex (node feature)
     rest_edges: bool = True            # d^U and |d^U| on edges (relative encoding only)

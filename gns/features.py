@@ -6,7 +6,8 @@ round-off of the differences, not of the absolute coordinates).
 
 Feature groups (each normalised separately, each switchable in [features]):
   node  velocity       (N, 6)  x_t - x_{t-1}, x_{t-1} - x_{t-2}
-        floor          (N, 1)  clip(z_t - floor_z, 0, floor_clip); only if the data has a floor
+        floor          (N, 1)  clip(z_t - floor_z, 0, floor_clip) (from -floor_clip with
+                               floor_signed); only if the data has a floor
         material       (N, 2)  friction, restitution; only if the data's materials vary
         rest_position  (N, 3)  scaled rest vertex in the body frame
         position       (N, 3)  x_t; absolute encoding only
@@ -93,6 +94,7 @@ class FeatureLayout:
     collision_groups: tuple[tuple[str, int], ...] = ()
     collision_radius: float = 0.0
     velocity_scale: float = 0.0      # "velocity_direction": v / (|v| + velocity_scale), scene units per frame
+    floor_signed: bool = False       # the floor distance keeps its sign below the floor (to -floor_clip)
 
     @property
     def collisions(self) -> bool:
@@ -149,7 +151,7 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, colli
         raise ConfigError("no node features are on: switch on features.velocity or features.rest_position")
     collision = (("collision_relative", 3), ("collision_relative_norm", 1)) if collisions else ()
     return FeatureLayout(tuple(node), tuple(edge), floor_z if f.floor_distance else None, f.floor_clip,
-                         collision, float(f.collision_radius), velocity_scale)
+                         collision, float(f.collision_radius), velocity_scale, bool(f.floor_signed))
 
 
 def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph) -> dict[str, torch.Tensor]:
@@ -168,7 +170,8 @@ def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
             v = (history[:, 1:] - history[:, :-1]).flip(1)
             out[name] = (v / (v.norm(dim=-1, keepdim=True) + layout.velocity_scale)).reshape(len(history), -1)
         elif name == "floor":
-            out[name] = (x_t[:, 2:3] - layout.floor_z).clamp(0.0, layout.floor_clip)
+            low = -layout.floor_clip if layout.floor_signed else 0.0
+            out[name] = (x_t[:, 2:3] - layout.floor_z).clamp(low, layout.floor_clip)
         elif name == "material":
             out[name] = graph.material
         elif name == "rest_position":

@@ -49,7 +49,9 @@ PRESETS = {
                   reference=(9600, 200), architectures=[(1, 1, 64), (5, 1, 32), (5, 1, 64), (5, 1, 128), (10, 3, 128)],
                   batches=[1, 8, 40], single_scenes=8,
                   train=dict(scenes=400, model="cpu", steps=6000, strides=[1, 2, 4],
-                             architectures=[(1, 1, 64), (5, 1, 32), (5, 1, 128)])),
+                             architectures=[(1, 1, 64), (5, 1, 32), (5, 1, 128)],
+                             # 2.1x the steps/s of float32 (benchmarks/bench_train.py), same steps
+                             sets=["train.autocast=bf16", "train.compile=true"])),
 }
 
 
@@ -140,7 +142,7 @@ def sweep_runs(p: dict, out: Path) -> list[tuple[str, Path]]:
     say(f"sweep: {len(runs)} runs of {t['steps']} steps, base model L{base.message_passing_steps}"
         f"xK{base.processor_repeats} latent {base.latent_size}")
     for _, run, overrides in runs:
-        train_stage(data.root, run, t["model"], [f"train.steps={t['steps']}", *overrides])
+        train_stage(data.root, run, t["model"], [f"train.steps={t['steps']}", *t.get("sets", []), *overrides])
     return [(knob, run) for knob, run, _ in runs]
 
 

@@ -207,3 +207,18 @@ def test_train_with_compile_and_bf16_writes_a_checkpoint_that_loads_uncompiled(t
     assert saved["config"]["train"]["compile"] is True and saved["step"] == 3
     sim, _ = load_model(saved)  # keys of the plain network: nothing of the compiled wrapper
     assert all("_orig_mod" not in k for k in saved["model"])
+
+
+def test_signed_floor_distance_shows_how_deep_a_vertex_is_below_the_floor():
+    from gns.features import raw_node_features
+    lib = MeshLibrary(meshes("cube"))
+    graph = lib.pack(lib.shape_ids(["cube"]), torch.ones(1, dtype=torch.float64), torch.ones(1), torch.ones(1))
+    x = graph.rest + torch.tensor([0.0, 0.0, 0.2], dtype=torch.float64)  # bottom face 0.3 below the floor
+    history = torch.stack([x, x, x], dim=1)
+    for signed, bottom in ((False, 0.0), (True, -0.3)):
+        cfg = build_config(path="configs/gns_tiny.toml", overrides=[f"features.floor_signed={signed}",
+                                                                      "features.floor_clip=0.5"])
+        sim = LearnedSimulator(cfg.model, cfg.features, {**SPEC, "collision_edges": False})
+        floor = raw_node_features(sim.layout, history, graph)["floor"][:, 0]
+        assert float(floor.min()) == pytest.approx(bottom, abs=1e-6)
+        assert float(floor.max()) == pytest.approx(0.5)  # the top face (0.7 up) is clipped
