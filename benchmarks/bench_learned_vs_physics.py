@@ -13,7 +13,8 @@ batched, in each variant asked:
   compile   the network through torch.compile (`--compile`; compiled before timing)
 
 joined with "+" (e.g. free+bf16). Cost is wall-clock ms per simulated second per trajectory
-(best of --repeats); "x PyBullet" is PyBullet's cost over the variant's (above 1: faster than
+(best of --repeats rounds, each round timing PyBullet and every variant in turn, so that the
+load of a shared machine hits all alike); "x PyBullet" is PyBullet's cost over the variant's (above 1: faster than
 PyBullet); accuracy is the MOVi-A metrics against the dataset (PyBullet's own scenes, so
 PyBullet's error is 0 by construction). One thread throughout.
 
@@ -55,15 +56,6 @@ def parse_variants(text: str) -> list[tuple[str, set[str]]]:
     return out
 
 
-def best_of(repeats: int, fn) -> tuple[float, object]:
-    best, out = float("inf"), None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
-
-
 def pybullet_specs(ds, scenes, split: str) -> tuple[dict, list]:
     """The scenes' PyBullet specs from the dataset's config and seed, checked against frame 0."""
     cfg, seed = ds.meta["config"], int(ds.meta["seed"])
@@ -99,34 +91,56 @@ def main(argv=None) -> int:
                          "at the data's own rate")
     cfg, specs = pybullet_specs(ds, scenes, a.split)
 
-    physics_seconds, _ = best_of(a.repeats, lambda: [step_only(s, cfg) for s in specs])
     physics_simulated = sum((sc.num_frames - 1) / ds.frame_rate for sc in scenes)
-    physics_ms = 1e3 * physics_seconds / physics_simulated
     simulated = sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
-    rows = [{"variant": f"PyBullet {cfg['physics']['rate']} Hz, {cfg['physics']['solver_iterations']} iterations",
-             "ms_per_simulated_second": physics_ms, "x_pybullet": 1.0, "network_share_pct": None,
-             "position_error_pct": 0.0, "rotation_error_deg": 0.0, "penetration_pct": None}]
-    for name, parts in variants:
+    compiled = None
+
+    def configure(parts: set[str]):
+        nonlocal compiled
         sim.autocast = torch.bfloat16 if "bf16" in parts else None
         sim.__dict__.pop("_compiled", None)
         if "compile" in parts:
-            sim.compile_network()
+            if compiled is None:
+                sim.compile_network()
+                compiled = sim.__dict__["_compiled"]
+            sim.__dict__["_compiled"] = compiled
 
-        def roll():
-            return rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, progress=False,
-                                  free_flight="free" in parts, sleep=Sleep() if "sleep" in parts else None)
+    def roll(parts: set[str]):
+        configure(parts)
+        return rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, progress=False,
+                              free_flight="free" in parts, sleep=Sleep() if "sleep" in parts else None)
+
+    first = {}
+    for name, parts in variants:  # warm-up: compiles, fills caches
         t0 = time.perf_counter()
-        roll()  # warm-up: compiles, fills caches
-        warm = time.perf_counter() - t0
-        seconds, pred = best_of(a.repeats, roll)
-        counts = sim.rollout_counts
-        r = evaluate_scenes(pred, scenes, ds.meshes, floor_z=float(ds.floor["z"]) if ds.floor else 0.0)
-        ms = 1e3 * seconds / simulated
+        roll(parts)
+        first[name] = time.perf_counter() - t0
+    # rounds alternate PyBullet and every variant, so a change of the machine's load hits all alike
+    best = {"physics": float("inf"), **{name: float("inf") for name, _ in variants}}
+    preds, counts = {}, {}
+    for _ in range(a.repeats):
+        t0 = time.perf_counter()
+        for s in specs:
+            step_only(s, cfg)
+        best["physics"] = min(best["physics"], time.perf_counter() - t0)
+        for name, parts in variants:
+            t0 = time.perf_counter()
+            preds[name] = roll(parts)
+            best[name] = min(best[name], time.perf_counter() - t0)
+            counts[name] = dict(sim.rollout_counts)
+    physics_ms = 1e3 * best["physics"] / physics_simulated
+    rows = [{"variant": f"PyBullet {cfg['physics']['rate']} Hz, {cfg['physics']['solver_iterations']} iterations",
+             "ms_per_simulated_second": physics_ms, "x_pybullet": 1.0, "network_share_pct": None,
+             "position_error_pct": 0.0, "rotation_error_deg": 0.0, "penetration_pct": None}]
+    floor_z = float(ds.floor["z"]) if ds.floor else 0.0
+    for name, _ in variants:
+        r = evaluate_scenes(preds[name], scenes, ds.meshes, floor_z=floor_z)
+        ms = 1e3 * best[name] / simulated
+        c = counts[name]
         rows.append({"variant": f"GNS {name}", "ms_per_simulated_second": ms, "x_pybullet": physics_ms / ms,
-                     "network_share_pct": 100.0 * counts["network"] / counts["object_steps"],
+                     "network_share_pct": 100.0 * c["network"] / c["object_steps"],
                      "position_error_pct": r["position_error_pct"], "rotation_error_deg": r["rotation_error_deg"],
-                     "penetration_pct": r["penetration_pct"], "first_call_seconds": warm, "counts": counts})
-        print(f"  {name}: {ms:.2f} ms per simulated s", file=sys.stderr, flush=True)
+                     "penetration_pct": r["penetration_pct"], "first_call_seconds": first[name], "counts": c})
 
     print(f"{len(scenes)} {a.split} scenes of {a.data} ({ds.frame_rate:g} fps), model {a.run}; "
           f"one thread, best of {a.repeats}; GNS scenes batched")

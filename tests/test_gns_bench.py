@@ -51,3 +51,25 @@ def test_bench_train_times_float32_against_bf16_autocast(capsys):
     assert [r[0] for r in rows] == ["tiny", "tiny+bf16", "tiny:"]
     ratio = float(rows[2][3].rstrip("x"))
     assert abs(ratio - float(rows[1][7]) / float(rows[0][7])) < 0.02   # the ratio of the rows printed
+
+
+def test_bench_learned_vs_physics_times_pybullet_and_each_variant_on_the_same_scenes(tmp_path, capsys):
+    import json
+
+    from datagen.cli import main as datagen_main
+    data = tmp_path / "d"
+    assert datagen_main(["toss", "--out", str(data), "--scenes", "0", "--test", "3", "--seed", "5",
+                         "--shapes", "beveled_cube,cylinder,sphere", "--quiet"]) == 0
+    spec = importlib.util.spec_from_file_location("bench_lvp", BENCH.parent / "bench_learned_vs_physics.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    model = Path(__file__).parent / "data" / "gns_movi_a_small.pt"
+    assert bench.main(["--run", str(model), "--data", str(data), "--repeats", "1", "--variants", "plain,free+bf16",
+                       "--json", str(tmp_path / "b.json")]) == 0
+    rows = json.loads((tmp_path / "b.json").read_text())["rows"]
+    assert [r["variant"] for r in rows] == ["PyBullet 240 Hz, 50 iterations", "GNS plain", "GNS free+bf16"]
+    assert all(r["ms_per_simulated_second"] > 0 for r in rows)
+    plain, fast = rows[1], rows[2]
+    assert plain["network_share_pct"] == 100.0 and fast["network_share_pct"] < 100.0  # tosses start in the air
+    assert abs(fast["position_error_pct"] - plain["position_error_pct"]) < 0.5 * plain["position_error_pct"]
+    assert "| GNS free+bf16 |" in capsys.readouterr().out
