@@ -251,11 +251,15 @@ class Model:
             warnings.warn("the model was trained on single-object scenes and has no collision edges: "
                           "objects of one scene will pass through each other", stacklevel=stacklevel)
 
-    def step(self, state: State, shape_matching: bool = True) -> State:
+    def step(self, state: State, shape_matching: bool = True, free_flight: bool = False) -> State:
         """The state one model step (dt) later. Keeps the autograd graph when grad is enabled
-        (wrap a loop in torch.no_grad() otherwise)."""
+        (wrap a loop in torch.no_grad() otherwise). free_flight: objects out of reach of the
+        floor and of each other follow the exact inertial update, not the network (faster,
+        and exact in flight; `gns eval --free-flight`)."""
         sim, graph = self.simulator, state.graph
-        x = sim.predict_next(*state.frames[-HISTORY:], graph)
+        if free_flight and sim.gravity_per_frame is None:
+            raise DataError("free_flight needs a model that knows gravity and its frame rate")
+        x = sim.advance(list(state.frames), graph, free_flight=free_flight)
         rot, centre, matched = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
         if shape_matching:
             x = matched
@@ -267,9 +271,10 @@ class Model:
 
     def rollout(self, shapes: list[str], positions, quaternions, velocities=None, angular_velocities=None, *,
                 steps: int, scales=1.0, friction=None, restitution=None, scene=None, history=None,
-                shape_matching: bool = True, differentiable: bool = False) -> Trajectory:
+                shape_matching: bool = True, differentiable: bool = False, free_flight: bool = False) -> Trajectory:
         """Roll B objects out for `steps` model steps (arguments as `state`). differentiable=True
-        keeps the autograd graph from the inputs (tensors with requires_grad) to every output."""
+        keeps the autograd graph from the inputs (tensors with requires_grad) to every output;
+        free_flight as in `step`."""
         if not isinstance(steps, numbers.Integral) or steps < 0:
             raise DataError(f"steps must be a whole number >= 0, got {steps!r}")
         with torch.set_grad_enabled(differentiable):
@@ -278,7 +283,7 @@ class Model:
                                _caller_depth=1)
             states = [state]
             for _ in range(steps):
-                states.append(self.step(states[-1], shape_matching))
+                states.append(self.step(states[-1], shape_matching, free_flight))
             return Trajectory(torch.stack([s.positions for s in states]), torch.stack([s.quaternions for s in states]),
                               torch.stack([s.vertices for s in states]), state.vertex_object, self.dt)
 

@@ -329,6 +329,55 @@ class LearnedSimulator(nn.Module):
         centre = 2 * t1 - t0 + self.gravity_per_frame.to(t1)
         return (rot[graph.node_graph] @ graph.rest[:, :, None])[..., 0] + centre[graph.node_graph]
 
+    def advance(self, frames: list[torch.Tensor], graph: Graph, sleep: Sleep | None = None, free_flight: bool = False,
+                pose: list | None = None, counts: dict | None = None) -> torch.Tensor:
+        """One rollout step: positions (N, 3) at t+1 from frames [..., x_{t-2}, x_{t-1}, x_t], before
+        shape matching. Sleeping objects keep x_t, free ones (with `free_flight`; `pose` holds the
+        (R, t) of the last two frames) take the inertial update, the rest the network's answer.
+        `counts` (if given) adds this step's object-steps: in the network, free, asleep."""
+        counts = {} if counts is None else counts
+        for key in ("object_steps", "network", "free_flight", "asleep"):
+            counts.setdefault(key, 0)
+        if free_flight and pose is None:
+            pose = [shape_match_packed(f, graph.rest, graph.node_graph, graph.num_graphs)[:2] for f in frames[-2:]]
+        step_graph, contacts = graph, None
+        if self.layout.collisions and (sleep is not None or free_flight):
+            # built once from x_t: the network, the wake-up and the free-flight tests share them
+            contacts = self.collision_edges(frames[-1], graph)
+            step_graph = replace(graph, collision_edges=contacts)
+        skip = torch.zeros(graph.num_graphs, dtype=torch.bool, device=frames[-1].device)
+        if sleep is not None:
+            sleeping = sleep.asleep_graphs(frames, graph, self.gravity_step, self.layout.floor_z, contacts)
+            counts["asleep"] += int(sleeping.sum())
+            skip |= sleeping
+        if free_flight:
+            ballistic = self.inertial_step(*pose, graph)
+            free = self.in_free_flight(frames, ballistic, graph, contacts) & ~skip
+            counts["free_flight"] += int(free.sum())
+            skip |= free
+        if not skip.any():
+            x = self.predict_next(*frames[-HISTORY:], step_graph)
+            counts["network"] += graph.num_graphs
+        else:
+            x = frames[-1].clone()  # sleeping objects keep their pose
+            if free_flight:
+                x = torch.where(free[graph.node_graph, None], ballistic, x)
+            needed = ~skip
+            if contacts is not None and len(contacts.senders):
+                # a skipped object whose vertices an active one feels (a sleeper touching a
+                # woken one) enters the call too, so the active one's answer is unchanged
+                feeds = needed[graph.node_graph[contacts.receivers]]
+                needed = needed.clone()
+                needed[graph.node_graph[contacts.senders[feeds]]] = True
+            if needed.any():
+                sub, nodes = select_graphs(step_graph, needed)
+                pred = self.predict_next(*(f[nodes] for f in frames[-HISTORY:]), sub)
+                use = ~skip[graph.node_graph[nodes]]
+                x = x.index_put((nodes[use],), pred[use])  # out of place: gradients pass
+                counts["network"] += int(needed.sum())
+        counts["object_steps"] += graph.num_graphs
+        return x
+
     @torch.no_grad()
     def rollout(self, history: torch.Tensor, graph: Graph, steps: int, shape_matching: bool = True,
                 sleep: Sleep | None = None, free_flight: bool = False, poses: bool = False):
@@ -355,42 +404,7 @@ class LearnedSimulator(nn.Module):
         out, rots, trans = [], [], []
         counts = {"object_steps": 0, "network": 0, "free_flight": 0, "asleep": 0}
         for _ in range(steps):
-            step_graph, contacts = graph, None
-            if self.layout.collisions and (sleep is not None or free_flight):
-                # built once from x_t: the network, the wake-up and the free-flight tests share them
-                contacts = self.collision_edges(frames[-1], graph)
-                step_graph = replace(graph, collision_edges=contacts)
-            skip = torch.zeros(graph.num_graphs, dtype=torch.bool, device=history.device)
-            if sleep is not None:
-                sleeping = sleep.asleep_graphs(frames, graph, self.gravity_step, self.layout.floor_z, contacts)
-                counts["asleep"] += int(sleeping.sum())
-                skip |= sleeping
-            if free_flight:
-                ballistic = self.inertial_step(*pose, graph)
-                free = self.in_free_flight(frames, ballistic, graph, contacts) & ~skip
-                counts["free_flight"] += int(free.sum())
-                skip |= free
-            if not skip.any():
-                x = self.predict_next(*frames[-HISTORY:], step_graph)
-                counts["network"] += graph.num_graphs
-            else:
-                x = frames[-1].clone()  # sleeping objects keep their pose
-                if free_flight:
-                    x = torch.where(free[graph.node_graph, None], ballistic, x)
-                needed = ~skip
-                if contacts is not None and len(contacts.senders):
-                    # a skipped object whose vertices an active one feels (a sleeper touching a
-                    # woken one) enters the call too, so the active one's answer is unchanged
-                    feeds = needed[graph.node_graph[contacts.receivers]]
-                    needed = needed.clone()
-                    needed[graph.node_graph[contacts.senders[feeds]]] = True
-                if needed.any():
-                    sub, nodes = select_graphs(step_graph, needed)
-                    pred = self.predict_next(*(f[nodes] for f in frames[-HISTORY:]), sub)
-                    use = ~skip[graph.node_graph[nodes]]
-                    x[nodes[use]] = pred[use]
-                    counts["network"] += int(needed.sum())
-            counts["object_steps"] += graph.num_graphs
+            x = self.advance(frames, graph, sleep, free_flight, pose, counts)
             if shape_matching or poses or free_flight:
                 rot, t, matched = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
                 if shape_matching:

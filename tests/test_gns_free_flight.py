@@ -222,3 +222,15 @@ def test_signed_floor_distance_shows_how_deep_a_vertex_is_below_the_floor():
         floor = raw_node_features(sim.layout, history, graph)["floor"][:, 0]
         assert float(floor.min()) == pytest.approx(bottom, abs=1e-6)
         assert float(floor.max()) == pytest.approx(0.5)  # the top face (0.7 up) is clipped
+
+
+def test_the_python_api_rolls_out_with_free_flight_exactly_in_the_air():
+    import gns
+    model = gns.load(MODEL)
+    g = model.spec["gravity"][2]
+    out = model.rollout(["sphere"], positions=[[0.0, 0.0, 100.0]], quaternions=[[1.0, 0, 0, 0]],
+                        velocities=[[1.0, 0.0, 0.0]], steps=6, scales=1.4, friction=[0.4], restitution=[0.3],
+                        free_flight=True)
+    t = torch.arange(7, dtype=torch.float64) * model.dt
+    np.testing.assert_allclose(out.positions[:, 0, 2].numpy(), (100.0 + 0.5 * g * t ** 2).numpy(), atol=1e-9)
+    np.testing.assert_allclose(out.positions[:, 0, 0].numpy(), t.numpy(), atol=1e-9)
