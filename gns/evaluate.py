@@ -128,11 +128,11 @@ def check_ranges(trained_spec: dict, ds: Dataset, scenes: list, warn=None) -> li
 def evaluate_baseline(data: str | Path, split: str = "test", params=None, limit: int | None = None,
                       plots_dir: str | Path | None = None, engine: str = "pybullet",
                       given: int = 3) -> tuple[dict, list, list, Dataset]:
-    """`evaluate_run` for an analytic baseline (datagen.baseline: "pybullet" or "mujoco"): every
+    """`evaluate_run` for an analytic baseline (baselines: "pybullet" or "mujoco"): every
     one-cube scene of a split simulated from its first `given` frames with `params` (default: the
     engine's defaults, for PyBullet the published ContactNets constants), scored the same way.
     Returns (results, predicted, true, dataset)."""
-    from datagen.baseline import baseline_engine  # the engines only when asked for
+    from baselines import baseline_engine  # the engines only when asked for
     params_class, simulate, _ = baseline_engine(engine)
     params = params_class() if params is None else params
     ds, scenes = load_split(data, split, limit)

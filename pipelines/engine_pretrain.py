@@ -1,5 +1,5 @@
 """Pretraining data for the real-cube GNS: tosses simulated by the engine identified on the same
-real tosses (datagen.engine_tosses), written as a dataset whose train split is synthetic and whose
+real tosses (baselines.engine_tosses), written as a dataset whose train split is synthetic and whose
 valid split is the real one (so validation always scores real tosses). With real_copies = k the
 train split also holds every real training toss k times: one training on both, the real ones
 weighted by k.
@@ -15,8 +15,9 @@ import json
 import shutil
 from pathlib import Path
 
-from datagen.baseline import GRAVITY, baseline_engine
-from datagen.engine_tosses import engine_tosses
+from baselines import baseline_engine
+from baselines.engine_tosses import engine_tosses
+from baselines.toss import GRAVITY
 from datagen.shards import METADATA_FILE, Dataset, shard_name, write_metadata, write_shard
 from pipelines.common import finished_dataset, say
 
@@ -49,7 +50,7 @@ def synthetic_stage(out: Path, real_data: Path, engine: str, params: dict, count
         splits["valid"] = {"num_scenes": len(valid), "shards": [shard_name("valid", 0)]}
     meta = {k: v for k, v in json.loads((real.root / METADATA_FILE).read_text()).items()
             if k not in ("splits", "provenance", "checksums", "fingerprint")}
-    meta.update(source=f"{engine} tosses from perturbed starts of real ones (datagen.engine_tosses); "
+    meta.update(source=f"{engine} tosses from perturbed starts of real ones (baselines.engine_tosses); "
                        "valid split: the real valid tosses",
                 splits=splits, made_from=made_from)
     write_metadata(tmp, meta)

@@ -85,7 +85,7 @@ def fair_start_stage(path: Path, data: Path, engine: str, params: dict, given: i
         saved = json.loads(path.read_text())
         if saved.get("params") == params and saved.get("given_frames") == given:
             return saved
-    from datagen.baseline import baseline_engine
+    from baselines import baseline_engine
     params_class, _, _ = baseline_engine(engine)
     results, *_ = evaluate_baseline(data, "test", params_class(**params), engine=engine, given=given)
     write_json(path, results)

@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen.baseline import PUBLISHED, baseline_engine
+from baselines import baseline_engine
+from baselines.pybullet import PUBLISHED
 from datagen.shards import Dataset, DataError
 from gns.evaluate import evaluate_baseline, write_json
 from pipelines.common import guarded, say
@@ -34,7 +35,7 @@ METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 def available_engines(wanted=ENGINES, strict: bool = False) -> list[str]:
     """The wanted engines that can run here; MuJoCo only if installed. strict: a missing one is
     an error (one line), otherwise a warning line and it is left out."""
-    from datagen.baseline_mujoco import MISSING, available
+    from baselines.mujoco import MISSING, available
     out = []
     for e in wanted:
         if e == "mujoco" and not available():
@@ -49,7 +50,7 @@ def available_engines(wanted=ENGINES, strict: bool = False) -> list[str]:
 def _search_settings(engine: str) -> dict:
     """What a fit was searched over: a change of bounds or fitted names makes saved fits stale."""
     import importlib
-    mod = importlib.import_module("datagen.baseline" if engine == "pybullet" else "datagen.baseline_mujoco")
+    mod = importlib.import_module(f"baselines.{engine}")
     return {"bounds": [list(b) for b in mod.BOUNDS], "fitted": list(mod.FIT)}
 
 

@@ -150,7 +150,7 @@ def test_baselines_alone_fit_both_engines_and_resume(tmp_path, capsys):
 
 
 def test_baselines_alone_refuse_a_missing_mujoco_in_one_line(tmp_path, capsys, monkeypatch):
-    from datagen import baseline_mujoco
+    from baselines import mujoco as baseline_mujoco
     from pipelines import real_cubes_baselines
     monkeypatch.setattr(baseline_mujoco, "available", lambda: False)
     args = ["--src", str(SRC), "--out", str(tmp_path / "bl"), "--sizes", "1", "--test", "1", "--valid", "0",

@@ -1,4 +1,4 @@
-"""The MuJoCo baseline against physics (rest, free flight, bounces) and against baseline.py's protocol."""
+"""The MuJoCo baseline against physics (rest, free flight, bounces) and against the toss protocol (baselines.toss)."""
 import builtins
 import math
 from dataclasses import replace
@@ -10,8 +10,9 @@ from scipy.spatial.transform import Rotation
 
 pytest.importorskip("mujoco")  # the [mujoco] extra; the dev extra installs it
 
-from datagen import baseline_mujoco as bm  # noqa: E402
-from datagen.baseline import fit_floor, fit_gravity, toss_errors  # noqa: E402
+from baselines import mujoco as bm  # noqa: E402
+from baselines.identify import fit_floor, fit_gravity  # noqa: E402
+from baselines.toss import toss_errors  # noqa: E402
 from datagen.contactnets import read_experiment, read_toss, toss_to_scene  # noqa: E402
 from datagen.shards import Scene  # noqa: E402
 

@@ -5,9 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from datagen.baseline import FRAME_RATE, GIVEN, GRAVITY, PUBLISHED, initial_state, lowest_corner_height
+from baselines.identify import lowest_corner_height
+from baselines.pybullet import PUBLISHED
+from baselines.toss import FRAME_RATE, GIVEN, GRAVITY, initial_state
 from datagen.contactnets import read_experiment, read_toss, toss_to_scene
-from datagen.engine_tosses import engine_tosses
+from baselines.engine_tosses import engine_tosses
 
 SRC = Path(__file__).parent / "data" / "contactnets"
 

@@ -8,7 +8,7 @@ real data the last word. No data beyond the real training tosses is used: the en
 them and the synthetic tosses start where they start, perturbed.
 
 Each synthetic toss takes a random real training toss as its template: its start state (frames
-0-2, datagen.baseline.initial_state) turned about the vertical by a random angle (the table is
+0-2, baselines.toss.initial_state) turned about the vertical by a random angle (the table is
 level and unbounded, so this is a symmetry), the cube's orientation replaced by a uniformly
 random one with probability `random_orientation`, linear and angular speeds scaled by
 U[1 - speed_jitter, 1 + speed_jitter], raised if a corner would start below the table. The three
@@ -22,8 +22,9 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .baseline import GIVEN, baseline_engine, initial_state
-from .shards import Scene
+from baselines import baseline_engine
+from baselines.toss import GIVEN, initial_state
+from datagen.shards import Scene
 
 
 def _wxyz(r: Rotation) -> np.ndarray:
