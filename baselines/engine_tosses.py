@@ -24,11 +24,8 @@ from scipy.spatial.transform import Rotation
 
 from baselines import baseline_engine
 from baselines.toss import GIVEN, initial_state
+from datagen.quaternions import rotation, wxyz
 from datagen.shards import Scene
-
-
-def _wxyz(r: Rotation) -> np.ndarray:
-    return r.as_quat()[..., [3, 0, 1, 2]]
 
 
 def _start_scene(template: Scene, p: np.ndarray, q: Rotation, v: np.ndarray, w: np.ndarray,
@@ -43,7 +40,7 @@ def _start_scene(template: Scene, p: np.ndarray, q: Rotation, v: np.ndarray, w: 
     vel, ang = np.zeros((T, 1, 3)), np.zeros((T, 1, 3))
     pos[:GIVEN, 0] = p + v * tau[:, None] + 0.5 * accel * tau[:, None] ** 2
     vel[:GIVEN, 0] = v + accel * tau[:, None]
-    quat[:GIVEN, 0] = _wxyz(Rotation.from_rotvec(w * tau[:, None]) * q)
+    quat[:GIVEN, 0] = wxyz((Rotation.from_rotvec(w * tau[:, None]) * q).as_quat())
     ang[:GIVEN, 0] = w
     return Scene(positions=pos, quaternions=quat, velocities=vel, angular_velocities=ang,
                  shape=list(template.shape), material=list(template.material), scale=template.scale.copy(),
@@ -66,7 +63,7 @@ def engine_tosses(templates: Sequence[Scene], engine: str, params, count: int, s
         t = templates[int(rng.integers(len(templates)))]
         p, q_wxyz, v, w = initial_state(t, frame_rate, gravity)
         turn = Rotation.from_rotvec([0.0, 0.0, rng.uniform(0, 2 * np.pi)])
-        q = Rotation.from_quat(np.asarray(q_wxyz)[[1, 2, 3, 0]])
+        q = rotation(q_wxyz)
         q = Rotation.random(random_state=rng) if rng.random() < random_orientation else turn * q
         p, v, w = turn.apply(p), turn.apply(v), turn.apply(w)
         v = v * rng.uniform(1 - speed_jitter, 1 + speed_jitter)
@@ -75,7 +72,7 @@ def engine_tosses(templates: Sequence[Scene], engine: str, params, count: int, s
         half = 0.5 * float(t.scale[0])
         corners = np.array([[x, y, z] for x in (-half, half) for y in (-half, half) for z in (-half, half)])
         start = _start_scene(t, p, q, v, w, frame_rate, gravity)
-        rots = Rotation.from_quat(start.quaternions[:GIVEN, 0][:, [1, 2, 3, 0]])
+        rots = rotation(start.quaternions[:GIVEN, 0])
         lowest = min(float((rots[k].apply(corners)[:, 2] + start.positions[k, 0, 2]).min()) for k in range(GIVEN))
         if lowest < floor_z + 0.05 * half:
             p = p + [0.0, 0.0, floor_z + 0.05 * half - lowest]

@@ -16,7 +16,8 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.stats import qmc
 
-from baselines.toss import FRAME_RATE, first_frames, half_extent, rotations, toss_errors
+from baselines.toss import FRAME_RATE, first_frames, half_extent, toss_errors
+from datagen.quaternions import rotation
 from datagen.shards import Scene
 
 # One degree of rotation error weighs as much as 0.5% of the width in the fitting objective:
@@ -26,7 +27,7 @@ ROTATION_WEIGHT = 0.5
 
 def lowest_corner_height(scene: Scene) -> np.ndarray:
     """Height of the cube's lowest corner at every frame (T,): p_z - a sum_j |R_zj|."""
-    rot = rotations(scene.quaternions[:, 0]).as_matrix()
+    rot = rotation(scene.quaternions[:, 0]).as_matrix()
     return scene.positions[:, 0, 2] - half_extent(scene) * np.abs(rot[:, 2, :]).sum(-1)
 
 

@@ -29,8 +29,9 @@ import numpy as np
 
 from baselines.identify import identify
 from baselines.toss import (FRAME_RATE, GIVEN, GRAVITY, half_extent, initial_state, prediction_arrays,
-                            prediction_scene, rotations)
+                            prediction_scene)
 from datagen.contactnets import DEFAULTS as CONTACTNETS
+from datagen.quaternions import rotation
 from datagen.shards import Scene
 
 
@@ -127,13 +128,13 @@ def simulate_toss(scene: Scene, params: MujocoParams = DEFAULT, frame_rate: floa
     pos, quat, vel, w = initial_state(scene, frame_rate, params.gravity, given)
     d.qpos[:] = np.concatenate([pos, quat])
     # A free joint's angular velocity is in the body frame.
-    d.qvel[:] = np.concatenate([vel, rotations(quat).inv().apply(w)])
+    d.qvel[:] = np.concatenate([vel, rotation(quat).inv().apply(w)])
     out = prediction_arrays(scene, given)
     for t in range(given, scene.num_frames):
         mujoco.mj_step(m, d, nstep=params.substeps)
         q = d.qpos[3:7] / np.linalg.norm(d.qpos[3:7])
         out[0][t, 0], out[1][t, 0], out[2][t, 0] = d.qpos[:3], q, d.qvel[:3]
-        out[3][t, 0] = rotations(q).apply(d.qvel[3:6])
+        out[3][t, 0] = rotation(q).apply(d.qvel[3:6])
     return prediction_scene(scene, out, "mujoco", params, float(scene.restitution[0]))
 
 

@@ -38,7 +38,8 @@ from baselines.toss import (FRAME_RATE, GIVEN, GRAVITY, half_extent, initial_sta
                             prediction_scene)
 from datagen.contactnets import DEFAULTS as CONTACTNETS
 from datagen.shards import Scene
-from datagen.simulate import FLOOR_HALF_WIDTH, _wxyz, _xyzw, pb
+from datagen.quaternions import wxyz, xyzw
+from datagen.simulate import add_floor, new_world, pb
 
 
 @dataclass(frozen=True)
@@ -78,24 +79,15 @@ FIT = ("friction", "restitution", "log10_stiffness", "damping_ratio", "rolling_f
 
 
 def _build(scene: Scene, params: BaselineParams, frame_rate: float, state) -> tuple[int, int]:
-    c = pb.connect(pb.DIRECT)
-    pb.setGravity(0.0, 0.0, -float(params.gravity), physicsClientId=c)
-    pb.setPhysicsEngineParameter(
-        fixedTimeStep=1.0 / (frame_rate * params.substeps), numSolverIterations=params.solver_iterations,
-        numSubSteps=0, restitutionVelocityThreshold=0, warmStartingFactor=0, useSplitImpulse=True,
-        contactSlop=0, splitImpulsePenetrationThreshold=0, enableConeFriction=False,
-        deterministicOverlappingPairs=True, physicsClientId=c)
+    c = new_world((0.0, 0.0, -float(params.gravity)), 1.0 / (frame_rate * params.substeps), params.solver_iterations)
     if params.contact_erp > 0:
         pb.setPhysicsEngineParameter(contactERP=float(params.contact_erp), physicsClientId=c)
-    box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[FLOOR_HALF_WIDTH, FLOOR_HALF_WIDTH, 1.0], physicsClientId=c)
-    floor = pb.createMultiBody(0, box, basePosition=[0, 0, params.floor_z - 1.0], useMaximalCoordinates=True,
-                               physicsClientId=c)
-    pb.changeDynamics(floor, -1, lateralFriction=1.0, restitution=1.0, contactProcessingThreshold=0, physicsClientId=c)
+    add_floor(c, params.floor_z, 1.0, 1.0)
     a = half_extent(scene)
     mass = float(scene.mass[0])
     pos, quat, vel, ang = state
     col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[a, a, a], physicsClientId=c)
-    body = pb.createMultiBody(mass, col, basePosition=pos.tolist(), baseOrientation=_xyzw(quat),
+    body = pb.createMultiBody(mass, col, basePosition=pos.tolist(), baseOrientation=xyzw(quat).tolist(),
                               useMaximalCoordinates=True, physicsClientId=c)
     # mass must be passed with localInertiaDiagonal: without it this PyBullet build ignores the
     # new inertia in the solver and the cube falls through the floor.
@@ -131,7 +123,7 @@ def simulate_toss(scene: Scene, params: BaselineParams = PUBLISHED, frame_rate: 
                 pb.stepSimulation(physicsClientId=c)
             p, q = pb.getBasePositionAndOrientation(body, physicsClientId=c)
             v, w = pb.getBaseVelocity(body, physicsClientId=c)
-            out[0][t, 0], out[1][t, 0], out[2][t, 0], out[3][t, 0] = p, _wxyz(q), v, w
+            out[0][t, 0], out[1][t, 0], out[2][t, 0], out[3][t, 0] = p, wxyz(q), v, w
     finally:
         pb.disconnect(c)
     return prediction_scene(scene, out, "pybullet", params, params.restitution)

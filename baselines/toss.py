@@ -17,19 +17,15 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from datagen.contactnets import DEFAULTS as CONTACTNETS
+from datagen.quaternions import continuous, rotation
 from datagen.shards import Scene
 
 FRAME_RATE = 1.0 / CONTACTNETS["dt"]          # 148 Hz
 GRAVITY = float(CONTACTNETS["g"])             # half-widths / s^2
 GIVEN = 3                                     # measured frames given, as for the GNS
 UNIT_CUBE_HALF = 0.5                          # the `cube` asset spans +-0.5 before scaling
-
-
-def rotations(quat_wxyz: np.ndarray) -> Rotation:
-    return Rotation.from_quat(np.asarray(quat_wxyz)[..., [1, 2, 3, 0]])
 
 
 def initial_state(scene: Scene, frame_rate: float = FRAME_RATE, gravity: float = GRAVITY,
@@ -50,7 +46,7 @@ def initial_state(scene: Scene, frame_rate: float = FRAME_RATE, gravity: float =
     # For a ballistic centre p(t) = p_k + v (t - t_k) + a (t - t_k)^2 / 2 the secant from frame j
     # to k plus a * span / 2 is exactly v; for 3 frames it is also the least-squares slope.
     v = (p[k] - p[j]) / span + accel * span / 2.0
-    w = (rotations(q[k]) * rotations(q[j]).inv()).as_rotvec() / span
+    w = (rotation(q[k]) * rotation(q[j]).inv()).as_rotvec() / span
     return p[k].copy(), q[k] / np.linalg.norm(q[k]), v, w
 
 
@@ -74,9 +70,7 @@ def prediction_scene(scene: Scene, arrays, engine: str, params, restitution: flo
     """The predicted Scene from filled prediction_arrays, its quaternions kept on one cover along
     the toss (as the truth and datagen.simulate do)."""
     pos, quat, vel, ang = arrays
-    flip = np.cumprod(np.where(np.sum(quat[1:] * quat[:-1], axis=-1) < 0, -1.0, 1.0), axis=0)
-    quat[1:] *= flip[..., None]
-    return Scene(positions=pos, quaternions=quat, velocities=vel, angular_velocities=ang,
+    return Scene(positions=pos, quaternions=continuous(quat), velocities=vel, angular_velocities=ang,
                  shape=list(scene.shape), material=list(scene.material), scale=scene.scale.copy(),
                  mass=scene.mass.copy(), friction=np.array([params.friction]), restitution=np.array([restitution]),
                  attrs={**scene.attrs, "baseline": engine, "params": str(params.to_dict())})

@@ -9,9 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
+from datagen.atomic import atomic_file
+from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors, per_scene_means
-from gns.outputs import check_writable
 from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene
 from gns.data import feature_spec
 from gns.ranges import outside_training
@@ -44,9 +45,8 @@ def _worst_first(per_scene: list[float]) -> list[int]:
 def write_json(path: str | Path, obj) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=float) + "\n")
-    tmp.replace(path)
+    with atomic_file(path, mode=0o644) as tmp:
+        tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=float) + "\n")
 
 
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,

@@ -21,6 +21,7 @@ from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from scipy.spatial import ConvexHull, QhullError
 
+from datagen.atomic import atomic_file
 from gns.geometry import feature_edges, pose_to_vertices
 from gns.metrics import object_width
 
@@ -344,8 +345,6 @@ def plot_training_curves(runs: Mapping[str, Sequence[Mapping]], path, log_loss: 
     validation loss (dashed) against the step, the validation rollout error, the learning rate.
     Panels with no data in any run say so rather than vanish, so figures of runs stay alike.
     Written atomically (a temporary file, then renamed): a reader never sees half an image."""
-    import os
-    import tempfile
     panels = (("loss", "normalised acceleration loss"), ("valid_rollout_position_error", "valid rollout centre error [scene units]"),
               ("lr", "learning rate"))
     fig = _figure((13, 3.8))
@@ -375,13 +374,7 @@ def plot_training_curves(runs: Mapping[str, Sequence[Mapping]], path, log_loss: 
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
+    # matplotlib picks the format from the file's ending, so the temporary file keeps it
+    with atomic_file(path, mode=0o644, suffix=path.suffix) as tmp:
         fig.savefig(tmp, dpi=dpi)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path

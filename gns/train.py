@@ -17,7 +17,6 @@ import os
 import random
 import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -26,12 +25,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from datagen.atomic import atomic_file
+from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns import parallel
 from gns.config import Config, ConfigError, architecture_differences, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
-from gns.outputs import check_writable
 from gns.simulator import HISTORY, LearnedSimulator, shape_match_packed
 
 CHECKPOINT_FORMAT = 1
@@ -60,21 +60,12 @@ def checkpoint_paths(run: Path) -> list[Path]:
     return sorted(run.glob("ckpt-*.pt"))
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def save_checkpoint(run: Path, state: dict, keep: int) -> Path:
     path = run / f"ckpt-{state['step']:06d}.pt"
-    _atomic_write(path, lambda p: torch.save(state, p))
-    _atomic_write(run / LATEST, lambda p: shutil.copyfile(path, p))
+    with atomic_file(path) as tmp:
+        torch.save(state, tmp)
+    with atomic_file(run / LATEST) as tmp:
+        shutil.copyfile(path, tmp)
     if keep > 0:
         # Numbers beyond this step are left from before a resume that passed them over (unreadable);
         # training overwrites them when it gets there, so the rotation never deletes the new one.
@@ -162,7 +153,8 @@ def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool =
     check_writable(out.parent, "output folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance") if k in ckpt}
-    _atomic_write(out, lambda p: torch.save(slim, p))
+    with atomic_file(out) as tmp:
+        torch.save(slim, tmp)
     return out
 
 
@@ -358,7 +350,8 @@ def _drop_metrics_after(path: Path, step: int, log: Callable[[str], None] = prin
     if torn:
         log(f"warning: dropped {torn} unreadable line{'s' if torn > 1 else ''} of {path} "
             f"(a crash mid-write tears the last one)")
-    _atomic_write(path, lambda p: p.write_text("".join(line + "\n" for line in kept)))
+    with atomic_file(path) as tmp:
+        tmp.write_text("".join(line + "\n" for line in kept))
 
 
 def parse_device(name: str, what: str = "train.device") -> torch.device:
@@ -578,8 +571,9 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
         run.mkdir(parents=True, exist_ok=True)
         if resumed_from:
             _drop_metrics_after(run / METRICS, step, log)
-        _atomic_write(run / "config.json", lambda p: p.write_text(json.dumps(config_dict, indent=2) + "\n"))
-        _atomic_write(run / PROVENANCE, lambda p: p.write_text(json.dumps(provenance, indent=2) + "\n"))
+        for name, content in (("config.json", config_dict), (PROVENANCE, provenance)):
+            with atomic_file(run / name) as tmp:
+                tmp.write_text(json.dumps(content, indent=2) + "\n")
 
     def state() -> dict:
         return {"format": CHECKPOINT_FORMAT, "step": step, "seed": seed, "config": config_dict, "spec": spec,

@@ -34,10 +34,10 @@ from pathlib import Path
 import numpy as np
 
 from datagen.contactnets import import_contactnets, list_toss_ids, read_toss
+from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns.evaluate import evaluate_run, write_json
 from gns.train import read_checkpoint
-from gns.outputs import check_writable
 from pipelines.common import guarded, done, remove_output, say, train_stage, trained_step
 from pipelines.real_cubes_baselines import LABELS as ENGINE_LABELS
 from pipelines.real_cubes_baselines import available_engines, baselines_stage, fit_summary, fits_table
