@@ -28,11 +28,11 @@ from typing import Sequence
 import numpy as np
 
 from baselines.identify import identify
-from baselines.toss import (FRAME_RATE, GIVEN, GRAVITY, half_extent, initial_state, prediction_arrays,
-                            prediction_scene)
+from baselines.toss import FRAME_RATE, GRAVITY, half_extent, initial_state, prediction_arrays, prediction_scene
 from datagen.contactnets import DEFAULTS as CONTACTNETS
 from datagen.quaternions import rotation
 from datagen.shards import Scene
+from gns.features import HISTORY
 
 
 MISSING = "the MuJoCo baseline needs the mujoco package: pip install -e '.[mujoco]'"
@@ -117,7 +117,7 @@ def _model(params: MujocoParams, half: float, mass: float, frame_rate: float):
 
 
 def simulate_toss(scene: Scene, params: MujocoParams = DEFAULT, frame_rate: float = FRAME_RATE,
-                  given: int = GIVEN) -> Scene:
+                  given: int = HISTORY) -> Scene:
     """A predicted copy of a one-cube toss (as baselines.pybullet.simulate_toss, in MuJoCo)."""
     mujoco = _mujoco()
     if params.substeps < 1:

@@ -34,12 +34,12 @@ from dataclasses import asdict, dataclass
 from typing import Sequence
 
 from baselines.identify import identify
-from baselines.toss import (FRAME_RATE, GIVEN, GRAVITY, half_extent, initial_state, prediction_arrays,
-                            prediction_scene)
+from baselines.toss import FRAME_RATE, GRAVITY, half_extent, initial_state, prediction_arrays, prediction_scene
 from datagen.contactnets import DEFAULTS as CONTACTNETS
 from datagen.shards import Scene
 from datagen.quaternions import wxyz, xyzw
 from datagen.simulate import add_floor, new_world, pb
+from gns.features import HISTORY
 
 
 @dataclass(frozen=True)
@@ -109,7 +109,7 @@ def _build(scene: Scene, params: BaselineParams, frame_rate: float, state) -> tu
 
 
 def simulate_toss(scene: Scene, params: BaselineParams = PUBLISHED, frame_rate: float = FRAME_RATE,
-                  given: int = GIVEN) -> Scene:
+                  given: int = HISTORY) -> Scene:
     """A predicted copy of a one-cube toss: frames 0..given-1 copied from the truth, the rest
     simulated from the state estimated on them."""
     if params.substeps < 1:

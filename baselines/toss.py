@@ -1,7 +1,7 @@
 """The toss protocol every engine baseline follows, and its score.
 
-A toss is predicted the way the GNS predicts it: the first 3 measured frames are given, the
-rest is simulated. The state at frame 2 is estimated from frames 0-2 alone, assuming free
+A toss is predicted the way the GNS predicts it: the first HISTORY (3) measured frames are
+given, the rest is simulated. The state at frame 2 is estimated from frames 0-2 alone, assuming free
 flight under the model's gravity (ballistic centre, constant world-frame spin, which is exact
 for a cube because its inertia is isotropic):
     v2 = (p2 - p0) / (2 dt) + a dt,   w = rotvec(R2 R0^T) / (2 dt).
@@ -21,15 +21,15 @@ import numpy as np
 from datagen.contactnets import DEFAULTS as CONTACTNETS
 from datagen.quaternions import continuous, rotation
 from datagen.shards import Scene
+from gns.features import HISTORY
 
 FRAME_RATE = 1.0 / CONTACTNETS["dt"]          # 148 Hz
 GRAVITY = float(CONTACTNETS["g"])             # half-widths / s^2
-GIVEN = 3                                     # measured frames given, as for the GNS
 UNIT_CUBE_HALF = 0.5                          # the `cube` asset spans +-0.5 before scaling
 
 
 def initial_state(scene: Scene, frame_rate: float = FRAME_RATE, gravity: float = GRAVITY,
-                  given: int = GIVEN) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  given: int = HISTORY) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """State at the last given frame k = given-1 from frames k-2..k, as free flight.
 
     Returns position (3,), quaternion wxyz (4,), linear and world-frame angular velocity (3,).
@@ -56,7 +56,7 @@ def half_extent(scene: Scene) -> float:
     return UNIT_CUBE_HALF * float(scene.scale[0])
 
 
-def prediction_arrays(scene: Scene, given: int = GIVEN) -> tuple[np.ndarray, ...]:
+def prediction_arrays(scene: Scene, given: int = HISTORY) -> tuple[np.ndarray, ...]:
     """Position, quaternion, velocity and angular velocity arrays (T, 1, .) of a prediction, the
     first `given` frames copied from the truth; an engine fills the rest."""
     T = scene.num_frames

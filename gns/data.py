@@ -45,8 +45,6 @@ from gns.features import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
 from gns.graph import EdgeSet, Graph, MeshLibrary, _ragged_arange, graph_sizes
 
-WINDOW = HISTORY + 1
-
 
 def rotation_z(theta: torch.Tensor) -> torch.Tensor:
     """Angles (B,) -> rotations about +z (B, 3, 3)."""

@@ -15,6 +15,7 @@ from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors, per_scene_means
 from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene
 from gns.data import feature_spec
+from gns.features import HISTORY
 from gns.ranges import outside_training
 from gns.train import LATEST, load_model, parse_device, read_checkpoint
 
@@ -127,7 +128,7 @@ def check_ranges(trained_spec: dict, ds: Dataset, scenes: list, warn=None) -> li
 
 def evaluate_baseline(data: str | Path, split: str = "test", params=None, limit: int | None = None,
                       plots_dir: str | Path | None = None, engine: str = "pybullet",
-                      given: int = 3) -> tuple[dict, list, list, Dataset]:
+                      given: int = HISTORY) -> tuple[dict, list, list, Dataset]:
     """`evaluate_run` for an analytic baseline (baselines: "pybullet" or "mujoco"): every
     one-cube scene of a split simulated from its first `given` frames with `params` (default: the
     engine's defaults, for PyBullet the published ContactNets constants), scored the same way.
@@ -168,7 +169,7 @@ def score_predictions(pred: list, scenes: list, ds: Dataset, seconds: float,
     predictions cost, per-scene means (`per_scene`, for paired comparisons), and plots if asked."""
     floor_z = float(ds.floor["z"]) if ds.floor else 0.0
     results = evaluate_scenes(pred, scenes, ds.meshes, floor_z=floor_z)
-    simulated = sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
+    simulated = sum((sc.num_frames - HISTORY) / ds.frame_rate for sc in scenes)
     results.update(rollout_seconds=seconds, simulated_seconds=simulated,
                    wall_seconds_per_simulated_second=seconds / simulated if simulated else None,
                    per_scene=per_scene_means(pred, scenes, ds.meshes, floor_z))

@@ -13,13 +13,14 @@ For a predicted and a true trajectory of object poses:
 Averaging order (see docs/metrics.md): per frame and object -> mean over the frames t >= start
 of each object's trajectory -> mean over all objects of all scenes (each object trajectory
 weighs the same, whatever its length). The default start = 0 includes the given initial frames,
-as ContactNets averages over the whole toss; start = 3 scores only the predicted frames.
+as ContactNets averages over the whole toss; start = HISTORY (3) scores only the predicted frames.
 
 Width = scale * largest extent of the rest mesh. The unit assets span exactly 1, so this is the
 scale (2 for the real cube of half-width 1) as in the paper, and stays right if someone feeds a
 mesh that does not span 1 (e.g. the ContactNets cube with vertices at +-1 and scale 1).
 
-Numpy only, no torch: scoring an analytic simulator needs no deep-learning stack.
+The formulas are numpy, no autograd: they score analytic simulators as well as the GNS. Only the
+number of given frames comes from the model (gns.features.HISTORY).
 """
 from __future__ import annotations
 
@@ -28,11 +29,11 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from gns.features import HISTORY
 from gns.geometry import pose_to_vertices, quat_to_matrix, rotation_angle
 
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 DEFAULT_HORIZONS = (1, 5, 10, 20, 50, 100, 200)
-NUM_GIVEN = 3  # rollouts start from 3 true frames (history of 2 velocities)
 
 
 def object_width(scale, rest_vertices: np.ndarray) -> np.ndarray:
@@ -193,7 +194,7 @@ def _summary(rows: list[dict]) -> dict:
 
 def evaluate_scenes(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mapping[str, tuple],
                     floor_z: float = 0.0, horizons: Sequence[int] = DEFAULT_HORIZONS, start: int = 0,
-                    num_given: int = NUM_GIVEN) -> dict:
+                    num_given: int = HISTORY) -> dict:
     """Score predicted scenes against the true ones; returns a JSON-ready dict.
 
     pred_scenes, true_scenes: matching lists of Scene (same T and N pairwise; T may vary between

@@ -22,6 +22,7 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from scipy.spatial import ConvexHull, QhullError
 
 from datagen.atomic import atomic_file
+from gns.features import HISTORY
 from gns.geometry import feature_edges, pose_to_vertices
 from gns.metrics import object_width
 
@@ -159,7 +160,7 @@ def _as_models(per_frame_errors: Mapping) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
-def plot_error_vs_time(per_frame_errors: Mapping, path, dt: float | None = None, num_given: int = 3,
+def plot_error_vs_time(per_frame_errors: Mapping, path, dt: float | None = None, num_given: int = HISTORY,
                        title: str | None = None, dpi: int = 120) -> Path:
     """Error against frame: one panel per metric present (position %, rotation degrees,
     penetration %), one line per model.

@@ -32,7 +32,8 @@ from gns import parallel
 from gns.config import Config, ConfigError, architecture_differences, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
-from gns.simulator import HISTORY, LearnedSimulator, shape_match_packed
+from gns.features import HISTORY
+from gns.simulator import LearnedSimulator, shape_match_packed
 
 CHECKPOINT_FORMAT = 1
 LATEST = "latest.pt"
