@@ -36,17 +36,23 @@ METRIC_LABELS = {
 }
 
 
-def _figure(figsize) -> Figure:
+def new_figure(figsize) -> Figure:
+    """A figure on its own Agg canvas, outside pyplot's registry (see the module doc)."""
     fig = Figure(figsize=figsize)
     FigureCanvasAgg(fig)
     return fig
 
 
-def _save(fig: Figure, path, dpi: int) -> Path:
+def save_figure(fig: Figure, path, dpi: int) -> Path:
+    """Write `fig` to `path`, creating its folder; returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi)
     return path
+
+
+# pipelines/speed_accuracy.py still imports these two names; drop them once it uses the new ones.
+_figure, _save = new_figure, save_figure
 
 
 def _vertices(scene, meshes, obj: int) -> np.ndarray:
@@ -100,7 +106,7 @@ def plot_trajectory(pred, true, meshes: Mapping[str, tuple], path, obj: int = 0,
     origin = true.positions[0, obj]
     lu = f" [{unit}]" if unit else ""
 
-    fig = _figure((11, 4.2))
+    fig = new_figure((11, 4.2))
     ax_a, ax_b = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.3, 1]})
     T = true.num_frames
     shown = np.unique(np.linspace(0, T - 1, max(num_outlines, 1)).round().astype(int))
@@ -141,7 +147,7 @@ def plot_trajectory(pred, true, meshes: Mapping[str, tuple], path, obj: int = 0,
     name = true.attrs.get("toss_id", true.attrs.get("scene_id", ""))
     fig.suptitle(title or f"scene {name}, object {obj}: prediction vs truth")
     fig.tight_layout()
-    return _save(fig, path, dpi)
+    return save_figure(fig, path, dpi)
 
 
 def _as_models(per_frame_errors: Mapping) -> dict[str, dict[str, np.ndarray]]:
@@ -174,7 +180,7 @@ def plot_error_vs_time(per_frame_errors: Mapping, path, dt: float | None = None,
     metrics = [m for m in METRIC_LABELS if any(m in e for e in models.values())]
     if not metrics:
         raise ValueError(f"no known metric among {sorted({k for e in models.values() for k in e})}")
-    fig = _figure((4.2 * len(metrics), 3.6))
+    fig = new_figure((4.2 * len(metrics), 3.6))
     axes = np.atleast_1d(fig.subplots(1, len(metrics)))
     step = dt if dt else 1.0
     for ax, m in zip(axes, metrics):
@@ -194,7 +200,7 @@ def plot_error_vs_time(per_frame_errors: Mapping, path, dt: float | None = None,
     axes[0].legend(fontsize=8)
     fig.suptitle(title or "rollout error against time (shaded: given frames)")
     fig.tight_layout()
-    return _save(fig, path, dpi)
+    return save_figure(fig, path, dpi)
 
 
 def _axis_limits(true_verts: list[np.ndarray], pred_verts: list[np.ndarray], floor_z: float):
@@ -230,7 +236,7 @@ def animate_rollout(pred, true, meshes: Mapping[str, tuple], path, fps: float = 
     if not frames:
         raise ValueError("no frames to animate (max_frames < 1?)")
 
-    fig = _figure((8, 4.2))
+    fig = new_figure((8, 4.2))
     collections = []
     for k, (sc, label) in enumerate(zip(scenes, labels)):
         ax = fig.add_subplot(1, 2, k + 1, projection="3d")
@@ -276,7 +282,7 @@ def plot_curve(xs: Sequence[float], ys_by_label: Mapping[str, Sequence], path, b
     horizontal dashed lines (e.g. an analytic simulator's error). log2: x axis in powers of 2.
     """
     xs = np.asarray(xs, np.float64)
-    fig = _figure((5.5, 4))
+    fig = new_figure((5.5, 4))
     ax = fig.subplots()
     for i, (label, ys) in enumerate(ys_by_label.items()):
         ys = np.asarray(ys, np.float64).reshape(len(xs), -1)
@@ -303,7 +309,7 @@ def plot_curve(xs: Sequence[float], ys_by_label: Mapping[str, Sequence], path, b
     if title:
         ax.set_title(title)
     fig.tight_layout()
-    return _save(fig, path, dpi)
+    return save_figure(fig, path, dpi)
 
 
 def plot_bars(labels: Sequence[str], panels: Mapping[str, Sequence[float]], path,
@@ -314,7 +320,7 @@ def plot_bars(labels: Sequence[str], panels: Mapping[str, Sequence[float]], path
     panels: {panel y-label: one value per label (NaN: no bar)}; references: {panel y-label:
     {name: value}} drawn as dashed horizontal lines (e.g. a baseline or the full model).
     """
-    fig = _figure((3.2 * len(panels) + 0.5, 3.8))
+    fig = new_figure((3.2 * len(panels) + 0.5, 3.8))
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
     x = np.arange(len(labels))
     for ax, (ylabel, values) in zip(axes, panels.items()):
@@ -338,7 +344,7 @@ def plot_bars(labels: Sequence[str], panels: Mapping[str, Sequence[float]], path
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    return _save(fig, path, dpi)
+    return save_figure(fig, path, dpi)
 
 
 def plot_training_curves(runs: Mapping[str, Sequence[Mapping]], path, log_loss: bool = True, dpi: int = 110) -> Path:
@@ -348,7 +354,7 @@ def plot_training_curves(runs: Mapping[str, Sequence[Mapping]], path, log_loss: 
     Written atomically (a temporary file, then renamed): a reader never sees half an image."""
     panels = (("loss", "normalised acceleration loss"), ("valid_rollout_position_error", "valid rollout centre error [scene units]"),
               ("lr", "learning rate"))
-    fig = _figure((13, 3.8))
+    fig = new_figure((13, 3.8))
     axes = fig.subplots(1, len(panels))
     for i, (label, entries) in enumerate(runs.items()):
         color = f"C{i % 10}"

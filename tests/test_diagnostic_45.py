@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 from datagen.config import load_config
+from datagen.inspect import rotate
 from datagen.shapes import get_shape
 from datagen.simulate import simulate
-from datagen.tilted import _rotate, side, tilted_scene, training_scene
+from datagen.tilted import side, tilted_scene, training_scene
 from pipelines import diagnostic_45
 
 
@@ -17,7 +18,7 @@ def cfg():
 
 
 def world_vertices(obj):
-    return np.array([_rotate(obj.quaternion, v) for v in get_shape(obj.shape).vertices * obj.scale]) + obj.position
+    return rotate(obj.quaternion, get_shape(obj.shape).vertices * obj.scale) + obj.position
 
 
 @pytest.mark.parametrize("angle", [10.0, 44.0, 45.0, 46.0, 80.0])
