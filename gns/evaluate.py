@@ -12,7 +12,7 @@ import numpy as np
 from datagen.atomic import atomic_file
 from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
-from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors, per_scene_means
+from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene
 from gns.data import feature_spec
 from gns.features import HISTORY
@@ -168,23 +168,28 @@ def score_predictions(pred: list, scenes: list, ds: Dataset, seconds: float,
     """Metrics (gns.metrics.evaluate_scenes) of predicted scenes against the truth, what the
     predictions cost, per-scene means (`per_scene`, for paired comparisons), and plots if asked."""
     floor_z = float(ds.floor["z"]) if ds.floor else 0.0
-    results = evaluate_scenes(pred, scenes, ds.meshes, floor_z=floor_z)
+    errors = scene_errors(pred, scenes, ds.meshes, floor_z)
+    results = evaluate_scenes(pred, scenes, ds.meshes, floor_z=floor_z, errors=errors)
     simulated = sum((sc.num_frames - HISTORY) / ds.frame_rate for sc in scenes)
     results.update(rollout_seconds=seconds, simulated_seconds=simulated,
                    wall_seconds_per_simulated_second=seconds / simulated if simulated else None,
-                   per_scene=per_scene_means(pred, scenes, ds.meshes, floor_z))
+                   per_scene=per_scene_means(pred, scenes, ds.meshes, floor_z, errors=errors))
     if plots_dir is not None:
-        write_plots(plots_dir, pred, scenes, ds, results)
+        write_plots(plots_dir, pred, scenes, ds, results, errors=errors)
     return results
 
 
-def write_plots(out: str | Path, pred: list, true: list, ds: Dataset, results: dict, count: int = 2) -> list[Path]:
-    """Figure-1 views and a GIF of the best and worst scenes, and error against time."""
+def write_plots(out: str | Path, pred: list, true: list, ds: Dataset, results: dict, count: int = 2,
+                errors: list[dict] | None = None) -> list[Path]:
+    """Figure-1 views and a GIF of the best and worst scenes, and error against time.
+    `errors`: gns.metrics.scene_errors of pred against true, if already computed."""
     from gns.plots import animate_rollout, plot_error_vs_time, plot_trajectory
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     floor_z = float(ds.floor["z"]) if ds.floor else 0.0
-    scores = [float(np.mean(per_frame_errors(p, t, ds.meshes, floor_z)["position_error_pct"])) for p, t in zip(pred, true)]
+    if errors is None:
+        errors = scene_errors(pred, true, ds.meshes, floor_z)
+    scores = [float(np.mean(f["position_error_pct"])) for f in errors]
     order = _worst_first(scores)
     picks = {"best": order[-1], "worst": order[0]}
     if len(order) > 2:
@@ -196,7 +201,7 @@ def write_plots(out: str | Path, pred: list, true: list, ds: Dataset, results: d
         paths.append(plot_trajectory(pred[i], true[i], ds.meshes, out / f"trajectory_{name}.png", dt=ds.dt,
                                      floor_z=floor_z, unit=unit,
                                      title=f"{name} scene ({scores[i]:.1f}% position error): prediction vs truth"))
-    curves = per_frame_curves(pred, true, ds.meshes, floor_z)
+    curves = per_frame_curves(pred, true, ds.meshes, floor_z, errors=errors)
     paths.append(plot_error_vs_time({k: v for k, v in curves.items() if k != "count"}, out / "error_vs_time.png", dt=ds.dt))
     worst = picks["worst"]
     paths.append(animate_rollout(pred[worst], true[worst], ds.meshes, out / "rollout_worst.gif", fps=min(ds.frame_rate, 24),
