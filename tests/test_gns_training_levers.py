@@ -206,10 +206,10 @@ def test_upsampling_a_strided_rollout_recovers_a_smooth_trajectory_at_every_fram
 
 
 def test_all_phases_gives_a_strided_model_every_window_of_the_data(tmp_path):
-    from gns.train import _load_data
+    from gns.train import load_data
     data = write_toss_dataset(tmp_path, train=3, valid=1, frames=12)
-    _, plain, _ = _load_data(data, tiny("features.frame_stride=2"))
-    _, phased, valid = _load_data(data, tiny("features.frame_stride=2", "train.all_phases=true"))
+    _, plain, _ = load_data(data, tiny("features.frame_stride=2"))
+    _, phased, valid = load_data(data, tiny("features.frame_stride=2", "train.all_phases=true"))
     # a window at stride k spans 3k + 1 recorded frames: 12 - 6 = 6 start frames per scene
     assert phased.num_windows == 3 * (12 - 3 * 2)
     assert plain.num_windows == 3 * (6 - 3)          # from frame 0 only: frames 0, 2, .., 10
