@@ -10,8 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from datagen.contactnets import read_toss
 from pipelines import real_cubes
-from pipelines.real_cubes import (duplicate_groups, make_split, overlaps, read_tosses, same_toss,
-                                  training_ids)
+from pipelines.real_cubes_data import duplicate_groups, make_split, overlaps, read_tosses, same_toss, training_ids
 
 SRC = Path(__file__).parent / "data" / "contactnets"
 IDS = (55, 229, 274)
