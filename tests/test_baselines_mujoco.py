@@ -15,18 +15,10 @@ from baselines.identify import fit_floor, fit_gravity  # noqa: E402
 from baselines.toss import toss_errors  # noqa: E402
 from datagen.contactnets import read_experiment, read_toss, toss_to_scene  # noqa: E402
 from datagen.shards import Scene  # noqa: E402
+from test_baselines_pybullet import synthetic  # noqa: E402
 
 SRC = Path(__file__).parent / "data" / "contactnets"
 DT, G = 1 / 148, 183.0
-
-
-def synthetic(positions, quaternions):
-    T = len(positions)
-    z = np.zeros((T, 1, 3))
-    return Scene(positions=np.asarray(positions, float).reshape(T, 1, 3),
-                 quaternions=np.asarray(quaternions, float).reshape(T, 1, 4), velocities=z,
-                 angular_velocities=z, shape=["cube"], material=["acrylic"], scale=np.array([2.0]),
-                 mass=np.array([0.37]), friction=np.array([0.18]), restitution=np.array([0.125]))
 
 
 def energy(pred: Scene, g: float) -> np.ndarray:

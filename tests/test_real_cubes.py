@@ -4,29 +4,11 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
 
-from datagen.contactnets import read_toss
 from pipelines import real_cubes
 
 SRC = Path(__file__).parent / "data" / "contactnets"
 IDS = (55, 229, 274)
-
-
-def turned(toss: np.ndarray, angle: float, shift=(3.0, -2.0)) -> np.ndarray:
-    """The same toss turned about the vertical axis and moved on the table, as the data's copies are."""
-    rz = Rotation.from_euler("z", angle)
-    out = toss.copy()
-    out[:, 0:3] = rz.apply(toss[:, 0:3]) + [*shift, 0.0]
-    out[:, 3:7] = (rz * Rotation.from_quat(toss[:, [4, 5, 6, 3]])).as_quat()[:, [3, 0, 1, 2]]
-    out[:, 7:10] = rz.apply(toss[:, 7:10])
-    return out
-
-
-@pytest.fixture(scope="module")
-def real():
-    return {i: read_toss(SRC / "tosses_processed" / f"{i}.pt") for i in IDS}
 
 
 def test_tiny_preset_end_to_end_with_an_external_test_folder(tmp_path, capsys):
