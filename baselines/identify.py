@@ -147,6 +147,25 @@ def identify(train_scenes: Sequence[Scene], simulate: Callable, bounds, start, f
     Returns {"params", "objective", "start_objective", "evaluations", "seconds", "fitted",
     "fit_tosses", "history": [(objective, params dict), ...], ...}.
     """
+    names = _searched(train_scenes, bounds, fit, budget)
+    t0 = time.perf_counter()
+    measured = {"gravity": fit_gravity(train_scenes, frame_rate) if identify_gravity else None,
+                "floor_z": fit_floor(train_scenes, frame_rate) if identify_floor else None}
+    start = replace(start, **{k: v for k, v in measured.items() if v is not None})
+    scenes = _fit_tosses(train_scenes, max_tosses, seed)
+    evaluate = _Evaluations(lambda p: objective(p, scenes, frame_rate, rotation_weight, simulate, horizon),
+                            budget, start, log)
+    start_value = evaluate(start)
+    coarse = _coarse_stage(evaluate, names, start, bounds, seed, budget // 2 if initial_points is None else initial_points)
+    _local_stage(evaluate, coarse, names, start, bounds, local_starts, budget)
+    return {"params": evaluate.best, "objective": evaluate.best_value, "start_objective": start_value,
+            "evaluations": len(evaluate.cache), "seconds": time.perf_counter() - t0, "fitted": names,
+            "fit_tosses": len(scenes), "horizon": horizon, "rotation_weight": rotation_weight,
+            "history": evaluate.history}
+
+
+def _searched(train_scenes: Sequence[Scene], bounds, fit: Sequence[str], budget: int) -> list[str]:
+    """The names to search, in the order of `bounds`; ValueError for a search that cannot run."""
     if not train_scenes:
         raise ValueError("no training tosses to fit the baseline on")
     known = [n for n, _, _ in bounds]
@@ -156,48 +175,72 @@ def identify(train_scenes: Sequence[Scene], simulate: Callable, bounds, start, f
         raise ValueError(f"unknown parameter(s) {sorted(unknown)}; fittable: {', '.join(known)}")
     if budget < 1:
         raise ValueError("budget must be >= 1")
-    t0 = time.perf_counter()
-    measured = {"gravity": fit_gravity(train_scenes, frame_rate) if identify_gravity else None,
-                "floor_z": fit_floor(train_scenes, frame_rate) if identify_floor else None}
-    start = replace(start, **{k: v for k, v in measured.items() if v is not None})
+    return names
+
+
+def _fit_tosses(train_scenes: Sequence[Scene], max_tosses: int | None, seed: int) -> list[Scene]:
+    """The tosses the objective runs on: all, or a seeded random max_tosses of them."""
     scenes = list(train_scenes)
     if max_tosses is not None and len(scenes) > max_tosses:
         pick = np.random.default_rng([seed, 1]).choice(len(scenes), max_tosses, replace=False)
         scenes = [scenes[i] for i in sorted(pick)]
-    cache: dict[tuple, float] = {}
-    history: list[tuple[float, dict]] = []
-    best = {"value": math.inf, "params": start}
-    cap = [budget]
+    return scenes
 
-    def evaluate(p) -> float:
+
+class _BudgetSpent(Exception):
+    pass
+
+
+class _Evaluations:
+    """The objective at parameter sets, each computed once and at most `cap` in all (then
+    _BudgetSpent); remembers every value in order and the best set seen."""
+
+    def __init__(self, objective_of: Callable, budget: int, start, log: Callable[[str], None] | None):
+        self.objective_of, self.budget, self.cap, self.log = objective_of, budget, budget, log
+        self.cache: dict[tuple, float] = {}
+        self.history: list[tuple[float, dict]] = []
+        self.best_value, self.best = math.inf, start
+
+    def __call__(self, p) -> float:
         key = tuple(round(v, 12) if isinstance(v, float) else v for v in p.to_dict().values())
-        if key not in cache:
-            if len(cache) >= cap[0]:
+        if key not in self.cache:
+            if len(self.cache) >= self.cap:
                 raise _BudgetSpent
-            cache[key] = objective(p, scenes, frame_rate, rotation_weight, simulate, horizon)
-            history.append((cache[key], p.to_dict()))
-            if cache[key] < best["value"]:
-                best.update(value=cache[key], params=p)
-            if log:
-                log(f"baseline fit {len(cache)}/{budget}: {cache[key]:.3f} at {_short(p)}")
-        return cache[key]
+            value = self.cache[key] = self.objective_of(p)
+            self.history.append((value, p.to_dict()))
+            if value < self.best_value:
+                self.best_value, self.best = value, p
+            if self.log:
+                self.log(f"baseline fit {len(self.cache)}/{self.budget}: {value:.3f} at {_short(p)}")
+        return self.cache[key]
 
-    start_value = evaluate(start)
+
+def _coarse_stage(evaluate: _Evaluations, names: list[str], start, bounds, seed: int,
+                  points: int) -> list[tuple[float, np.ndarray]]:
+    """The objective at `points` Latin-hypercube points of the unit cube of `names` (seeded by
+    seed), until the budget is spent: [(value, point)]."""
     coarse: list[tuple[float, np.ndarray]] = []
     try:
-        n_init = budget // 2 if initial_points is None else initial_points
-        if n_init > 0 and names:
-            for u in qmc.LatinHypercube(len(names), seed=seed).random(n_init):
+        if points > 0 and names:
+            for u in qmc.LatinHypercube(len(names), seed=seed).random(points):
                 coarse.append((evaluate(params_from_unit(u, names, start, bounds)), u))
     except _BudgetSpent:
         pass
+    return coarse
+
+
+def _local_stage(evaluate: _Evaluations, coarse: list[tuple[float, np.ndarray]], names: list[str], start, bounds,
+                 local_starts: int, budget: int) -> None:
+    """Bounded Nelder-Mead over the continuous names from each of the best `local_starts`
+    coarse points in turn (from the start if there were none), each with an equal share of the
+    evaluations left."""
     ints = [isinstance(getattr(start, _field(n)), int) for n in names]
     free = [i for i, is_int in enumerate(ints) if not is_int]
     seeds = [u for _, u in sorted(coarse, key=lambda c: c[0])[:max(local_starts, 0)]]
     if not seeds and names:  # no coarse stage: descend from the start
         seeds = [unit_from_params(start, names, bounds)]
     for k, u0 in enumerate(seeds if free else []):
-        cap[0] = len(cache) + (budget - len(cache)) // (len(seeds) - k)
+        evaluate.cap = len(evaluate.cache) + (budget - len(evaluate.cache)) // (len(seeds) - k)
         x0 = u0[free]
 
         def f(x, u0=u0):
@@ -212,13 +255,6 @@ def identify(train_scenes: Sequence[Scene], simulate: Callable, bounds, start, f
                      options={"initial_simplex": simplex, "maxfev": 10 * budget, "xatol": 1e-3, "fatol": 1e-3})
         except _BudgetSpent:
             pass
-    return {"params": best["params"], "objective": best["value"], "start_objective": start_value,
-            "evaluations": len(cache), "seconds": time.perf_counter() - t0, "fitted": names,
-            "fit_tosses": len(scenes), "horizon": horizon, "rotation_weight": rotation_weight, "history": history}
-
-
-class _BudgetSpent(Exception):
-    pass
 
 
 def _short(p) -> str:
