@@ -27,6 +27,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
+from datagen.outputs import check_output_folder
 from datagen.shapes import get_shape
 from datagen.shards import (METADATA_FILE, SPLITS, DataError, Scene, clear_dataset, shard_name, write_metadata,
                            write_shard)
@@ -171,15 +172,6 @@ def _plan_splits(available: list[int], ids: Iterable[int] | None,
     return plan
 
 
-def _prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
-    if out_dir.exists() and not out_dir.is_dir():
-        raise DataError(f"output path exists and is not a folder: {out_dir}")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise DataError(f"output folder exists and is not empty: {out_dir} (pass overwrite=True to replace a dataset)")
-
-
-
-
 def import_contactnets(src_dir: str | Path, out_dir: str | Path, ids: Iterable[int] | None = None,
                        overwrite: bool = False, progress: bool = True,
                        splits: Mapping[str, Iterable[int]] | None = None, min_frames: int = MIN_FRAMES,
@@ -199,7 +191,7 @@ def import_contactnets(src_dir: str | Path, out_dir: str | Path, ids: Iterable[i
     src_dir, out_dir = Path(src_dir), Path(out_dir)
     toss_dir = _toss_dir(src_dir)
     plan = _plan_splits(list_toss_ids(src_dir), ids, splits)
-    _prepare_out_dir(out_dir, overwrite)
+    check_output_folder(out_dir, overwrite, "pass overwrite=True to replace a dataset")
     consts = read_experiment(src_dir)
 
     # Read and check everything first: a bad toss must not leave half a dataset behind.

@@ -24,6 +24,7 @@ from . import __version__
 from .scenes import sample_scene
 from .shapes import get_shape
 from .inspect import floor_violations
+from .outputs import check_output_folder
 from .config import ConfigError
 from .shards import (METADATA_FILE, SPLITS, DataError, clear_dataset, dataset_files, read_shard, shard_image,
                      shard_name, write_error, write_metadata, write_shard_image)
@@ -125,19 +126,17 @@ def _same_plan(out: Path, meta: dict, what: str) -> None:
 
 def prepare_output(out: Path, meta: dict, resume: bool, overwrite: bool) -> None:
     """Refuse to mix datasets: an existing folder needs --resume (same plan) or --overwrite."""
-    if out.exists() and any(out.iterdir()):
+    if check_output_folder(out, overwrite or resume, "use --resume to finish it or --overwrite to replace it"):
         if overwrite:
             if not dataset_files(out):
                 raise DataError(f"{out} exists and does not look like a dataset; refusing to delete it")
             clear_dataset(out)  # only the tool's own files: a user's notes in the folder stay
-        elif resume:
+        else:
             if not (out / METADATA_FILE).exists():
                 raise DataError(f"cannot resume: {out} has no {METADATA_FILE}")
             _same_plan(out, meta, "resume")
             for stale in out.glob(".*.tmp"):
                 stale.unlink()
-        else:
-            raise DataError(f"output folder {out} exists and is not empty; use --resume to finish it or --overwrite to replace it")
     elif resume:
         raise DataError(f"cannot resume: {out} does not exist")
     out.mkdir(parents=True, exist_ok=True)

@@ -9,9 +9,6 @@ from __future__ import annotations
 
 import errno
 import json
-import os
-import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -19,12 +16,15 @@ from typing import Iterator
 import h5py
 import numpy as np
 
+from .atomic import atomic_file
 from .provenance import file_sha256, fingerprint, provenance
 
 FORMAT_VERSION = 1
 METADATA_FILE = "metadata.json"
 QUATERNION_ORDER = "wxyz"
 SPLITS = ("train", "valid", "test")
+# mkstemp makes owner-only files; a dataset is meant to be shared.
+SHARED = 0o644
 
 SCENE_ARRAYS = ("positions", "quaternions", "velocities", "angular_velocities")
 OBJECT_ARRAYS = ("scale", "mass", "friction", "restitution")
@@ -79,10 +79,19 @@ def dataset_files(root: str | Path) -> list[Path]:
     root = Path(root)
     if not root.is_dir():
         return []
-    shard = re.compile(rf"^({'|'.join(SPLITS)})-\d{{5}}\.h5$")
-    temp = re.compile(rf"^\.(({'|'.join(SPLITS)})-\d{{5}}\.h5|{re.escape(METADATA_FILE)})\..*\.tmp$")
-    return sorted(p for p in root.iterdir() if p.is_file() and (
-        p.name == METADATA_FILE or shard.match(p.name) or temp.match(p.name)))
+    return sorted(p for p in root.iterdir() if p.is_file() and (_own(p.name) or _own_temporary(p.name)))
+
+
+def _own(name: str) -> bool:
+    """Whether a file name is the metadata's or one that shard_name gives."""
+    split, _, rest = name.partition("-")
+    index = rest.removesuffix(".h5")
+    return name == METADATA_FILE or (split in SPLITS and index.isdigit() and shard_name(split, int(index)) == name)
+
+
+def _own_temporary(name: str) -> bool:
+    """Whether a file name is atomic_file's temporary `.<name>.<random>.tmp` of an _own name."""
+    return name.startswith(".") and name.endswith(".tmp") and _own(name[1:-len(".tmp")].rpartition(".")[0])
 
 
 def clear_dataset(root: str | Path) -> None:
@@ -91,18 +100,6 @@ def clear_dataset(root: str | Path) -> None:
     files = dataset_files(root)
     for p in sorted(files, key=lambda p: p.name != METADATA_FILE):
         p.unlink(missing_ok=True)
-
-
-def _atomic_path(final: Path):
-    fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
-    os.close(fd)
-    return Path(tmp)
-
-
-def _publish(tmp: Path, final: Path) -> None:
-    # mkstemp makes owner-only files; a dataset is meant to be shared.
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, final)
 
 
 def write_shard(path: str | Path, scenes: list[Scene], meshes: dict[str, tuple[np.ndarray, np.ndarray]],
@@ -124,17 +121,11 @@ def write_shard(path: str | Path, scenes: list[Scene], meshes: dict[str, tuple[n
 def write_shard_image(path: str | Path, image: bytes) -> None:
     """Write a shard built by shard_image atomically (temporary file, then rename)."""
     path = Path(path)
-    tmp = _atomic_path(path)
     try:
-        with open(tmp, "wb") as out:
+        with atomic_file(path, mode=SHARED) as tmp, open(tmp, "wb") as out:
             out.write(image)
-        _publish(tmp, path)
     except OSError as e:
-        tmp.unlink(missing_ok=True)
         raise write_error(path, e) from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def shard_image(scenes: list[Scene], meshes: dict[str, tuple[np.ndarray, np.ndarray]], attrs: dict | None = None,
@@ -205,14 +196,8 @@ def write_metadata(root: str | Path, meta: dict) -> dict:
     if meta.get("complete") is not False:
         meta["checksums"] = shard_checksums(root, meta["splits"])
         meta["fingerprint"] = fingerprint(meta, meta["checksums"])
-    final = root / METADATA_FILE
-    tmp = _atomic_path(final)
-    try:
+    with atomic_file(root / METADATA_FILE, mode=SHARED) as tmp:
         tmp.write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
-        _publish(tmp, final)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return meta
 
 

@@ -1,10 +1,10 @@
-"""The one place that talks to PyBullet: build a scene, step it, record poses.
+"""The one place that sets up PyBullet: a world with its floor, a scene in it, stepped and recorded.
 
-Settings follow Kubric's MOVi worker (design.md section 3): a fresh client per scene (a
-reused world loses bit-exact repeatability), contactProcessingThreshold=0 per body (without it
-bounces die), no restitution velocity threshold, no warm starting, split impulse, no contact
-slop, deterministic overlapping pairs, no damping, and the mesh's true inertia (Bullet would
-otherwise replace it with a box approximation).
+Settings follow Kubric's MOVi worker: a fresh client per scene (a reused world loses bit-exact
+repeatability), contactProcessingThreshold=0 per body (without it bounces die), no restitution
+velocity threshold, no warm starting, split impulse, no contact slop, deterministic overlapping
+pairs, no damping, and the mesh's true inertia (Bullet would otherwise replace it with a box
+approximation). baselines.pybullet builds its cube-toss worlds with `new_world` and `add_floor` too.
 """
 from __future__ import annotations
 
@@ -31,6 +31,7 @@ def _import_pybullet_quietly():
 
 pb = _import_pybullet_quietly()
 
+from .quaternions import continuous, wxyz, xyzw
 from .scenes import SceneSpec
 from .shapes import get_shape
 from .shards import Scene
@@ -39,36 +40,40 @@ from .shards import Scene
 FLOOR_HALF_WIDTH = 1000.0
 
 
-def _wxyz(q_xyzw) -> list[float]:
-    return [q_xyzw[3], q_xyzw[0], q_xyzw[1], q_xyzw[2]]
+def new_world(gravity, time_step: float, solver_iterations: int) -> int:
+    """A new DIRECT client with the engine settings above; returns its id."""
+    c = pb.connect(pb.DIRECT)
+    pb.setGravity(*[float(g) for g in gravity], physicsClientId=c)
+    pb.setPhysicsEngineParameter(
+        fixedTimeStep=time_step, numSolverIterations=int(solver_iterations),
+        numSubSteps=0, restitutionVelocityThreshold=0, warmStartingFactor=0, useSplitImpulse=True,
+        contactSlop=0, splitImpulsePenetrationThreshold=0, enableConeFriction=False, deterministicOverlappingPairs=True, physicsClientId=c)
+    return c
 
 
-def _xyzw(q_wxyz) -> list[float]:
-    return [q_wxyz[1], q_wxyz[2], q_wxyz[3], q_wxyz[0]]
+def add_floor(c: int, z: float, friction: float, restitution: float) -> int:
+    """A static floor with its top face at height z; returns its body id."""
+    # A thick box with its top face at z rather than GEOM_PLANE: creating a plane body costs
+    # ~15 ms a scene (more than simulating it), the box 0.3 ms, and the contacts agree.
+    box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[FLOOR_HALF_WIDTH, FLOOR_HALF_WIDTH, 1.0], physicsClientId=c)
+    floor = pb.createMultiBody(0, box, basePosition=[0, 0, z - 1.0], useMaximalCoordinates=True, physicsClientId=c)
+    pb.changeDynamics(floor, -1, lateralFriction=float(friction), restitution=float(restitution),
+                      contactProcessingThreshold=0, physicsClientId=c)
+    return floor
 
 
 def build_world(spec: SceneSpec, cfg: dict) -> tuple[int, list[int]]:
     """A new DIRECT client holding the floor and the scene's objects. Returns (client, body ids)."""
     ph, fl = cfg["physics"], cfg["floor"]
-    c = pb.connect(pb.DIRECT)
-    pb.setGravity(*[float(g) for g in ph["gravity"]], physicsClientId=c)
-    pb.setPhysicsEngineParameter(
-        fixedTimeStep=1.0 / float(ph["rate"]), numSolverIterations=int(ph["solver_iterations"]),
-        numSubSteps=0, restitutionVelocityThreshold=0, warmStartingFactor=0, useSplitImpulse=True,
-        contactSlop=0, splitImpulsePenetrationThreshold=0, enableConeFriction=False, deterministicOverlappingPairs=True, physicsClientId=c)
+    c = new_world(ph["gravity"], 1.0 / float(ph["rate"]), ph["solver_iterations"])
     if fl["enabled"]:
-        # A thick box with its top face at z = 0 rather than GEOM_PLANE: creating a plane body
-        # costs ~15 ms a scene (more than simulating it), the box 0.3 ms, and the contacts agree.
-        box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[FLOOR_HALF_WIDTH, FLOOR_HALF_WIDTH, 1.0], physicsClientId=c)
-        floor = pb.createMultiBody(0, box, basePosition=[0, 0, -1.0], useMaximalCoordinates=True, physicsClientId=c)
-        pb.changeDynamics(floor, -1, lateralFriction=float(fl["friction"]), restitution=float(fl["restitution"]),
-                          contactProcessingThreshold=0, physicsClientId=c)
+        add_floor(c, 0.0, fl["friction"], fl["restitution"])
     bodies = []
     for o in spec.objects:
         shape = get_shape(o.shape)
         col = pb.createCollisionShape(pb.GEOM_MESH, vertices=(shape.vertices * o.scale).tolist(), physicsClientId=c)
         b = pb.createMultiBody(o.mass, col, basePosition=o.position.tolist(),
-                               baseOrientation=_xyzw(o.quaternion), useMaximalCoordinates=True, physicsClientId=c)
+                               baseOrientation=xyzw(o.quaternion).tolist(), useMaximalCoordinates=True, physicsClientId=c)
         pb.changeDynamics(b, -1, lateralFriction=o.friction, restitution=o.restitution,
                           mass=o.mass, localInertiaDiagonal=o.inertia.tolist(), linearDamping=0, angularDamping=0,
                           contactProcessingThreshold=0, physicsClientId=c)
@@ -102,15 +107,11 @@ def simulate(spec: SceneSpec, cfg: dict) -> Scene:
             for j, b in enumerate(bodies):
                 p, q = pb.getBasePositionAndOrientation(b, physicsClientId=c)
                 v, w = pb.getBaseVelocity(b, physicsClientId=c)
-                pos[t, j], quat[t, j], vel[t, j], ang[t, j] = p, _wxyz(q), v, w
+                pos[t, j], quat[t, j], vel[t, j], ang[t, j] = p, wxyz(q), v, w
     finally:
         pb.disconnect(c)
-    # One cover of the quaternion per object, chosen continuous in time, so finite differences
-    # of quaternions (and readers interpolating them) see no sign flips.
-    flip = np.cumprod(np.where(np.sum(quat[1:] * quat[:-1], axis=-1) < 0, -1.0, 1.0), axis=0)
-    quat[1:] *= flip[..., None]
     return Scene(
-        positions=pos, quaternions=quat, velocities=vel, angular_velocities=ang,
+        positions=pos, quaternions=continuous(quat), velocities=vel, angular_velocities=ang,
         shape=[o.shape for o in spec.objects], material=[o.material for o in spec.objects],
         scale=np.array([o.scale for o in spec.objects]), mass=np.array([o.mass for o in spec.objects]),
         friction=np.array([o.friction for o in spec.objects]),

@@ -26,6 +26,9 @@ def tilt_quaternion(angle_deg: float) -> np.ndarray:
 
 
 def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    # Written out, as is the quaternion product in training_scene, rather than scipy's: the
+    # scenes must come out bit for bit as before (an exact 45-degree tilt is a knife edge), and
+    # scipy rounds differently in the last bit.
     w, u = q[0], q[1:]
     return v + 2 * np.cross(u, np.cross(u, v) + w * v)
 

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from datagen.shards import DataError
 from gns.config import Config, ConfigError
@@ -236,7 +237,7 @@ class Model:
         p = past_pos.detach().cpu().numpy()
         speed = np.linalg.norm(p[-1] - p[-2], axis=-1) * self.frame_rate
         rel = (past_rot[-1] @ past_rot[-2].transpose(-1, -2)).detach().cpu().numpy()
-        angle = np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1) / 2, -1, 1)) * self.frame_rate
+        angle = Rotation.from_matrix(rel).magnitude() * self.frame_rate
         span = lambda a: [float(np.min(a)), float(np.max(a))]  # noqa: E731
         data = {"frame_rate": self.frame_rate, "gravity": self.spec["gravity"], "floor": self.floor,
                 "shapes": sorted(set(shapes)),

@@ -114,7 +114,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
 def cmd_eval(args: argparse.Namespace) -> None:
     from gns.evaluate import evaluate_run, write_json
     from gns.metrics import format_table
-    from gns.outputs import check_json_output
+    from datagen.outputs import check_json_output
 
     _threads(args.threads)
     if args.json:
@@ -236,7 +236,7 @@ def add_export_parser(sub) -> None:
 def cmd_plot_curves(args: argparse.Namespace) -> None:
     from pathlib import Path
 
-    from gns.outputs import check_writable
+    from datagen.outputs import check_writable
     from gns.plots import plot_training_curves
     from gns.train import METRICS, read_metrics
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-from gns.graph import EdgeSet, Graph, near_pairs, _ragged_arange, _vertices_near, graph_centres
+from gns.graph import EdgeSet, Graph, near_pairs, ragged_arange, vertices_near, graph_centres
 
 
 def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
@@ -63,11 +63,11 @@ def _surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> tuple[EdgeSe
     centre = graph_centres(x, graph)
     own = torch.cat([a, b])
     other = torch.cat([b, a])
-    pair, node = _vertices_near(x, graph, own, other, low, high, radius)
+    pair, node = vertices_near(x, graph, own, other, low, high, radius)
     if len(node) == 0:
         return empty, none, empty.signed
     # every query vertex against every face of the other object
-    query, k = _ragged_arange(face_counts[other[pair]])
+    query, k = ragged_arange(face_counts[other[pair]])
     face = face_start[other[pair[query]]] + k
     tri = graph.faces[face]
     q = x[node[query]]

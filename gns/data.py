@@ -43,9 +43,7 @@ import torch
 from datagen.shards import Dataset, DataError, Scene
 from gns.features import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
-from gns.graph import EdgeSet, Graph, MeshLibrary, _ragged_arange, graph_sizes
-
-WINDOW = HISTORY + 1
+from gns.graph import EdgeSet, Graph, MeshLibrary, ragged_arange, graph_sizes
 
 
 def rotation_z(theta: torch.Tensor) -> torch.Tensor:
@@ -176,7 +174,7 @@ class ObjectTracks:
     def window_tracks(self, windows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Tracks of the given windows' scenes (all objects) and the window (index into windows) of each."""
         scene = self.window_scene[windows]
-        which, k = _ragged_arange(self.scene_num_tracks[scene])
+        which, k = ragged_arange(self.scene_num_tracks[scene])
         return self.scene_first_track[scene][which] + k, which
 
     def poses(self, tracks: torch.Tensor, first: torch.Tensor, frames: int) -> tuple[torch.Tensor, torch.Tensor]:

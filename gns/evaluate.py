@@ -10,11 +10,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from datagen.atomic import atomic_file
+from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
-from gns.metrics import evaluate_scenes, per_frame_curves, per_frame_errors, per_scene_means
-from gns.outputs import check_writable
+from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene
 from gns.data import feature_spec
+from gns.features import HISTORY
 from gns.ranges import outside_training
 from gns.train import LATEST, load_model, parse_device, read_checkpoint
 
@@ -45,9 +47,8 @@ def _worst_first(per_scene: list[float]) -> list[int]:
 def write_json(path: str | Path, obj) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=float) + "\n")
-    tmp.replace(path)
+    with atomic_file(path, mode=0o644) as tmp:
+        tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=float) + "\n")
 
 
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
@@ -134,12 +135,12 @@ def check_ranges(trained_spec: dict, ds: Dataset, scenes: list, warn=None) -> li
 
 def evaluate_baseline(data: str | Path, split: str = "test", params=None, limit: int | None = None,
                       plots_dir: str | Path | None = None, engine: str = "pybullet",
-                      given: int = 3) -> tuple[dict, list, list, Dataset]:
-    """`evaluate_run` for an analytic baseline (datagen.baseline: "pybullet" or "mujoco"): every
+                      given: int = HISTORY) -> tuple[dict, list, list, Dataset]:
+    """`evaluate_run` for an analytic baseline (baselines: "pybullet" or "mujoco"): every
     one-cube scene of a split simulated from its first `given` frames with `params` (default: the
     engine's defaults, for PyBullet the published ContactNets constants), scored the same way.
     Returns (results, predicted, true, dataset)."""
-    from datagen.baseline import baseline_engine  # the engines only when asked for
+    from baselines import baseline_engine  # the engines only when asked for
     params_class, simulate, _ = baseline_engine(engine)
     params = params_class() if params is None else params
     ds, scenes = load_split(data, split, limit)
@@ -174,23 +175,28 @@ def score_predictions(pred: list, scenes: list, ds: Dataset, seconds: float,
     """Metrics (gns.metrics.evaluate_scenes) of predicted scenes against the truth, what the
     predictions cost, per-scene means (`per_scene`, for paired comparisons), and plots if asked."""
     floor_z = float(ds.floor["z"]) if ds.floor else 0.0
-    results = evaluate_scenes(pred, scenes, ds.meshes, floor_z=floor_z)
-    simulated = sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
+    errors = scene_errors(pred, scenes, ds.meshes, floor_z)
+    results = evaluate_scenes(pred, scenes, ds.meshes, floor_z=floor_z, errors=errors)
+    simulated = sum((sc.num_frames - HISTORY) / ds.frame_rate for sc in scenes)
     results.update(rollout_seconds=seconds, simulated_seconds=simulated,
                    wall_seconds_per_simulated_second=seconds / simulated if simulated else None,
-                   per_scene=per_scene_means(pred, scenes, ds.meshes, floor_z))
+                   per_scene=per_scene_means(pred, scenes, ds.meshes, floor_z, errors=errors))
     if plots_dir is not None:
-        write_plots(plots_dir, pred, scenes, ds, results)
+        write_plots(plots_dir, pred, scenes, ds, results, errors=errors)
     return results
 
 
-def write_plots(out: str | Path, pred: list, true: list, ds: Dataset, results: dict, count: int = 2) -> list[Path]:
-    """Figure-1 views and a GIF of the best and worst scenes, and error against time."""
+def write_plots(out: str | Path, pred: list, true: list, ds: Dataset, results: dict, count: int = 2,
+                errors: list[dict] | None = None) -> list[Path]:
+    """Figure-1 views and a GIF of the best and worst scenes, and error against time.
+    `errors`: gns.metrics.scene_errors of pred against true, if already computed."""
     from gns.plots import animate_rollout, plot_error_vs_time, plot_trajectory
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     floor_z = float(ds.floor["z"]) if ds.floor else 0.0
-    scores = [float(np.mean(per_frame_errors(p, t, ds.meshes, floor_z)["position_error_pct"])) for p, t in zip(pred, true)]
+    if errors is None:
+        errors = scene_errors(pred, true, ds.meshes, floor_z)
+    scores = [float(np.mean(f["position_error_pct"])) for f in errors]
     order = _worst_first(scores)
     picks = {"best": order[-1], "worst": order[0]}
     if len(order) > 2:
@@ -202,7 +208,7 @@ def write_plots(out: str | Path, pred: list, true: list, ds: Dataset, results: d
         paths.append(plot_trajectory(pred[i], true[i], ds.meshes, out / f"trajectory_{name}.png", dt=ds.dt,
                                      floor_z=floor_z, unit=unit,
                                      title=f"{name} scene ({scores[i]:.1f}% position error): prediction vs truth"))
-    curves = per_frame_curves(pred, true, ds.meshes, floor_z)
+    curves = per_frame_curves(pred, true, ds.meshes, floor_z, errors=errors)
     paths.append(plot_error_vs_time({k: v for k, v in curves.items() if k != "count"}, out / "error_vs_time.png", dt=ds.dt))
     worst = picks["worst"]
     paths.append(animate_rollout(pred[worst], true[worst], ds.meshes, out / "rollout_worst.gif", fps=min(ds.frame_rate, 24),

@@ -3,11 +3,16 @@
 Everything is vectorised over leading axes ("...") so one call handles a whole trajectory
 (T, N, ...) at once. Quaternions follow the dataset's convention: w x y z, body -> world, so
 world = R(q) @ body. Numpy only: the metrics, plots and data importers use this module without
-torch.
+torch. quat_to_matrix and matrix_to_quat are written out rather than scipy's: training inputs
+are built with quat_to_matrix (scipy rounds differently in the last bit, so runs would no longer
+repeat bit for bit), matrix_to_quat passes the NaN of a diverged rollout through where scipy
+raises, and both mirror their torch twins in gns.api.
 """
 from __future__ import annotations
 
 import numpy as np
+
+from datagen.quaternions import rotation
 
 
 def quat_normalize(q: np.ndarray) -> np.ndarray:
@@ -89,13 +94,11 @@ def matrix_to_quat(m: np.ndarray) -> np.ndarray:
 def rotation_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle in radians, in [0, pi], of the rotation a * conj(b) (taking b to a); (..., 4) -> (...).
 
-    Mathematically 2 arccos(|<a, b>|) (the absolute value handles the double cover: q and -q
-    are the same rotation). Computed as 2 atan2(|vector part|, |w|) of the relative quaternion
-    instead, because arccos loses half the digits near 1: identical rotations would score
-    ~1e-8 degrees instead of 0.
+    Mathematically 2 arccos(|<a, b>|) (q and -q are the same rotation). scipy's magnitude is
+    2 atan2(|vector part|, |w|) of the relative quaternion instead, because arccos loses half
+    the digits near 1: identical rotations would score ~1e-8 degrees instead of 0.
     """
-    rel = quat_multiply(quat_normalize(a), quat_conjugate(quat_normalize(b)))
-    return 2.0 * np.arctan2(np.linalg.norm(rel[..., 1:], axis=-1), np.abs(rel[..., 0]))
+    return (rotation(quat_normalize(a)) * rotation(quat_normalize(b)).inv()).magnitude()
 
 
 def pose_to_vertices(positions: np.ndarray, quaternions: np.ndarray, scale, rest_vertices: np.ndarray) -> np.ndarray:

@@ -127,7 +127,7 @@ def with_symmetries(graph: "Graph") -> "Graph":
     return replace(graph, symmetries=padded.to(graph.rest), num_symmetries=counts.to(graph.rest.device))
 
 
-def _ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """For counts (B,): the owner (sum counts,) of each element and its index within its owner."""
     owner = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
     starts = torch.cumsum(counts, 0) - counts
@@ -178,17 +178,17 @@ class MeshLibrary:
         through collision edges); None = every graph alone.
         """
         n_vert = self.num_vertices[shape_ids]
-        node_graph, local = _ragged_arange(n_vert)
+        node_graph, local = ragged_arange(n_vert)
         library_node = self._vertex_start[shape_ids][node_graph] + local
         rest = self._vertices[library_node] * scale.to(torch.float64)[node_graph, None]
 
         n_edge = self.num_edges[shape_ids]
-        edge_graph, local_edge = _ragged_arange(n_edge)
+        edge_graph, local_edge = ragged_arange(n_edge)
         library_edge = self._edge_start[shape_ids][edge_graph] + local_edge
         node_offset = torch.cumsum(n_vert, 0) - n_vert
         edges = self._edges[library_edge] + node_offset[edge_graph, None]
 
-        face_graph, local_face = _ragged_arange(self.num_faces[shape_ids])
+        face_graph, local_face = ragged_arange(self.num_faces[shape_ids])
         faces = self._faces[self._face_start[shape_ids][face_graph] + local_face] + node_offset[face_graph, None]
 
         material = torch.stack([friction, restitution], dim=1).to(torch.float32)[node_graph]
@@ -202,18 +202,18 @@ def _candidate_pairs(graph: Graph) -> tuple[torch.Tensor, torch.Tensor]:
     order = torch.argsort(scene, stable=True)
     _, counts = torch.unique_consecutive(scene[order], return_counts=True)
     # for the k-th graph of a scene (in `order`), pair it with every graph of its scene
-    owner, _ = _ragged_arange(counts)                     # scene run of each sorted graph
+    owner, _ = ragged_arange(counts)                     # scene run of each sorted graph
     run_start = torch.cumsum(counts, 0) - counts
     per = counts[owner]                                   # (G,) partners per sorted graph
-    who, k = _ragged_arange(per)
+    who, k = ragged_arange(per)
     a, b = order[who], order[run_start[owner[who]] + k]
     keep = a < b
     return a[keep], b[keep]
 
 
-def _ragged_take(counts: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def ragged_take(counts: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """For blocks p of counts[p] consecutive indices from start[p]: (owner, index) of each element."""
-    owner, local = _ragged_arange(counts)
+    owner, local = ragged_arange(counts)
     return owner, start[owner] + local
 
 
@@ -251,12 +251,12 @@ def near_pairs(x: torch.Tensor, graph: Graph, radius: float):
     return a[near], b[near], low, high
 
 
-def _vertices_near(x: torch.Tensor, graph: Graph, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
+def vertices_near(x: torch.Tensor, graph: Graph, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
                    high: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Mid phase: the vertices of graphs `own` (P,) inside the bounds of `other` (P,) expanded
     by `radius`; returns (pair, node), pair indexing own/other."""
     counts = torch.bincount(graph.node_graph, minlength=graph.num_graphs)
-    pair, node = _ragged_take(counts[own], torch.cumsum(counts, 0)[own] - counts[own])
+    pair, node = ragged_take(counts[own], torch.cumsum(counts, 0)[own] - counts[own])
     p = x[node]
     ok = ((p >= low[other][pair] - radius) & (p <= high[other][pair] + radius)).all(dim=1)
     return pair[ok], node[ok]
@@ -283,14 +283,14 @@ def collision_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
 
     def inside(own: torch.Tensor, other: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per pair, how many vertices of `own` are inside `other`'s expanded bounds, and which."""
-        pair, node = _vertices_near(x, graph, own, other, low, high, radius)
+        pair, node = vertices_near(x, graph, own, other, low, high, radius)
         return torch.bincount(pair, minlength=len(own)), node
 
     count_a, nodes_a = inside(a, b)
     count_b, nodes_b = inside(b, a)
     start_a = torch.cumsum(count_a, 0) - count_a
     start_b = torch.cumsum(count_b, 0) - count_b
-    pair, local = _ragged_arange(count_a * count_b)
+    pair, local = ragged_arange(count_a * count_b)
     i = nodes_a[start_a[pair] + torch.div(local, count_b[pair], rounding_mode="floor")]
     j = nodes_b[start_b[pair] + local % count_b[pair]]
     close = (x[i] - x[j]).norm(dim=1) < radius

@@ -13,13 +13,14 @@ For a predicted and a true trajectory of object poses:
 Averaging order (see docs/metrics.md): per frame and object -> mean over the frames t >= start
 of each object's trajectory -> mean over all objects of all scenes (each object trajectory
 weighs the same, whatever its length). The default start = 0 includes the given initial frames,
-as ContactNets averages over the whole toss; start = 3 scores only the predicted frames.
+as ContactNets averages over the whole toss; start = HISTORY (3) scores only the predicted frames.
 
 Width = scale * largest extent of the rest mesh. The unit assets span exactly 1, so this is the
 scale (2 for the real cube of half-width 1) as in the paper, and stays right if someone feeds a
 mesh that does not span 1 (e.g. the ContactNets cube with vertices at +-1 and scale 1).
 
-Numpy only, no torch: scoring an analytic simulator needs no deep-learning stack.
+The formulas are numpy, no autograd: they score analytic simulators as well as the GNS. Only the
+number of given frames comes from the model (gns.features.HISTORY).
 """
 from __future__ import annotations
 
@@ -28,11 +29,11 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from gns.features import HISTORY
 from gns.geometry import pose_to_vertices, quat_to_matrix, rotation_angle
 
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 DEFAULT_HORIZONS = (1, 5, 10, 20, 50, 100, 200)
-NUM_GIVEN = 3  # rollouts start from 3 true frames (history of 2 velocities)
 
 
 def object_width(scale, rest_vertices: np.ndarray) -> np.ndarray:
@@ -138,14 +139,32 @@ def per_frame_errors(pred, true, meshes: Mapping[str, tuple], floor_z: float = 0
     return out
 
 
+def scene_errors(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mapping[str, tuple],
+                 floor_z: float = 0.0) -> list[dict[str, np.ndarray]]:
+    """per_frame_errors of each pair of scenes, the pairs checked as evaluate_scenes checks them.
+
+    The summaries below each take it as `errors`, so an evaluation computes it once."""
+    if len(pred_scenes) != len(true_scenes):
+        raise ValueError(f"{len(pred_scenes)} predicted scenes but {len(true_scenes)} true scenes")
+    if not true_scenes:
+        raise ValueError("no scenes to evaluate")
+    out = []
+    for i, (pred, true) in enumerate(zip(pred_scenes, true_scenes)):
+        _check_pair(pred, true, i)
+        out.append(per_frame_errors(pred, true, meshes, floor_z))
+    return out
+
+
 def per_frame_curves(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mapping[str, tuple],
-                     floor_z: float = 0.0) -> dict[str, np.ndarray]:
+                     floor_z: float = 0.0, errors: Sequence[dict] | None = None) -> dict[str, np.ndarray]:
     """Mean over all objects of all scenes at each frame index, for error-vs-time plots.
 
     Scenes may differ in length: frame t averages the objects whose trajectory reaches t.
     Returns each metric as (T_max,) plus "count" (T_max,), the number of objects averaged.
+    `errors`: the scenes' scene_errors, if already computed.
     """
-    frames = [per_frame_errors(p, t, meshes, floor_z) for p, t in zip(pred_scenes, true_scenes, strict=True)]
+    frames = errors if errors is not None else \
+        [per_frame_errors(p, t, meshes, floor_z) for p, t in zip(pred_scenes, true_scenes, strict=True)]
     t_max = max(f["position_error_pct"].shape[0] for f in frames)
     sums = defaultdict(lambda: np.zeros(t_max))
     count = np.zeros(t_max)
@@ -161,12 +180,13 @@ def per_frame_curves(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mappi
 
 
 def per_scene_means(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mapping[str, tuple],
-                    floor_z: float = 0.0, start: int = 0) -> list[dict]:
+                    floor_z: float = 0.0, start: int = 0, errors: Sequence[dict] | None = None) -> list[dict]:
     """Each scene's metrics averaged over its frames t >= start and its objects, with its
-    scene_id: for paired comparisons of two simulators on the same scenes."""
+    scene_id: for paired comparisons of two simulators on the same scenes. `errors`: the
+    scenes' scene_errors, if already computed."""
     out = []
-    for pred, true in zip(pred_scenes, true_scenes, strict=True):
-        f = per_frame_errors(pred, true, meshes, floor_z)
+    for k, (pred, true) in enumerate(zip(pred_scenes, true_scenes, strict=True)):
+        f = errors[k] if errors is not None else per_frame_errors(pred, true, meshes, floor_z)
         row = {k: float(v[start:].mean()) for k, v in f.items()}
         sid = true.attrs.get("scene_id")
         row["scene_id"] = sid.item() if hasattr(sid, "item") else sid  # numpy scalars from HDF5 attributes
@@ -193,7 +213,7 @@ def _summary(rows: list[dict]) -> dict:
 
 def evaluate_scenes(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mapping[str, tuple],
                     floor_z: float = 0.0, horizons: Sequence[int] = DEFAULT_HORIZONS, start: int = 0,
-                    num_given: int = NUM_GIVEN) -> dict:
+                    num_given: int = HISTORY, errors: Sequence[dict] | None = None) -> dict:
     """Score predicted scenes against the true ones; returns a JSON-ready dict.
 
     pred_scenes, true_scenes: matching lists of Scene (same T and N pairwise; T may vary between
@@ -207,16 +227,13 @@ def evaluate_scenes(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mappin
         trajectory reaches is left out;
       by_shape, by_size, by_material: {value: {metrics..., num_objects}} (size is the scale,
         written with %g).
+    `errors`: the scenes' scene_errors, if already computed.
     """
-    if len(pred_scenes) != len(true_scenes):
-        raise ValueError(f"{len(pred_scenes)} predicted scenes but {len(true_scenes)} true scenes")
-    if not true_scenes:
-        raise ValueError("no scenes to evaluate")
+    if errors is None:
+        errors = scene_errors(pred_scenes, true_scenes, meshes, floor_z)
     rows = []                       # one row per object trajectory
     horizon_rows = defaultdict(list)
-    for i, (pred, true) in enumerate(zip(pred_scenes, true_scenes)):
-        _check_pair(pred, true, i)
-        f = per_frame_errors(pred, true, meshes, floor_z)
+    for i, (true, f) in enumerate(zip(true_scenes, errors, strict=True)):
         T = true.num_frames
         if start >= T:
             raise ValueError(f"scene {i}: start={start} but the scene has only {T} frames")

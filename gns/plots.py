@@ -21,6 +21,8 @@ from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from scipy.spatial import ConvexHull, QhullError
 
+from datagen.atomic import atomic_file
+from gns.features import HISTORY
 from gns.geometry import feature_edges, pose_to_vertices
 from gns.metrics import object_width
 
@@ -34,17 +36,20 @@ METRIC_LABELS = {
 }
 
 
-def _figure(figsize) -> Figure:
+def new_figure(figsize) -> Figure:
+    """A figure on its own Agg canvas, outside pyplot's registry (see the module doc)."""
     fig = Figure(figsize=figsize)
     FigureCanvasAgg(fig)
     return fig
 
 
-def _save(fig: Figure, path, dpi: int) -> Path:
+def save_figure(fig: Figure, path, dpi: int) -> Path:
+    """Write `fig` to `path`, creating its folder; returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi)
     return path
+
 
 
 def _vertices(scene, meshes, obj: int) -> np.ndarray:
@@ -98,7 +103,7 @@ def plot_trajectory(pred, true, meshes: Mapping[str, tuple], path, obj: int = 0,
     origin = true.positions[0, obj]
     lu = f" [{unit}]" if unit else ""
 
-    fig = _figure((11, 4.2))
+    fig = new_figure((11, 4.2))
     ax_a, ax_b = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.3, 1]})
     T = true.num_frames
     shown = np.unique(np.linspace(0, T - 1, max(num_outlines, 1)).round().astype(int))
@@ -139,7 +144,7 @@ def plot_trajectory(pred, true, meshes: Mapping[str, tuple], path, obj: int = 0,
     name = true.attrs.get("toss_id", true.attrs.get("scene_id", ""))
     fig.suptitle(title or f"scene {name}, object {obj}: prediction vs truth")
     fig.tight_layout()
-    return _save(fig, path, dpi)
+    return save_figure(fig, path, dpi)
 
 
 def _as_models(per_frame_errors: Mapping) -> dict[str, dict[str, np.ndarray]]:
@@ -158,7 +163,7 @@ def _as_models(per_frame_errors: Mapping) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
-def plot_error_vs_time(per_frame_errors: Mapping, path, dt: float | None = None, num_given: int = 3,
+def plot_error_vs_time(per_frame_errors: Mapping, path, dt: float | None = None, num_given: int = HISTORY,
                        title: str | None = None, dpi: int = 120) -> Path:
     """Error against frame: one panel per metric present (position %, rotation degrees,
     penetration %), one line per model.
@@ -172,7 +177,7 @@ def plot_error_vs_time(per_frame_errors: Mapping, path, dt: float | None = None,
     metrics = [m for m in METRIC_LABELS if any(m in e for e in models.values())]
     if not metrics:
         raise ValueError(f"no known metric among {sorted({k for e in models.values() for k in e})}")
-    fig = _figure((4.2 * len(metrics), 3.6))
+    fig = new_figure((4.2 * len(metrics), 3.6))
     axes = np.atleast_1d(fig.subplots(1, len(metrics)))
     step = dt if dt else 1.0
     for ax, m in zip(axes, metrics):
@@ -192,7 +197,7 @@ def plot_error_vs_time(per_frame_errors: Mapping, path, dt: float | None = None,
     axes[0].legend(fontsize=8)
     fig.suptitle(title or "rollout error against time (shaded: given frames)")
     fig.tight_layout()
-    return _save(fig, path, dpi)
+    return save_figure(fig, path, dpi)
 
 
 def _axis_limits(true_verts: list[np.ndarray], pred_verts: list[np.ndarray], floor_z: float):
@@ -228,7 +233,7 @@ def animate_rollout(pred, true, meshes: Mapping[str, tuple], path, fps: float = 
     if not frames:
         raise ValueError("no frames to animate (max_frames < 1?)")
 
-    fig = _figure((8, 4.2))
+    fig = new_figure((8, 4.2))
     collections = []
     for k, (sc, label) in enumerate(zip(scenes, labels)):
         ax = fig.add_subplot(1, 2, k + 1, projection="3d")
@@ -274,7 +279,7 @@ def plot_curve(xs: Sequence[float], ys_by_label: Mapping[str, Sequence], path, b
     horizontal dashed lines (e.g. an analytic simulator's error). log2: x axis in powers of 2.
     """
     xs = np.asarray(xs, np.float64)
-    fig = _figure((5.5, 4))
+    fig = new_figure((5.5, 4))
     ax = fig.subplots()
     for i, (label, ys) in enumerate(ys_by_label.items()):
         ys = np.asarray(ys, np.float64).reshape(len(xs), -1)
@@ -301,7 +306,7 @@ def plot_curve(xs: Sequence[float], ys_by_label: Mapping[str, Sequence], path, b
     if title:
         ax.set_title(title)
     fig.tight_layout()
-    return _save(fig, path, dpi)
+    return save_figure(fig, path, dpi)
 
 
 def plot_bars(labels: Sequence[str], panels: Mapping[str, Sequence[float]], path,
@@ -312,7 +317,7 @@ def plot_bars(labels: Sequence[str], panels: Mapping[str, Sequence[float]], path
     panels: {panel y-label: one value per label (NaN: no bar)}; references: {panel y-label:
     {name: value}} drawn as dashed horizontal lines (e.g. a baseline or the full model).
     """
-    fig = _figure((3.2 * len(panels) + 0.5, 3.8))
+    fig = new_figure((3.2 * len(panels) + 0.5, 3.8))
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
     x = np.arange(len(labels))
     for ax, (ylabel, values) in zip(axes, panels.items()):
@@ -336,7 +341,7 @@ def plot_bars(labels: Sequence[str], panels: Mapping[str, Sequence[float]], path
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    return _save(fig, path, dpi)
+    return save_figure(fig, path, dpi)
 
 
 def plot_training_curves(runs: Mapping[str, Sequence[Mapping]], path, log_loss: bool = True, dpi: int = 110) -> Path:
@@ -344,11 +349,9 @@ def plot_training_curves(runs: Mapping[str, Sequence[Mapping]], path, log_loss: 
     validation loss (dashed) against the step, the validation rollout error, the learning rate.
     Panels with no data in any run say so rather than vanish, so figures of runs stay alike.
     Written atomically (a temporary file, then renamed): a reader never sees half an image."""
-    import os
-    import tempfile
     panels = (("loss", "normalised acceleration loss"), ("valid_rollout_position_error", "valid rollout centre error [scene units]"),
               ("lr", "learning rate"))
-    fig = _figure((13, 3.8))
+    fig = new_figure((13, 3.8))
     axes = fig.subplots(1, len(panels))
     for i, (label, entries) in enumerate(runs.items()):
         color = f"C{i % 10}"
@@ -375,13 +378,7 @@ def plot_training_curves(runs: Mapping[str, Sequence[Mapping]], path, log_loss: 
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
+    # matplotlib picks the format from the file's ending, so the temporary file keeps it
+    with atomic_file(path, mode=0o644, suffix=path.suffix) as tmp:
         fig.savefig(tmp, dpi=dpi)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path

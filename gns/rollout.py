@@ -18,20 +18,15 @@ import torch
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from datagen.shards import Dataset, DataError, Scene, write_metadata, write_shard
-from gns.geometry import matrix_to_quat
+from datagen.outputs import check_output_folder, check_writable, overlapping
+from datagen.quaternions import continuous as _continuous  # the name rollout_tracks calls it by
+from datagen.quaternions import rotation, wxyz
+from datagen.shards import Dataset, DataError, Scene, shard_name, write_metadata, write_shard
 from gns.data import ObjectTracks
+from gns.features import HISTORY
+from gns.geometry import matrix_to_quat
 from gns.graph import MeshLibrary
-from gns.outputs import check_writable, overlapping
-from gns.simulator import HISTORY, LearnedSimulator, Sleep
-
-
-def _continuous(quat: np.ndarray) -> np.ndarray:
-    """Flip quaternion signs (T, ..., 4) so consecutive frames lie on the same cover."""
-    flips = np.where(np.sum(quat[1:] * quat[:-1], axis=-1) < 0, -1.0, 1.0)
-    quat = quat.copy()
-    quat[1:] *= np.cumprod(flips, axis=0)[..., None]
-    return quat
+from gns.simulator import LearnedSimulator, Sleep
 
 
 def _angular_velocity(quat: np.ndarray, dt: float) -> np.ndarray:
@@ -41,7 +36,7 @@ def _angular_velocity(quat: np.ndarray, dt: float) -> np.ndarray:
     # a diverged rollout has non-finite (or zero) quaternions: NaN there, not a scipy error
     good = np.isfinite(flat).all(axis=1) & (np.linalg.norm(np.nan_to_num(flat), axis=1) > 0)
     rot = np.full((len(flat), 3, 3), np.nan)
-    rot[good] = Rotation.from_quat(flat[good][:, [1, 2, 3, 0]]).as_matrix()
+    rot[good] = rotation(flat[good]).as_matrix()
     rot = rot.reshape(quat.shape[:-1] + (3, 3))
     rel = (rot[1:] @ np.swapaxes(rot[:-1], -1, -2)).reshape(-1, 3, 3)
     ok = np.isfinite(rel).all(axis=(1, 2))
@@ -184,11 +179,7 @@ def check_output(out: str | Path, overwrite: bool, data: str | Path | None = Non
     if data is not None and overlapping(out, data):
         raise DataError(f"--out {out} and --data {data} overlap (the same folder or one inside the other); "
                         "write the rollouts to a folder of their own")
-    if out.exists() and not out.is_dir():
-        raise DataError(f"output folder {out} is a file")
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise DataError(f"output folder {out} exists and is not empty; use --overwrite to replace it")
+    if check_output_folder(out, overwrite, "use --overwrite to replace it"):
         _rollout_files(out)
     return check_writable(out)
 
@@ -230,7 +221,7 @@ def write_rollouts(out: str | Path, scenes: list[Scene], source: Dataset, split:
     meshes = source.meshes
     names = []
     for k in range(math.ceil(len(kept) / per_shard)):
-        name = f"{split}-{k:05d}.h5"
+        name = shard_name(split, k)
         write_shard(out / name, kept[k * per_shard:(k + 1) * per_shard], meshes, attrs={"split": split, "rollout": 1})
         names.append(name)
     meta = {key: v for key, v in source.meta.items() if key not in ("splits", "format_version", "complete")}
@@ -246,7 +237,7 @@ def upsample_scene(pred: Scene, stride: int, true: Scene, frame_rate: float) -> 
     model with a coarser time step is scored at the same instants as one at the data's rate.
     frame_rate is the truth's (fine) rate."""
     from scipy.interpolate import CubicSpline
-    from scipy.spatial.transform import Rotation, Slerp
+    from scipy.spatial.transform import Slerp
 
     coarse = np.arange(pred.num_frames) * stride
     fine = np.arange(coarse[-1] + 1)
@@ -255,9 +246,8 @@ def upsample_scene(pred: Scene, stride: int, true: Scene, frame_rate: float) -> 
             len(fine), *pred.positions.shape[1:])
     quaternions = np.empty((len(fine), pred.num_objects, 4))
     for n in range(pred.num_objects):
-        wxyz = pred.quaternions[:, n]
-        slerp = Slerp(coarse, Rotation.from_quat(wxyz[:, [1, 2, 3, 0]]))
-        quaternions[:, n] = _continuous(slerp(fine).as_quat()[:, [3, 0, 1, 2]])
+        slerp = Slerp(coarse, rotation(pred.quaternions[:, n]))
+        quaternions[:, n] = _continuous(wxyz(slerp(fine).as_quat()))
     dt = 1.0 / frame_rate
     velocities = np.zeros_like(positions)
     velocities[1:] = (positions[1:] - positions[:-1]) / dt

@@ -18,9 +18,10 @@ import torch
 
 from datagen.shards import Scene
 from gns.data import ObjectTracks, feature_spec
+from gns.features import HISTORY
 from gns.graph import MeshLibrary, graph_centres, graph_sizes, per_graph
 from gns.ranges import outside_training
-from gns.simulator import HISTORY, LearnedSimulator, Sleep
+from gns.simulator import LearnedSimulator, Sleep
 
 # Criteria. Rigidity: shape matching makes every predicted frame an exact rigid pose, so any
 # distortion beyond float64 rounding is a bug. At rest: the 0.1% of the size over 1000

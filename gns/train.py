@@ -17,7 +17,6 @@ import os
 import random
 import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -26,13 +25,15 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from datagen.atomic import atomic_file
+from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns import parallel
 from gns.config import Config, ConfigError, architecture_differences, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
-from gns.outputs import check_writable
-from gns.simulator import HISTORY, LearnedSimulator, shape_match_packed
+from gns.features import HISTORY
+from gns.simulator import LearnedSimulator, shape_match_packed
 
 CHECKPOINT_FORMAT = 1
 LATEST = "latest.pt"
@@ -60,21 +61,12 @@ def checkpoint_paths(run: Path) -> list[Path]:
     return sorted(run.glob("ckpt-*.pt"))
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def save_checkpoint(run: Path, state: dict, keep: int) -> Path:
     path = run / f"ckpt-{state['step']:06d}.pt"
-    _atomic_write(path, lambda p: torch.save(state, p))
-    _atomic_write(run / LATEST, lambda p: shutil.copyfile(path, p))
+    with atomic_file(path) as tmp:
+        torch.save(state, tmp)
+    with atomic_file(run / LATEST) as tmp:
+        shutil.copyfile(path, tmp)
     if keep > 0:
         # Numbers beyond this step are left from before a resume that passed them over (unreadable);
         # training overwrites them when it gets there, so the rotation never deletes the new one.
@@ -162,7 +154,8 @@ def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool =
     check_writable(out.parent, "output folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance") if k in ckpt}
-    _atomic_write(out, lambda p: torch.save(slim, p))
+    with atomic_file(out) as tmp:
+        torch.save(slim, tmp)
     return out
 
 
@@ -358,7 +351,8 @@ def _drop_metrics_after(path: Path, step: int, log: Callable[[str], None] = prin
     if torn:
         log(f"warning: dropped {torn} unreadable line{'s' if torn > 1 else ''} of {path} "
             f"(a crash mid-write tears the last one)")
-    _atomic_write(path, lambda p: p.write_text("".join(line + "\n" for line in kept)))
+    with atomic_file(path) as tmp:
+        tmp.write_text("".join(line + "\n" for line in kept))
 
 
 def parse_device(name: str, what: str = "train.device") -> torch.device:
@@ -457,7 +451,7 @@ def run_provenance(data_dir: str | Path, fingerprint: str, step: int, earlier: d
             "earlier": history}
 
 
-def _load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, ObjectTracks | None]:
+def load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, ObjectTracks | None]:
     """Feature spec, train tracks and (if validating and present) valid tracks of a dataset."""
     dataset = Dataset(data_dir, stride=cfg.features.frame_stride)
     scenes = dataset.load("train")
@@ -499,63 +493,21 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     run folder changes until the data, config and checkpoint have all been checked.
     """
     world = parallel.world_from_env()
-    if world.size > 1 and cfg.train.batch_size < world.size:
-        raise ConfigError(f"train.batch_size={cfg.train.batch_size} is the global batch, split over "
-                          f"{world.size} processes: it must be at least {world.size}")
     if not world.main:
         log = _quiet
     run = Path(run_dir)
-    stale = _check_run(run, resume, overwrite)
-    device = _device(cfg.train.device, world)
-    ckpt = None
-    if resume:
-        resumed_from, ckpt, note = resume_point(run)
-        if note:
-            log(note)
-    if world.main:
-        check_writable(run, "run folder")
-    if cfg.train.tensorboard:
-        check_tensorboard()
-    data_spec, tracks, valid = _load_data(data_dir, cfg)
+    stale, device, resumed = _check_start(run, cfg, world, resume, overwrite, log)
+    data_spec, tracks, valid = load_data(data_dir, cfg)
     fingerprint = Dataset(data_dir).fingerprint
-
-    _set_threads(cfg.train.threads, log)
-    seed = cfg.train.seed
-    # the same seed in every process: all draw the same global batches and keep their share
-    torch.manual_seed(seed)
-    random.seed(seed)
-    rng = np.random.default_rng(seed)
-
-    sim = build_simulator(cfg, data_spec)
-    spec = _with_layout(data_spec, sim)
-    optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
-    step = 0
-    if ckpt is None and cfg.train.init_from:
-        spec = _init_from(sim, cfg.train.init_from, cfg, spec)
-    if ckpt is not None:
-        problem = _incompatibility(ckpt, cfg, spec)
-        if problem:
-            raise CheckpointError(f"cannot resume {resumed_from}: {problem}")
-        sim.load_state_dict(ckpt["model"])
-        optimizer.load_state_dict(ckpt["optimizer"])
-        step = int(ckpt["step"])
-        spec = _merge_ranges(ckpt["spec"], spec)
-        _restore_rng(ckpt["rng"], rng)
-    sim.to(device).train()
-    sim.autocast = torch.bfloat16 if cfg.train.autocast == "bf16" else None
-    if cfg.train.compile:
-        sim.compile_network()
-    if device.type == "cuda":
-        torch.cuda.set_device(device)
-    parallel.start(world, device)
-    if world.size > 1:
-        from torch.nn.parallel import DistributedDataParallel
-        sim.distribute(DistributedDataParallel(sim.network, device_ids=[device.index] if device.type == "cuda" else None))
+    rng = _seed(cfg, log)
+    sim, optimizer, spec, step = _build_model(cfg, data_spec, resumed, rng)
+    _place_model(sim, cfg, device, world)
+    resumed_from, ckpt = resumed if resumed else (None, {})
     finished = False
     try:
-        provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance") if ckpt else None)
-        step = _train_loop(run, cfg, sim, optimizer, tracks, valid, spec, step, seed, rng, device, world,
-                           stale, ckpt is not None and resumed_from, provenance, log)
+        provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance"))
+        step = _train_loop(run, cfg, sim, optimizer, tracks, valid, spec, step, rng, device, world,
+                           stale, resumed_from, provenance, log)
         finished = True
         return step
     finally:
@@ -569,35 +521,96 @@ def _quiet(line: str) -> None:
     """The log of processes other than rank 0: one copy of every line is enough."""
 
 
+def _check_start(run: Path, cfg: Config, world: parallel.World, resume: bool, overwrite: bool,
+                 log: Callable[[str], None]) -> tuple[list[Path], torch.device, tuple[Path, dict] | None]:
+    """Everything checked before the data is read: the batch split, the run folder, the device,
+    the checkpoint to resume, the extras asked for. Returns (files of an earlier run to delete,
+    device, (checkpoint path, checkpoint) when resuming)."""
+    if world.size > 1 and cfg.train.batch_size < world.size:
+        raise ConfigError(f"train.batch_size={cfg.train.batch_size} is the global batch, split over "
+                          f"{world.size} processes: it must be at least {world.size}")
+    stale = _check_run(run, resume, overwrite)
+    device = _device(cfg.train.device, world)
+    resumed = None
+    if resume:
+        path, ckpt, note = resume_point(run)
+        if note:
+            log(note)
+        resumed = (path, ckpt)
+    if world.main:
+        check_writable(run, "run folder")
+    if cfg.train.tensorboard:
+        check_tensorboard()
+    return stale, device, resumed
+
+
+def _seed(cfg: Config, log: Callable[[str], None]) -> np.random.Generator:
+    """Threads and random state; returns the generator that draws the batches."""
+    _set_threads(cfg.train.threads, log)
+    # the same seed in every process: all draw the same global batches and keep their share
+    torch.manual_seed(cfg.train.seed)
+    random.seed(cfg.train.seed)
+    return np.random.default_rng(cfg.train.seed)
+
+
+def _build_model(cfg: Config, data_spec: dict, resumed: tuple[Path, dict] | None,
+                 rng: np.random.Generator) -> tuple[LearnedSimulator, torch.optim.Optimizer, dict, int]:
+    """The simulator and its optimiser: new, started from train.init_from's weights, or where
+    the resumed checkpoint left them (weights, optimiser, step, feature ranges, random state).
+    Returns (simulator, optimiser, spec, step)."""
+    sim = build_simulator(cfg, data_spec)
+    spec = _with_layout(data_spec, sim)
+    optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
+    if resumed is None:
+        if cfg.train.init_from:
+            spec = _init_from(sim, cfg.train.init_from, cfg, spec)
+        return sim, optimizer, spec, 0
+    path, ckpt = resumed
+    problem = _incompatibility(ckpt, cfg, spec)
+    if problem:
+        raise CheckpointError(f"cannot resume {path}: {problem}")
+    sim.load_state_dict(ckpt["model"])
+    optimizer.load_state_dict(ckpt["optimizer"])
+    step = int(ckpt["step"])
+    spec = _merge_ranges(ckpt["spec"], spec)
+    _restore_rng(ckpt["rng"], rng)
+    return sim, optimizer, spec, step
+
+
+def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world: parallel.World) -> None:
+    """The simulator on its device in training mode, under bf16 autocast and compiled if asked, joined to
+    the other processes' (DistributedDataParallel) when there are several."""
+    sim.to(device).train()
+    sim.autocast = torch.bfloat16 if cfg.train.autocast == "bf16" else None
+    if cfg.train.compile:
+        sim.compile_network()
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    parallel.start(world, device)
+    if world.size > 1:
+        from torch.nn.parallel import DistributedDataParallel
+        sim.distribute(DistributedDataParallel(sim.network, device_ids=[device.index] if device.type == "cuda" else None))
+
+
 def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer,
-                tracks: ObjectTracks, valid: ObjectTracks | None, spec: dict, step: int, seed: int,
+                tracks: ObjectTracks, valid: ObjectTracks | None, spec: dict, step: int,
                 rng: np.random.Generator, device: torch.device, world: parallel.World, stale: list[Path],
                 resumed_from: Path | None, provenance: dict, log: Callable[[str], None]) -> int:
+    """Steps from `step` to cfg.train.steps: a batch, an Adam step, a metrics line every
+    train.log_every steps (with validation every valid.every), a checkpoint every
+    train.checkpoint_every. Returns the last step."""
     config_dict = config_to_dict(cfg)
     if world.main:
-        for p in stale:
-            p.unlink()
-        run.mkdir(parents=True, exist_ok=True)
-        if resumed_from:
-            _drop_metrics_after(run / METRICS, step, log)
-        _atomic_write(run / "config.json", lambda p: p.write_text(json.dumps(config_dict, indent=2) + "\n"))
-        _atomic_write(run / PROVENANCE, lambda p: p.write_text(json.dumps(provenance, indent=2) + "\n"))
+        _start_run_folder(run, stale, resumed_from, step, config_dict, provenance, log)
 
     def state() -> dict:
-        return {"format": CHECKPOINT_FORMAT, "step": step, "seed": seed, "config": config_dict, "spec": spec,
-                "model": sim.state_dict(), "optimizer": optimizer.state_dict(), "rng": _rng_state(rng),
-                "provenance": provenance}
+        return {"format": CHECKPOINT_FORMAT, "step": step, "seed": cfg.train.seed, "config": config_dict,
+                "spec": spec, "model": sim.state_dict(), "optimizer": optimizer.state_dict(),
+                "rng": _rng_state(rng), "provenance": provenance}
 
-    n_params = sum(p.numel() for p in sim.parameters())
-    contact = (f" ({float(tracks.contact.double().mean()):.0%} in contact, drawn as {cfg.train.contact_fraction:.0%})"
-               if tracks.contact is not None else "")
-    processes = f" on {world.size} processes" if world.size > 1 else ""
-    log(f"{'resuming' if resumed_from else 'training'} at step {step} of {cfg.train.steps}{processes}: "
-        f"{tracks.num_windows} windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
-        f"node features {spec['node_features']}, edge features {spec['edge_features']}")
-
+    log(_start_line(cfg, sim, tracks, spec, step, world, resumed_from))
     lo, hi = parallel.share(cfg.train.batch_size, world)
-    last_good = resumed_from or None
+    last_good = resumed_from
     loss_sum, loss_count, busy, t_mark = 0.0, 0, 0.0, time.perf_counter()
     bar = tqdm(total=cfg.train.steps, initial=step, unit="step", disable=None if world.main else True,
                dynamic_ncols=True)
@@ -608,15 +621,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
         while step < cfg.train.steps:
             t0 = time.perf_counter()
             lr = learning_rate(cfg, step)
-            batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std,
-                                  cfg.augment.vertex_noise, cfg.augment.track_noise,
-                                  cfg.train.contact_fraction, cfg.augment.mirror,
-                                  cfg.augment.body_symmetry)
-            fraction = 1.0
-            if world.size > 1:
-                nodes = batch.graph.num_nodes
-                batch = batch.windows(lo, hi)
-                fraction = batch.graph.num_nodes / nodes
+            batch, fraction = _next_batch(tracks, rng, cfg, world, lo, hi)
             try:
                 loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, cfg.train.loss,
                                   cfg.train.huber_delta, fraction, world.size)
@@ -637,10 +642,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
                          "time": time.perf_counter() - t_mark}
                 if validating:
                     entry.update(validate(sim, valid, cfg, device))
-                metrics.write(json.dumps(entry) + "\n")
-                metrics.flush()
-                if writer is not None:
-                    _log_scalars(writer, entry)
+                _write_metrics(metrics, writer, entry)
                 loss_sum, loss_count, busy = 0.0, 0, 0.0
             if step % cfg.train.checkpoint_every == 0 or step == cfg.train.steps:
                 if not all(torch.isfinite(p).all() for p in sim.parameters()):
@@ -654,6 +656,55 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
         if writer is not None:
             writer.close()
     return step
+
+
+def _start_run_folder(run: Path, stale: list[Path], resumed_from: Path | None, step: int, config_dict: dict,
+                      provenance: dict, log: Callable[[str], None]) -> None:
+    """The run folder as this session starts it: an earlier run's files deleted (--overwrite),
+    metrics of steps to be trained again dropped (resume), config and provenance written."""
+    for p in stale:
+        p.unlink()
+    run.mkdir(parents=True, exist_ok=True)
+    if resumed_from:
+        _drop_metrics_after(run / METRICS, step, log)
+    for name, content in (("config.json", config_dict), (PROVENANCE, provenance)):
+        with atomic_file(run / name) as tmp:
+            tmp.write_text(json.dumps(content, indent=2) + "\n")
+
+
+def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: dict, step: int,
+                world: parallel.World, resumed_from: Path | None) -> str:
+    """The log's first line: what is trained on what."""
+    n_params = sum(p.numel() for p in sim.parameters())
+    contact = (f" ({float(tracks.contact.double().mean()):.0%} in contact, drawn as {cfg.train.contact_fraction:.0%})"
+               if tracks.contact is not None else "")
+    processes = f" on {world.size} processes" if world.size > 1 else ""
+    return (f"{'resuming' if resumed_from else 'training'} at step {step} of {cfg.train.steps}{processes}: "
+            f"{tracks.num_windows} windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
+            f"node features {spec['node_features']}, edge features {spec['edge_features']}")
+
+
+def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, world: parallel.World,
+                lo: int, hi: int) -> tuple[Batch, float]:
+    """The next global batch of windows, augmented, or this process's share [lo, hi) of it, and
+    the fraction of the global batch's nodes that share holds."""
+    batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std,
+                          cfg.augment.vertex_noise, cfg.augment.track_noise,
+                          cfg.train.contact_fraction, cfg.augment.mirror,
+                          cfg.augment.body_symmetry)
+    if world.size == 1:
+        return batch, 1.0
+    nodes = batch.graph.num_nodes
+    batch = batch.windows(lo, hi)
+    return batch, batch.graph.num_nodes / nodes
+
+
+def _write_metrics(metrics, writer, entry: dict) -> None:
+    """One metrics.jsonl line, flushed so a crash loses nothing logged, and the TensorBoard scalars."""
+    metrics.write(json.dumps(entry) + "\n")
+    metrics.flush()
+    if writer is not None:
+        _log_scalars(writer, entry)
 
 
 def _stopped(what: str, step: int, last_good: Path | None) -> str:

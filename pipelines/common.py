@@ -12,6 +12,7 @@ from datagen.config import config_dir, load_config as load_scene_config
 from datagen.generate import generate
 from datagen.shards import Dataset, DataError
 from gns.config import build_config
+from gns.evaluate import write_json
 from gns.train import LATEST, checkpoint_paths, resume_point, train
 
 CONFIGS = config_dir()
@@ -19,6 +20,18 @@ CONFIGS = config_dir()
 
 def say(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+class Costs:
+    """Wall-clock seconds of the stages that ran, kept across resumed runs in costs.json."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.data = json.loads(path.read_text()) if path.exists() else {}
+
+    def add(self, name: str, seconds: float) -> None:
+        self.data[name] = round(seconds, 2)
+        write_json(self.path, self.data)
 
 
 def data_stage(out: Path, scene_sets: list[str], counts: dict[str, int], seed: int, workers: int) -> Dataset:

@@ -37,11 +37,11 @@ import dataclasses
 import json
 import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from datagen.atomic import atomic_file, atomic_folder
 from datagen.config import load_config
 from datagen.generate import metadata, plan
 from datagen.shapes import get_shape
@@ -77,9 +77,7 @@ def write_dataset(out: Path, cfg: dict, seed: int, specs: dict[str, list], extra
     temporary name and renamed, so an interrupted stage leaves nothing that looks finished."""
     counts = {s: len(v) for s, v in specs.items()}
     meshes = {n: (get_shape(n).vertices, get_shape(n).faces) for n in cfg["scene"]["shapes"]}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
+    with atomic_folder(out) as tmp:
         tasks = plan(counts, max(counts.values()))
         for t in tasks:
             scenes = [simulate(spec, cfg) for spec in specs[t.split]]
@@ -87,12 +85,6 @@ def write_dataset(out: Path, cfg: dict, seed: int, specs: dict[str, list], extra
         meta = metadata(cfg, seed, counts, tasks, complete=True)
         meta.update(generator="pipelines.diagnostic_45", diagnostic_45=extra)
         write_metadata(tmp, meta)
-        if out.exists():
-            shutil.rmtree(out)
-        tmp.rename(out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
     return Dataset(out)
 
 
@@ -261,9 +253,8 @@ def report(out: Path, r: dict, command: str) -> Path:
                   f"{max(p['input_mirror_difference'] for p in x['pairs']):.2g} of the 45 + d scene's).", ""]
     lines += [f"![Fig. 3]({r['plot']})"]
     path = out / "report.md"
-    tmp = path.with_name(".report.md.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
+    with atomic_file(path, mode=0o644) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
     return path
 
 

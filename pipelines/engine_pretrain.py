@@ -1,5 +1,5 @@
 """Pretraining data for the real-cube GNS: tosses simulated by the engine identified on the same
-real tosses (datagen.engine_tosses), written as a dataset whose train split is synthetic and whose
+real tosses (baselines.engine_tosses), written as a dataset whose train split is synthetic and whose
 valid split is the real one (so validation always scores real tosses). With real_copies = k the
 train split also holds every real training toss k times: one training on both, the real ones
 weighted by k.
@@ -12,11 +12,12 @@ dataset; a rerun with the same inputs (recorded in metadata.json) skips it.
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
-from datagen.baseline import GRAVITY, baseline_engine
-from datagen.engine_tosses import engine_tosses
+from baselines import baseline_engine
+from baselines.engine_tosses import engine_tosses
+from baselines.toss import GRAVITY
+from datagen.atomic import atomic_folder
 from datagen.shards import METADATA_FILE, Dataset, shard_name, write_metadata, write_shard
 from pipelines.common import finished_dataset, say
 
@@ -35,25 +36,20 @@ def synthetic_stage(out: Path, real_data: Path, engine: str, params: dict, count
         + (f", and those real ones {real_copies} times" if real_copies else ""))
     scenes = engine_tosses(real.load("train"), engine, baseline_engine(engine)[0](**params), count, seed,
                            real.frame_rate, GRAVITY) + real.load("train") * real_copies
-    tmp = out.with_name(out.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    splits = {"train": {"num_scenes": len(scenes), "shards": []}}
-    for k in range(0, len(scenes), SHARD_SCENES):
-        name = shard_name("train", k // SHARD_SCENES)
-        write_shard(tmp / name, scenes[k:k + SHARD_SCENES], real.meshes, attrs={"split": "train", "source": engine})
-        splits["train"]["shards"].append(name)
-    if real.num_scenes("valid"):
-        valid = real.load("valid")
-        write_shard(tmp / shard_name("valid", 0), valid, real.meshes, attrs={"split": "valid", "source": "contactnets"})
-        splits["valid"] = {"num_scenes": len(valid), "shards": [shard_name("valid", 0)]}
-    meta = {k: v for k, v in json.loads((real.root / METADATA_FILE).read_text()).items()
-            if k not in ("splits", "provenance", "checksums", "fingerprint")}
-    meta.update(source=f"{engine} tosses from perturbed starts of real ones (datagen.engine_tosses); "
-                       "valid split: the real valid tosses",
-                splits=splits, made_from=made_from)
-    write_metadata(tmp, meta)
-    if out.exists():
-        shutil.rmtree(out)
-    tmp.rename(out)
+    with atomic_folder(out) as tmp:
+        splits = {"train": {"num_scenes": len(scenes), "shards": []}}
+        for k in range(0, len(scenes), SHARD_SCENES):
+            name = shard_name("train", k // SHARD_SCENES)
+            write_shard(tmp / name, scenes[k:k + SHARD_SCENES], real.meshes, attrs={"split": "train", "source": engine})
+            splits["train"]["shards"].append(name)
+        if real.num_scenes("valid"):
+            valid = real.load("valid")
+            write_shard(tmp / shard_name("valid", 0), valid, real.meshes, attrs={"split": "valid", "source": "contactnets"})
+            splits["valid"] = {"num_scenes": len(valid), "shards": [shard_name("valid", 0)]}
+        meta = {k: v for k, v in json.loads((real.root / METADATA_FILE).read_text()).items()
+                if k not in ("splits", "provenance", "checksums", "fingerprint")}
+        meta.update(source=f"{engine} tosses from perturbed starts of real ones (baselines.engine_tosses); "
+                           "valid split: the real valid tosses",
+                    splits=splits, made_from=made_from)
+        write_metadata(tmp, meta)
     return Dataset(out)

@@ -22,10 +22,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from datagen.outputs import check_writable
 from gns.evaluate import evaluate_run, write_json
 from gns.metrics import format_table
 from gns.train import read_checkpoint
-from gns.outputs import check_writable
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
 
 # Everything run() writes into --out: --fresh deletes a folder holding only these.

@@ -26,11 +26,11 @@ from pathlib import Path
 from datagen.shards import DataError
 from gns.evaluate import evaluate_baseline, evaluate_run, write_json
 from gns.train import export_model, read_checkpoint
-from pipelines.common import done, guarded, say, train_stage
+from pipelines.common import Costs, done, guarded, say, train_stage
 from pipelines.engine_pretrain import synthetic_stage
-from pipelines.real_cubes import (Costs, duplicate_groups, import_stage, make_split, read_tosses, summary,
-                                  training_ids)
-from pipelines.real_cubes_baselines import LABELS, available_engines, baselines_stage
+from pipelines.real_cubes_baselines import available_engines, baselines_stage
+from pipelines.real_cubes_data import duplicate_groups, import_stage, make_split, read_tosses, training_ids
+from pipelines.real_cubes_report import ENGINE_LABELS, summary
 
 # The real-cube training settings of pipelines/real_cubes.py (batch 32, lr 1e-3, input noise 0.001
 # half-widths), plus the levers that measured best (docs/accuracy.md).
@@ -85,7 +85,7 @@ def fair_start_stage(path: Path, data: Path, engine: str, params: dict, given: i
         saved = json.loads(path.read_text())
         if saved.get("params") == params and saved.get("given_frames") == given:
             return saved
-    from datagen.baseline import baseline_engine
+    from baselines import baseline_engine
     params_class, _, _ = baseline_engine(engine)
     results, *_ = evaluate_baseline(data, "test", params_class(**params), engine=engine, given=given)
     write_json(path, results)
@@ -164,7 +164,7 @@ def plot(path: Path, results: dict) -> Path:
             ax.plot(mixed, [results["sizes"][str(n)]["gns_engine_data"][key] for n in mixed], "^-",
                     label="GNS + tuned-MuJoCo tosses")
         for e in results["engines"]:
-            ax.plot(sizes, [results["sizes"][str(n)][e][key] for n in sizes], "s--", label=f"{LABELS[e]} (tuned)")
+            ax.plot(sizes, [results["sizes"][str(n)][e][key] for n in sizes], "s--", label=f"{ENGINE_LABELS[e]} (tuned)")
         ax.axhline(results["published"][key], color="gray", lw=0.8, ls=":", label="PyBullet (published constants)")
         ax.set_xscale("log", base=2)
         ax.set_xlabel("training tosses")
@@ -194,7 +194,7 @@ def report(out: Path, results: dict) -> Path:
             lines.append(f"| {n} | GNS on the real tosses x{e['real_copies']} + {e['synthetic']} tuned-MuJoCo tosses "
                          f"| {row['steps']} | {f(row['gns_engine_data'])} |")
         for e in results["engines"]:
-            lines.append(f"| {n} | {LABELS[e]} tuned (from {row[e]['given_frames']} frames) | - | {f(row[e])} |")
+            lines.append(f"| {n} | {ENGINE_LABELS[e]} tuned (from {row[e]['given_frames']} frames) | - | {f(row[e])} |")
     lines += ["", f"PyBullet with the published constants: {f(results['published'])}.", "",
               "![accuracy](plots/accuracy.png)"]
     path = out / "report.md"

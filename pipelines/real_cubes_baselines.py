@@ -19,22 +19,22 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
-
-from datagen.baseline import PUBLISHED, baseline_engine
+from baselines import baseline_engine
+from baselines.pybullet import PUBLISHED
 from datagen.shards import Dataset, DataError
 from gns.evaluate import evaluate_baseline, write_json
-from pipelines.common import guarded, say
+from gns.metrics import METRICS
+from pipelines.common import Costs, guarded, say
+from pipelines.real_cubes_data import duplicate_groups, import_stage, make_split, read_tosses, training_ids
+from pipelines.real_cubes_report import ENGINE_LABELS, fit_summary, fits_table, number, summary
 
 ENGINES = ("pybullet", "mujoco")
-LABELS = {"pybullet": "PyBullet", "mujoco": "MuJoCo"}
-METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 
 
 def available_engines(wanted=ENGINES, strict: bool = False) -> list[str]:
     """The wanted engines that can run here; MuJoCo only if installed. strict: a missing one is
     an error (one line), otherwise a warning line and it is left out."""
-    from datagen.baseline_mujoco import MISSING, available
+    from baselines.mujoco import MISSING, available
     out = []
     for e in wanted:
         if e == "mujoco" and not available():
@@ -49,7 +49,7 @@ def available_engines(wanted=ENGINES, strict: bool = False) -> list[str]:
 def _search_settings(engine: str) -> dict:
     """What a fit was searched over: a change of bounds or fitted names makes saved fits stale."""
     import importlib
-    mod = importlib.import_module("datagen.baseline" if engine == "pybullet" else "datagen.baseline_mujoco")
+    mod = importlib.import_module(f"baselines.{engine}")
     return {"bounds": [list(b) for b in mod.BOUNDS], "fitted": list(mod.FIT)}
 
 
@@ -63,7 +63,7 @@ def fit_stage(path: Path, data: Path, ids: list[int], engine: str, budget: int, 
         if all(saved.get(k) == v for k, v in key.items()):
             return saved
     subset = f", a random {fit_tosses} of them" if fit_tosses and len(ids) > fit_tosses else ""
-    say(f"baseline: fitting {LABELS[engine]} on {len(ids)} tosses{subset} ({budget} evaluations)")
+    say(f"baseline: fitting {ENGINE_LABELS[engine]} on {len(ids)} tosses{subset} ({budget} evaluations)")
     _, _, fit_parameters = baseline_engine(engine)
     fit = fit_parameters(Dataset(data).load("train"), budget=budget, seed=seed, max_tosses=fit_tosses)
     out = {**key, **{k: v for k, v in fit.items() if k != "params"}, "params": asdict(fit["params"])}
@@ -119,51 +119,11 @@ def baselines_stage(out: Path, runs: dict, test_data: Path, engines: list[str], 
     return {"fits": fits, "evals": evals, "external": ext if external_data is not None else None}
 
 
-def summary(results: dict) -> dict:
-    return {k: results[k] for k in METRICS + ("true_penetration_pct", "num_scenes")}
-
-
-def fit_summary(fit: dict) -> dict:
-    return {"params": fit["params"], "objective": fit["objective"], "start_objective": fit["start_objective"],
-            "evaluations": fit["evaluations"], "seconds": fit["seconds"],
-            "fit_tosses": fit.get("fit_tosses", len(fit["train_ids"])), "train_tosses": len(fit["train_ids"])}
-
-
-def describe(engine: str, p: dict) -> str:
-    """The identified values of a parameter set, short."""
-    if engine == "pybullet":
-        s = f"friction {p['friction']:.3f}, restitution {p['restitution']:.3f}"
-        if p["stiffness"]:
-            s += f", stiffness {p['stiffness']:.3g}, damping ratio {p['damping_ratio']:.2f}"
-        s += (f", rolling {p.get('rolling_friction', 0):.3g}, spinning {p.get('spinning_friction', 0):.3g}, "
-              f"{p['substeps']} substeps")
-    else:
-        s = (f"friction {p['friction']:.3f}, torsional {p['torsional_friction']:.3g}, rolling {p['rolling_friction']:.3g}, "
-             f"solref ({p['timeconst']:.3g}, {p['dampratio']:.2f}), solimp ({p['dmin']:.3f}, {p['dmax']:.4f}, "
-             f"{p['width']:.2g}), impratio {p['impratio']:.3g}, {p['substeps']} substeps")
-    return s + f", g {p['gravity']:.1f}, table {p['floor_z']:+.3f}"
-
-
-def _f(v) -> str:
-    return "-" if v is None or (isinstance(v, float) and np.isnan(v)) else f"{v:.3g}"
-
-
-def fits_table(rows: list[tuple[str, int, int, dict]]) -> list[str]:
-    """Markdown rows of identified parameters: (engine, training tosses, seed, fit_summary)."""
-    lines = ["| engine | training tosses | seed | fitted on | evaluations | fit s | objective (start) | parameters |",
-             "|---|---|---|---|---|---|---|---|"]
-    for engine, n, s, f in rows:
-        lines.append(f"| {LABELS[engine]} | {n} | {s} | {f['fit_tosses']} | {f['evaluations']} | {f['seconds']:.0f} | "
-                     f"{f['objective']:.2f} ({f['start_objective']:.2f}) | {describe(engine, f['params'])} |")
-    return lines
-
-
 # ---- alone: the baselines on the pipeline's split, no GNS -----------------------------------------
 
 def run(src: Path, out: Path, sizes: list[int], engines: list[str], budget: int, fit_tosses: int | None,
         seed: int = 0, test: int | None = None, valid: int | None = None) -> dict:
-    from pipelines.real_cubes import (PRESETS, Costs, duplicate_groups, import_stage, make_split, read_tosses,
-                                      training_ids)
+    from pipelines.real_cubes import PRESETS  # which imports this module
     src = Path(src)
     if not src.is_dir():
         raise DataError(f"source folder does not exist: {src}")
@@ -194,13 +154,13 @@ def run(src: Path, out: Path, sizes: list[int], engines: list[str], budget: int,
              "| engine | training tosses | position % | rotation deg | penetration % | fit s | evaluation s |",
              "|---|---|---|---|---|---|---|"]
     pub = results["published"]
-    lines.append("| PyBullet, published constants | - | " + " | ".join(_f(pub[k]) for k in METRICS) + " | - | - |")
+    lines.append("| PyBullet, published constants | - | " + " | ".join(number(pub[k]) for k in METRICS) + " | - | - |")
     for n in sizes:
         for e in engines:
             r = results["sizes"][str(n)][e]
             ev = costs.data.get(f"eval eval_{'' if e == 'pybullet' else e + '_'}n{n}_s{seed}")
-            lines.append(f"| {LABELS[e]} | {n} | " + " | ".join(_f(r[k]) for k in METRICS)
-                         + f" | {r['fit']['seconds']:.0f} | {_f(ev)} |")
+            lines.append(f"| {ENGINE_LABELS[e]} | {n} | " + " | ".join(number(r[k]) for k in METRICS)
+                         + f" | {r['fit']['seconds']:.0f} | {number(ev)} |")
     lines += ["", *fits_table([(e, n, seed, results["sizes"][str(n)][e]["fit"]) for n in sizes for e in engines]), ""]
     (out / "baselines.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -32,7 +32,7 @@ from gns.metrics import METRICS, evaluate_scenes
 from gns.rollout import rollout_scenes, split_diverged
 from gns.simulator import LearnedSimulator
 from gns.train import load_model, read_checkpoint
-from gns.outputs import check_writable
+from datagen.outputs import check_writable
 from pipelines.common import CONFIGS, data_stage, guarded, say, train_stage
 
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
@@ -211,8 +211,8 @@ def run_name(run: str) -> str:
 
 
 def pareto_plot(rows: list[dict], path: Path) -> Path:
-    from gns.plots import _figure, _save
-    fig = _figure((7.5, 4.8))
+    from gns.plots import new_figure, save_figure
+    fig = new_figure((7.5, 4.8))
     ax = fig.subplots()
     bullet = [r for r in rows if r["family"] == "pybullet"]
     for k, it in enumerate(sorted({r["solver_iterations"] for r in bullet})):
@@ -245,7 +245,7 @@ def pareto_plot(rows: list[dict], path: Path) -> Path:
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    return _save(fig, path, 130)
+    return save_figure(fig, path, 130)
 
 
 def table(rows: list[dict]) -> str:

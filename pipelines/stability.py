@@ -18,9 +18,9 @@ from pathlib import Path
 
 import torch
 
+from datagen.outputs import check_writable
 from gns.simulator import Sleep
 from gns.evaluate import checkpoint_of, load_split, write_json
-from gns.outputs import check_writable
 from gns.stability import REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene
 from gns.train import load_model, read_checkpoint
 from pipelines.common import guarded, say

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from datagen.shapes import get_shape
-from datagen.shards import Scene, write_metadata, write_shard
+from datagen.shards import Scene, shard_name, write_metadata, write_shard
 from gns.geometry import quat_from_axis_angle, quat_multiply
 
 FRAME_RATE = 12
@@ -65,7 +65,7 @@ def write_toss_dataset(root: str | Path, train: int = 8, valid: int = 2, frames:
         if count == 0:
             continue
         scenes = [toss_scene(rng, frames, materials[i % len(materials)]) for i in range(count)]
-        name = f"{split}-00000.h5"
+        name = shard_name(split, 0)
         write_shard(root / name, scenes, cube_meshes())
         splits[split] = {"num_scenes": count, "shards": [name]}
     write_metadata(root, {"frame_rate": FRAME_RATE, "gravity": list(GRAVITY), "floor": FLOOR if floor else None,

@@ -1,7 +1,7 @@
 """The real-cube accuracy pipeline: tiny preset end to end, rerun skipping, exported models, bad input."""
 import json
 
-from test_real_cubes_pipeline import SRC
+from test_real_cubes import SRC
 
 from pipelines import real_cubes_accuracy
 from gns.train import load_model

@@ -1,4 +1,4 @@
-"""The MuJoCo baseline against physics (rest, free flight, bounces) and against baseline.py's protocol."""
+"""The MuJoCo baseline against physics (rest, free flight, bounces) and against the toss protocol (baselines.toss)."""
 import builtins
 import math
 from dataclasses import replace
@@ -10,22 +10,15 @@ from scipy.spatial.transform import Rotation
 
 pytest.importorskip("mujoco")  # the [mujoco] extra; the dev extra installs it
 
-from datagen import baseline_mujoco as bm  # noqa: E402
-from datagen.baseline import fit_floor, fit_gravity, toss_errors  # noqa: E402
+from baselines import mujoco as bm  # noqa: E402
+from baselines.identify import fit_floor, fit_gravity  # noqa: E402
+from baselines.toss import toss_errors  # noqa: E402
 from datagen.contactnets import read_experiment, read_toss, toss_to_scene  # noqa: E402
 from datagen.shards import Scene  # noqa: E402
+from test_baselines_pybullet import synthetic  # noqa: E402
 
 SRC = Path(__file__).parent / "data" / "contactnets"
 DT, G = 1 / 148, 183.0
-
-
-def synthetic(positions, quaternions):
-    T = len(positions)
-    z = np.zeros((T, 1, 3))
-    return Scene(positions=np.asarray(positions, float).reshape(T, 1, 3),
-                 quaternions=np.asarray(quaternions, float).reshape(T, 1, 4), velocities=z,
-                 angular_velocities=z, shape=["cube"], material=["acrylic"], scale=np.array([2.0]),
-                 mass=np.array([0.37]), friction=np.array([0.18]), restitution=np.array([0.125]))
 
 
 def energy(pred: Scene, g: float) -> np.ndarray:

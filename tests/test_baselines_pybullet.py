@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from datagen import baseline
-from datagen.baseline import (BOUNDS, FIT, PUBLISHED, BaselineParams, fit_floor, fit_gravity, fit_parameters,
-                              free_flight_frames, initial_state, objective, params_from_unit, simulate_toss,
-                              toss_errors, unit_from_params)
+from baselines import toss
+from baselines.identify import (fit_floor, fit_gravity, free_flight_frames, objective, params_from_unit,
+                                unit_from_params)
+from baselines.pybullet import BOUNDS, FIT, PUBLISHED, BaselineParams, fit_parameters, simulate_toss
+from baselines.toss import initial_state, toss_errors
 from datagen.contactnets import read_experiment, read_toss, toss_to_scene
 from datagen.shapes import get_shape
 from datagen.shards import Scene
@@ -42,7 +43,7 @@ def test_published_constants_are_the_defaults():
     assert BaselineParams() == PUBLISHED
     assert PUBLISHED.friction == consts["mu"] == 0.18 and PUBLISHED.restitution == consts["restitution"] == 0.125
     assert PUBLISHED.gravity == pytest.approx(consts["g"]) and PUBLISHED.stiffness == 0.0
-    assert baseline.FRAME_RATE == pytest.approx(148.0)
+    assert toss.FRAME_RATE == pytest.approx(148.0)
 
 
 def test_initial_state_is_exact_for_a_ballistic_spinning_cube():
@@ -189,7 +190,6 @@ def test_bad_input_is_refused(tosses):
 
 
 def test_a_long_start_estimates_the_state_after_a_bounce_not_across_it():
-    from datagen.baseline import initial_state
     from datagen.shards import Scene
     rate, g = 100.0, 10.0
     t = np.arange(20) / rate

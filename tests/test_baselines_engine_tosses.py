@@ -5,9 +5,12 @@ import numpy as np
 import pytest
 import torch
 
-from datagen.baseline import FRAME_RATE, GIVEN, GRAVITY, PUBLISHED, initial_state, lowest_corner_height
+from baselines.identify import lowest_corner_height
+from baselines.pybullet import PUBLISHED
+from baselines.toss import FRAME_RATE, GRAVITY, initial_state
+from gns.features import HISTORY
 from datagen.contactnets import read_experiment, read_toss, toss_to_scene
-from datagen.engine_tosses import engine_tosses
+from baselines.engine_tosses import engine_tosses
 
 SRC = Path(__file__).parent / "data" / "contactnets"
 
@@ -23,16 +26,16 @@ def test_engine_tosses_are_deterministic_start_in_free_flight_above_the_table_an
     b = engine_tosses(templates, "pybullet", PUBLISHED, 6, seed=3, frame_rate=FRAME_RATE, gravity=GRAVITY)
     c = engine_tosses(templates, "pybullet", PUBLISHED, 6, seed=4, frame_rate=FRAME_RATE, gravity=GRAVITY)
     assert all(np.array_equal(x.positions, y.positions) for x, y in zip(a, b))
-    assert not all(np.array_equal(x.positions[:GIVEN], y.positions[:GIVEN]) for x, y in zip(a, c))
+    assert not all(np.array_equal(x.positions[:HISTORY], y.positions[:HISTORY]) for x, y in zip(a, c))
     lengths = {t.num_frames for t in templates}
     for s in a:
         assert s.num_frames in lengths and np.isfinite(s.positions).all()
         # the given frames are exact free flight: the start estimate recovers a ballistic velocity
         p, q, v, w = initial_state(s, FRAME_RATE, GRAVITY)
         dt = 1 / FRAME_RATE
-        assert np.allclose(s.positions[GIVEN - 2, 0], p - v * dt + 0.5 * np.array([0, 0, -GRAVITY]) * dt ** 2)
+        assert np.allclose(s.positions[HISTORY - 2, 0], p - v * dt + 0.5 * np.array([0, 0, -GRAVITY]) * dt ** 2)
         height = lowest_corner_height(s)
-        assert height[:GIVEN].min() > 0                       # starts above the table
+        assert height[:HISTORY].min() > 0                       # starts above the table
         assert height.min() > -0.05                           # the engine keeps it out of the table
         # by the end it has landed: its lowest corner is on the table
         assert abs(height[-1]) < 0.05

@@ -127,7 +127,7 @@ def test_bad_lever_values_are_one_line_errors(key):
         build_config(path=TINY, overrides=[key])
 
 
-def _sim_and_batch(tmp_path, *overrides):
+def sim_and_batch(tmp_path, *overrides):
     ds = Dataset(write_toss_dataset(tmp_path, train=3, valid=0, frames=10))
     from gns.data import feature_spec
     scenes = ds.load("train")
@@ -136,7 +136,7 @@ def _sim_and_batch(tmp_path, *overrides):
 
 
 def test_huber_and_l1_losses_are_what_they_say(tmp_path):
-    sim, b = _sim_and_batch(tmp_path)
+    sim, b = sim_and_batch(tmp_path)
     mse = sim.loss(b.history, b.target, b.graph)
     # within delta the Huber loss is half the squared error; with a tiny delta it is delta x |e|
     assert torch.allclose(sim.loss(b.history, b.target, b.graph, "huber", 1e6), mse / 2)
@@ -149,7 +149,7 @@ def test_huber_and_l1_losses_are_what_they_say(tmp_path):
 
 def test_velocity_direction_is_the_direction_of_motion_above_its_scale_and_fades_at_rest(tmp_path):
     from gns.features import raw_node_features
-    sim, b = _sim_and_batch(tmp_path, "features.velocity_direction=0.3")
+    sim, b = sim_and_batch(tmp_path, "features.velocity_direction=0.3")
     layout = sim.layout
     assert "velocity_direction" in dict(layout.node_groups)
     assert layout.velocity_scale == pytest.approx(0.3 * 10 / FRAME_RATE ** 2)
@@ -169,7 +169,7 @@ def test_velocity_direction_is_the_direction_of_motion_above_its_scale_and_fades
 
 
 def test_symmetrized_predictions_are_exactly_mirror_and_half_turn_equivariant(tmp_path):
-    sim, b = _sim_and_batch(tmp_path)
+    sim, b = sim_and_batch(tmp_path)
     from dataclasses import replace
     sim.symmetrize = True
     a = sim.predict_acceleration(b.history, b.graph)
@@ -206,10 +206,10 @@ def test_upsampling_a_strided_rollout_recovers_a_smooth_trajectory_at_every_fram
 
 
 def test_all_phases_gives_a_strided_model_every_window_of_the_data(tmp_path):
-    from gns.train import _load_data
+    from gns.train import load_data
     data = write_toss_dataset(tmp_path, train=3, valid=1, frames=12)
-    _, plain, _ = _load_data(data, tiny("features.frame_stride=2"))
-    _, phased, valid = _load_data(data, tiny("features.frame_stride=2", "train.all_phases=true"))
+    _, plain, _ = load_data(data, tiny("features.frame_stride=2"))
+    _, phased, valid = load_data(data, tiny("features.frame_stride=2", "train.all_phases=true"))
     # a window at stride k spans 3k + 1 recorded frames: 12 - 6 = 6 start frames per scene
     assert phased.num_windows == 3 * (12 - 3 * 2)
     assert plain.num_windows == 3 * (6 - 3)          # from frame 0 only: frames 0, 2, .., 10

@@ -1,7 +1,7 @@
-"""MuJoCo baseline for the real cube tosses, identified the same way as PyBullet (datagen/baseline.py).
+"""MuJoCo baseline for the real cube tosses, identified the same way as PyBullet (baselines/pybullet.py).
 
-The toss protocol, the start state, the scoring and the search are baseline.py's: only the
-engine differs. MuJoCo is an optional extra (`pip install -e '.[mujoco]'`); without it
+The toss protocol, the start state and the scoring are baselines.toss's, the search
+baselines.identify's: only the engine differs. MuJoCo is an optional extra (`pip install -e '.[mujoco]'`); without it
 `simulate_toss` and `fit_parameters` raise MujocoMissing, an ImportError with one line saying so.
 
 The world, in the data's units (half-widths, seconds): a plane with its top at floor_z and a
@@ -27,10 +27,12 @@ from typing import Sequence
 
 import numpy as np
 
-from .baseline import (FRAME_RATE, GIVEN, GRAVITY, _half_extent, _rotations, identify, initial_state,
-                       prediction_arrays, prediction_scene)
-from .contactnets import DEFAULTS as CONTACTNETS
-from .shards import Scene
+from baselines.identify import identify
+from baselines.toss import FRAME_RATE, GRAVITY, half_extent, initial_state, prediction_arrays, prediction_scene
+from datagen.contactnets import DEFAULTS as CONTACTNETS
+from datagen.quaternions import rotation
+from datagen.shards import Scene
+from gns.features import HISTORY
 
 
 MISSING = "the MuJoCo baseline needs the mujoco package: pip install -e '.[mujoco]'"
@@ -78,7 +80,7 @@ class MujocoParams:
 
 DEFAULT = MujocoParams()
 
-# (name, low, high) as in baseline.BOUNDS; "log10_x" searches x on a log10 scale, int fields
+# (name, low, high) as in baselines.pybullet.BOUNDS; "log10_x" searches x on a log10 scale, int fields
 # are rounded. MuJoCo lifts a timeconst below 2 timesteps to 2 timesteps (its "refsafe").
 BOUNDS = (("friction", 0.05, 0.5), ("log10_torsional_friction", -4.0, -0.5),
           ("log10_rolling_friction", -5.0, -1.0), ("log10_timeconst", -3.0, -1.3), ("dampratio", 0.05, 2.0),
@@ -115,30 +117,30 @@ def _model(params: MujocoParams, half: float, mass: float, frame_rate: float):
 
 
 def simulate_toss(scene: Scene, params: MujocoParams = DEFAULT, frame_rate: float = FRAME_RATE,
-                  given: int = GIVEN) -> Scene:
-    """A predicted copy of a one-cube toss (as baseline.simulate_toss, in MuJoCo)."""
+                  given: int = HISTORY) -> Scene:
+    """A predicted copy of a one-cube toss (as baselines.pybullet.simulate_toss, in MuJoCo)."""
     mujoco = _mujoco()
     if params.substeps < 1:
         raise ValueError("substeps must be >= 1")
-    half, mass = _half_extent(scene), float(scene.mass[0])
+    half, mass = half_extent(scene), float(scene.mass[0])
     m = _model(params, half, mass, float(frame_rate))
     d = mujoco.MjData(m)
     pos, quat, vel, w = initial_state(scene, frame_rate, params.gravity, given)
     d.qpos[:] = np.concatenate([pos, quat])
     # A free joint's angular velocity is in the body frame.
-    d.qvel[:] = np.concatenate([vel, _rotations(quat).inv().apply(w)])
+    d.qvel[:] = np.concatenate([vel, rotation(quat).inv().apply(w)])
     out = prediction_arrays(scene, given)
     for t in range(given, scene.num_frames):
         mujoco.mj_step(m, d, nstep=params.substeps)
         q = d.qpos[3:7] / np.linalg.norm(d.qpos[3:7])
         out[0][t, 0], out[1][t, 0], out[2][t, 0] = d.qpos[:3], q, d.qvel[:3]
-        out[3][t, 0] = _rotations(q).apply(d.qvel[3:6])
+        out[3][t, 0] = rotation(q).apply(d.qvel[3:6])
     return prediction_scene(scene, out, "mujoco", params, float(scene.restitution[0]))
 
 
 def fit_parameters(train_scenes: Sequence[Scene], budget: int = 60, seed: int = 0, start: MujocoParams = DEFAULT,
                    fit: Sequence[str] = FIT, **kw) -> dict:
     """Identify MuJoCo's parameters (the names in `fit`, of BOUNDS) on training tosses with
-    baseline.identify: the same measured constants, objective and search as PyBullet's."""
+    baselines.identify: the same measured constants, objective and search as PyBullet's."""
     _mujoco()
     return identify(train_scenes, simulate_toss, BOUNDS, start, fit, budget, seed, **kw)

@@ -1,12 +1,27 @@
 """Checks on where a command will write, made before its work: an output that cannot be
-written, or that would land on the input, fails in one line instead of after a long job."""
+written, that would land on the input or replace someone else's files fails in one line
+instead of after a long job. datagen's and gns's commands all check through this module."""
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from pathlib import Path
 
 from datagen.shards import DataError
+
+
+def check_output_folder(out: str | Path, overwrite: bool, advice: str) -> bool:
+    """Refuse an output folder that is a file, or that holds files when `overwrite` is not
+    given (`advice` says what to pass instead). Returns whether it holds files: what the caller
+    may replace, only its own ones."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise DataError(f"output path {out} is a file, not a folder")
+    held = out.is_dir() and any(out.iterdir())
+    if held and not overwrite:
+        raise DataError(f"output folder {out} exists and is not empty; {advice}")
+    return held
 
 
 def check_writable(path: str | Path, what: str = "output folder") -> Path:
@@ -39,7 +54,6 @@ def check_json_output(path: str | Path, marker: str, what: str) -> Path:
     """A JSON output file that may be replaced: new, or an earlier output of the same command
     (a dict holding key `marker`), so a mistyped path never overwrites someone else's file
     (a dataset's metadata.json, say)."""
-    import json
     path = Path(path)
     if path.is_dir():
         raise DataError(f"{path} is a folder; give a file name such as {path / 'results.json'}")

@@ -88,10 +88,10 @@ def test_body_frame_averaging_is_exactly_invariant_to_the_body_frame(tmp_path):
     place) changes the plain prediction, not the body-frame-averaged one."""
     from dataclasses import replace
 
-    from test_gns_training_levers import _sim_and_batch
+    from test_gns_train_levers import sim_and_batch
 
     from gns.graph import with_symmetries
-    sim, b = _sim_and_batch(tmp_path)
+    sim, b = sim_and_batch(tmp_path)
     g = with_symmetries(b.graph)
     assert (g.num_symmetries == 24).all()
     s = torch.from_numpy(mesh_symmetries(get_shape("cube").vertices)[7])

@@ -8,7 +8,7 @@ real data the last word. No data beyond the real training tosses is used: the en
 them and the synthetic tosses start where they start, perturbed.
 
 Each synthetic toss takes a random real training toss as its template: its start state (frames
-0-2, datagen.baseline.initial_state) turned about the vertical by a random angle (the table is
+0-2, baselines.toss.initial_state) turned about the vertical by a random angle (the table is
 level and unbounded, so this is a symmetry), the cube's orientation replaced by a uniformly
 random one with probability `random_orientation`, linear and angular speeds scaled by
 U[1 - speed_jitter, 1 + speed_jitter], raised if a corner would start below the table. The three
@@ -22,28 +22,27 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .baseline import GIVEN, baseline_engine, initial_state
-from .shards import Scene
-
-
-def _wxyz(r: Rotation) -> np.ndarray:
-    return r.as_quat()[..., [3, 0, 1, 2]]
+from baselines import baseline_engine
+from baselines.toss import initial_state
+from datagen.quaternions import rotation, wxyz
+from datagen.shards import Scene
+from gns.features import HISTORY
 
 
 def _start_scene(template: Scene, p: np.ndarray, q: Rotation, v: np.ndarray, w: np.ndarray,
                  frame_rate: float, gravity: float) -> Scene:
-    """A scene holding the template's length whose first GIVEN frames are free flight ending in
-    the state (p, q, v, w) at frame GIVEN - 1; later frames are zeros for the engine to fill."""
+    """A scene holding the template's length whose first HISTORY frames are free flight ending in
+    the state (p, q, v, w) at frame HISTORY - 1; later frames are zeros for the engine to fill."""
     T = template.num_frames
-    tau = (np.arange(GIVEN) - (GIVEN - 1)) / frame_rate                  # (GIVEN,) <= 0
+    tau = (np.arange(HISTORY) - (HISTORY - 1)) / frame_rate                  # (HISTORY,) <= 0
     accel = np.array([0.0, 0.0, -gravity])
     pos = np.zeros((T, 1, 3))
     quat = np.tile([1.0, 0.0, 0.0, 0.0], (T, 1, 1))
     vel, ang = np.zeros((T, 1, 3)), np.zeros((T, 1, 3))
-    pos[:GIVEN, 0] = p + v * tau[:, None] + 0.5 * accel * tau[:, None] ** 2
-    vel[:GIVEN, 0] = v + accel * tau[:, None]
-    quat[:GIVEN, 0] = _wxyz(Rotation.from_rotvec(w * tau[:, None]) * q)
-    ang[:GIVEN, 0] = w
+    pos[:HISTORY, 0] = p + v * tau[:, None] + 0.5 * accel * tau[:, None] ** 2
+    vel[:HISTORY, 0] = v + accel * tau[:, None]
+    quat[:HISTORY, 0] = wxyz((Rotation.from_rotvec(w * tau[:, None]) * q).as_quat())
+    ang[:HISTORY, 0] = w
     return Scene(positions=pos, quaternions=quat, velocities=vel, angular_velocities=ang,
                  shape=list(template.shape), material=list(template.material), scale=template.scale.copy(),
                  mass=template.mass.copy(), friction=template.friction.copy(),
@@ -65,7 +64,7 @@ def engine_tosses(templates: Sequence[Scene], engine: str, params, count: int, s
         t = templates[int(rng.integers(len(templates)))]
         p, q_wxyz, v, w = initial_state(t, frame_rate, gravity)
         turn = Rotation.from_rotvec([0.0, 0.0, rng.uniform(0, 2 * np.pi)])
-        q = Rotation.from_quat(np.asarray(q_wxyz)[[1, 2, 3, 0]])
+        q = rotation(q_wxyz)
         q = Rotation.random(random_state=rng) if rng.random() < random_orientation else turn * q
         p, v, w = turn.apply(p), turn.apply(v), turn.apply(w)
         v = v * rng.uniform(1 - speed_jitter, 1 + speed_jitter)
@@ -74,12 +73,12 @@ def engine_tosses(templates: Sequence[Scene], engine: str, params, count: int, s
         half = 0.5 * float(t.scale[0])
         corners = np.array([[x, y, z] for x in (-half, half) for y in (-half, half) for z in (-half, half)])
         start = _start_scene(t, p, q, v, w, frame_rate, gravity)
-        rots = Rotation.from_quat(start.quaternions[:GIVEN, 0][:, [1, 2, 3, 0]])
-        lowest = min(float((rots[k].apply(corners)[:, 2] + start.positions[k, 0, 2]).min()) for k in range(GIVEN))
+        rots = rotation(start.quaternions[:HISTORY, 0])
+        lowest = min(float((rots[k].apply(corners)[:, 2] + start.positions[k, 0, 2]).min()) for k in range(HISTORY))
         if lowest < floor_z + 0.05 * half:
             p = p + [0.0, 0.0, floor_z + 0.05 * half - lowest]
             start = _start_scene(t, p, q, v, w, frame_rate, gravity)
-        scene = simulate(start, params, frame_rate, GIVEN)
+        scene = simulate(start, params, frame_rate, HISTORY)
         scene.attrs = {"template": str(t.attrs.get("toss_id", "")), "engine": engine, "synthetic": i}
         out.append(scene)
     return out
