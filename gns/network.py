@@ -9,10 +9,11 @@ Message passing convention (pinned by tests/test_gns_network.py):
   InteractionNetwork (graph_nets / jraph) does.
 - Edge residual: E'_k = E_k + m_k; the next block sees E'.
 - The processor holds L blocks with unshared weights and applies the sequence K times.
-- Optional second edge set (collision edges between objects, as MeshGraphNets' world edges):
-  its own encoder and per-block edge function c_k = f_C(C_k, V_r, V_s); then
-  V'_r = V_r + f_V(V_r, sum mesh messages, sum collision messages) and C'_k = C_k + c_k.
-  A network built without it (collision_edge_in = 0) has none of these parameters.
+- Edge sets are a list, mesh edges first; each has its own encoder and per-block edge function
+  (as MeshGraphNets' mesh and world edges), and a block loops over them:
+  V'_r = V_r + f_V(V_r, sum of set 1's messages, sum of set 2's, ...), E'_k = E_k + m_k per set.
+  The optional second set is the collision edges between objects (c_k = f_C(C_k, V_r, V_s)); a
+  network built without it (collision_edge_in = 0) has none of its parameters.
 """
 from __future__ import annotations
 
@@ -59,11 +60,16 @@ def _edge_messages(module: nn.Module, nodes, edges, senders, receivers) -> torch
     return module.edge_rest(projected)
 
 
+EdgeLatents = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # edges (E, D), senders (E,), receivers (E,)
+
+
 class InteractionBlock(nn.Module):
     """One message-passing update with residuals on nodes and edges (see the module docstring).
 
     The first layer of f_E acts on [E, V_r, V_s]; its node parts are applied once per node and
     then gathered per edge, which equals the concatenated form but costs O(N) instead of O(E).
+    The mesh edges' function lives on the block itself and the collision edges' in
+    `self.collision`, so checkpoints keep their parameter names.
     """
 
     def __init__(self, latent: int, hidden: int, hidden_layers: int, layer_norm: bool = True,
@@ -73,23 +79,19 @@ class InteractionBlock(nn.Module):
         self.collision = EdgeFunction(latent, hidden, hidden_layers, layer_norm) if collisions else None
         self.node_mlp = MLP((3 if collisions else 2) * latent, hidden, hidden_layers, latent, layer_norm)
 
-    def forward(self, nodes: torch.Tensor, edges: torch.Tensor, senders: torch.Tensor,
-                receivers: torch.Tensor, collision: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None):
-        """nodes (N, D), edges (E, D), senders/receivers (E,) -> new nodes (N, D), edges (E, D).
+    def edge_functions(self) -> list[nn.Module]:
+        """One module per edge set, in the order of the edge sets: mesh, then collision."""
+        return [self] if self.collision is None else [self, self.collision]
 
-        With collision = (edges (C, D), senders (C,), receivers (C,)) (a block built with
-        collisions needs it) -> new nodes, edges and collision edges (C, D).
-        """
-        messages = _edge_messages(self, nodes, edges, senders, receivers)
-        summed = torch.zeros_like(nodes).index_add_(0, receivers, messages)
-        if self.collision is None:
-            new_nodes = nodes + self.node_mlp(torch.cat([nodes, summed], dim=-1))
-            return new_nodes, edges + messages
-        c_edges, c_senders, c_receivers = collision
-        c_messages = self.collision(nodes, c_edges, c_senders, c_receivers)
-        c_summed = torch.zeros_like(nodes).index_add_(0, c_receivers, c_messages)
-        new_nodes = nodes + self.node_mlp(torch.cat([nodes, summed, c_summed], dim=-1))
-        return new_nodes, edges + messages, c_edges + c_messages
+    def forward(self, nodes: torch.Tensor, edge_sets: list[EdgeLatents]) -> tuple[torch.Tensor, list[EdgeLatents]]:
+        """nodes (N, D), one (edges, senders, receivers) per edge function -> new nodes (N, D)
+        and the edge sets with their new edge latents."""
+        summed, updated = [], []
+        for function, (edges, senders, receivers) in zip(self.edge_functions(), edge_sets, strict=True):
+            messages = _edge_messages(function, nodes, edges, senders, receivers)
+            summed.append(torch.zeros_like(nodes).index_add_(0, receivers, messages))
+            updated.append((edges + messages, senders, receivers))
+        return nodes + self.node_mlp(torch.cat([nodes, *summed], dim=-1)), updated
 
 
 class EdgeFunction(nn.Module):
@@ -124,6 +126,10 @@ class EncodeProcessDecode(nn.Module):
     def collisions(self) -> bool:
         return hasattr(self, "collision_encoder")
 
+    def edge_encoders(self) -> list[nn.Module]:
+        """One encoder per edge set: mesh, then collision."""
+        return [self.edge_encoder, self.collision_encoder] if self.collisions else [self.edge_encoder]
+
     def forward(self, nodes: torch.Tensor, edges: torch.Tensor, senders: torch.Tensor,
                 receivers: torch.Tensor, collision_edges: torch.Tensor | None = None,
                 collision_senders: torch.Tensor | None = None,
@@ -133,17 +139,14 @@ class EncodeProcessDecode(nn.Module):
         A network with collisions also takes collision_edges (C, collision_edge_in) and their
         senders/receivers (C,); C may be 0.
         """
+        raw = [(edges, senders, receivers)]
+        if self.collisions:
+            raw.append((collision_edges, collision_senders, collision_receivers))
         v = self.node_encoder(nodes)
-        e = self.edge_encoder(edges)
-        if not self.collisions:
-            for _ in range(self.processor_repeats):
-                for block in self.blocks:
-                    v, e = block(v, e, senders, receivers)
-            return self.decoder(v)
-        c = self.collision_encoder(collision_edges)
+        sets = [(encoder(e), s, r) for encoder, (e, s, r) in zip(self.edge_encoders(), raw, strict=True)]
         for _ in range(self.processor_repeats):
             for block in self.blocks:
-                v, e, c = block(v, e, senders, receivers, (c, collision_senders, collision_receivers))
+                v, sets = block(v, sets)
         return self.decoder(v)
 
     def forward_flops(self, num_nodes: int, num_edges: int, num_collision_edges: int = 0) -> int:
@@ -152,17 +155,12 @@ class EncodeProcessDecode(nn.Module):
             return sum(2 * rows * m.in_features * m.out_features
                        for m in module.modules() if isinstance(m, nn.Linear))
 
+        counts = [num_edges, num_collision_edges][:len(self.edge_encoders())]
         block_flops = sum(
-            linear_flops(b.edge_in, num_edges) + linear_flops(b.edge_rest, num_edges)
-            + linear_flops(b.receiver_in, num_nodes) + linear_flops(b.sender_in, num_nodes)
-            + linear_flops(b.node_mlp, num_nodes) for b in self.blocks)
-        if self.collisions:
-            block_flops += sum(
-                linear_flops(b.collision.edge_in, num_collision_edges) + linear_flops(b.collision.edge_rest, num_collision_edges)
-                + linear_flops(b.collision.receiver_in, num_nodes) + linear_flops(b.collision.sender_in, num_nodes)
-                for b in self.blocks)
-        encoders = linear_flops(self.node_encoder, num_nodes) + linear_flops(self.edge_encoder, num_edges)
-        if self.collisions:
-            encoders += linear_flops(self.collision_encoder, num_collision_edges)
-        return (encoders
-                + self.processor_repeats * block_flops + linear_flops(self.decoder, num_nodes))
+            linear_flops(b.node_mlp, num_nodes)
+            + sum(linear_flops(f.edge_in, n) + linear_flops(f.edge_rest, n) + linear_flops(f.receiver_in, num_nodes)
+                  + linear_flops(f.sender_in, num_nodes) for f, n in zip(b.edge_functions(), counts))
+            for b in self.blocks)
+        encoders = linear_flops(self.node_encoder, num_nodes) + sum(
+            linear_flops(enc, n) for enc, n in zip(self.edge_encoders(), counts))
+        return encoders + self.processor_repeats * block_flops + linear_flops(self.decoder, num_nodes)

@@ -219,8 +219,11 @@ class LearnedSimulator(nn.Module):
             return surface_edges(x, graph, self.layout.collision_radius)
         return collision_edges(x, graph, self.layout.collision_radius)
 
-    def _inputs(self, history: torch.Tensor, graph: Graph) -> tuple[torch.Tensor, torch.Tensor]:
-        """history (N, 3, 3) float64 -> normalised node (N, Fn) and edge (E, Fe) float32 inputs.
+    def _inputs(self, history: torch.Tensor, graph: Graph) -> tuple[torch.Tensor, list[tuple]]:
+        """history (N, 3, 3) float64 -> normalised node inputs (N, Fn) float32 and one
+        (features, senders, receivers) per edge set: the mesh edges, then (with collisions) the
+        collision edges, built from x_t here unless the graph brings them, so that a rollout
+        rebuilds them from its own predictions at every step.
 
         Normalisers accumulate statistics while the module is in training mode.
         """
@@ -232,23 +235,18 @@ class LearnedSimulator(nn.Module):
         else:
             raw_edges = raw_edge_features(self.layout, history, graph)
             edges = torch.cat([self.edge_normalizers[n](raw_edges[n], acc) for n, _ in self.layout.edge_groups], -1)
-        return nodes, edges
+        edge_sets = [(edges, graph.mesh_edges.senders, graph.mesh_edges.receivers)]
+        if self.layout.collisions:
+            c = self.collision_edges(history[:, -1], graph)
+            raw = raw_collision_features(history, c)
+            features = torch.cat([self.collision_normalizers[n](raw[n], acc) for n, _ in self.layout.collision_groups], -1)
+            edge_sets.append((features, c.senders, c.receivers))
+        return nodes, edge_sets
 
     def forward(self, history: torch.Tensor, graph: Graph) -> torch.Tensor:
-        """history (N, 3, 3) float64 positions at t-2, t-1, t -> normalised acceleration (N, 3) float32.
-
-        With collisions, the collision edges are built from x_t here (unless the graph brings
-        them), so a rollout rebuilds them from its own predictions at every step.
-        """
-        nodes, edges = self._inputs(history, graph)
-        if not self.layout.collisions:
-            return self.run_network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers)
-        c = self.collision_edges(history[:, -1], graph)
-        raw = raw_collision_features(history, c)
-        c_features = torch.cat([self.collision_normalizers[n](raw[n], self.training)
-                                for n, _ in self.layout.collision_groups], -1)
-        return self.run_network(nodes, edges, graph.mesh_edges.senders, graph.mesh_edges.receivers,
-                                c_features, c.senders, c.receivers)
+        """history (N, 3, 3) float64 positions at t-2, t-1, t -> normalised acceleration (N, 3) float32."""
+        nodes, edge_sets = self._inputs(history, graph)
+        return self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
 
     def predict_acceleration(self, history: torch.Tensor, graph: Graph) -> torch.Tensor:
         """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2.

@@ -25,7 +25,7 @@ def linear_block() -> InteractionBlock:
 def test_interaction_block_matches_hand_computation():
     nodes = torch.tensor([[1.0], [2.0], [4.0]])
     edges = torch.tensor([[0.5], [-1.0], [2.0]])
-    new_nodes, new_edges = linear_block()(nodes, edges, SENDERS, RECEIVERS)
+    new_nodes, [(new_edges, _, _)] = linear_block()(nodes, [(edges, SENDERS, RECEIVERS)])
     # messages m = E + 2 V_receiver + 3 V_sender: 0.5+4+3, -1+8+3, 2+8+6
     # sums at receivers: node 0 gets nothing, node 1 gets 7.5, node 2 gets 10 + 16 = 26
     # V' = V + (V + 10 sum); E' = E + m
@@ -37,8 +37,8 @@ def test_swapping_senders_and_receivers_changes_the_result():
     nodes = torch.tensor([[1.0], [2.0], [4.0]])
     edges = torch.tensor([[0.5], [-1.0], [2.0]])
     block = linear_block()
-    forward = block(nodes, edges, SENDERS, RECEIVERS)[0]
-    swapped = block(nodes, edges, RECEIVERS, SENDERS)[0]
+    forward = block(nodes, [(edges, SENDERS, RECEIVERS)])[0]
+    swapped = block(nodes, [(edges, RECEIVERS, SENDERS)])[0]
     assert not torch.allclose(forward, swapped)
 
 
@@ -51,7 +51,7 @@ def test_split_first_layer_equals_concatenated_mlp():
     messages = block.edge_rest(first)
     summed = torch.zeros_like(nodes).index_add_(0, RECEIVERS, messages)
     expected = nodes + block.node_mlp(torch.cat([nodes, summed], 1))
-    got_nodes, got_edges = block(nodes, edges, SENDERS, RECEIVERS)
+    got_nodes, [(got_edges, _, _)] = block(nodes, [(edges, SENDERS, RECEIVERS)])
     assert torch.allclose(got_nodes, expected, atol=1e-6)
     assert torch.allclose(got_edges, edges + messages, atol=1e-6)
 
@@ -63,7 +63,7 @@ def test_processor_applies_l_unshared_blocks_k_times_passing_updated_edges():
     nodes, edges = torch.randn(3, 2), torch.randn(3, 3)
     v, e = net.node_encoder(nodes), net.edge_encoder(edges)
     for block in [net.blocks[0], net.blocks[1], net.blocks[0], net.blocks[1]]:
-        v, e = block(v, e, SENDERS, RECEIVERS)
+        v, [(e, _, _)] = block(v, [(e, SENDERS, RECEIVERS)])
     assert torch.allclose(net(nodes, edges, SENDERS, RECEIVERS), net.decoder(v), atol=1e-6)
     assert net.blocks[0].edge_in.weight.data_ptr() != net.blocks[1].edge_in.weight.data_ptr()
 
