@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 from datagen.shards import DataError
 from gns.config import Config, ConfigError
 from gns.features import HISTORY
-from gns.graph import Graph, MeshLibrary
+from gns.graph import GraphBatch, MeshLibrary
 from gns.ranges import outside_training
 from gns.simulator import LearnedSimulator, shape_match_packed
 from gns.train import CheckpointError, load_model, parse_device, read_checkpoint
@@ -97,7 +97,7 @@ class State:
     vertices: torch.Tensor         # (N, 3) world vertices; object of each: vertex_object
     time: float                    # seconds since the first state
     frames: tuple[torch.Tensor, ...] = field(repr=False)   # HISTORY x (N, 3) float64, oldest first
-    graph: Graph = field(repr=False)
+    graph: GraphBatch = field(repr=False)
 
     @property
     def vertex_object(self) -> torch.Tensor:

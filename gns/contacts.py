@@ -7,7 +7,7 @@ closest point on its triangles. The edge goes from the triangle's vertex nearest
 (a node, whose latent sends the message) to the query vertex, and carries the exact geometry:
 d = x_vertex - closest point, and the signed distance (negative inside the other object,
 whose faces are oriented outward from its vertex mean: the meshes are convex). As FIGNet's
-face-face edges, it needs faces in the graph (`Graph.faces`); unlike them it stays a vertex
+face-face edges, it needs faces in the graph (`GraphBatch.faces`); unlike them it stays a vertex
 graph. Every vertex of each near object pair queries the other object, so a contact gets
 edges in both directions. Phases and cost as collision_edges: bounds of object pairs, then
 only the vertices inside the other's expanded bounds, each against the other's faces.
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-from gns.graph import EdgeSet, Graph, near_pairs, ragged_arange, vertices_near, graph_centres
+from gns.graph import EdgeSet, GraphBatch, near_pairs, ragged_arange, vertices_near, graph_centres
 
 
 def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
@@ -46,7 +46,7 @@ def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
 
 
 @torch.no_grad()
-def _surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> tuple[EdgeSet, torch.Tensor, torch.Tensor]:
+def _surface_edges(x: torch.Tensor, graph: GraphBatch, radius: float) -> tuple[EdgeSet, torch.Tensor, torch.Tensor]:
     """surface_edges, with the triangle (E, 3) and the sign (E, 1) of each edge."""
     none = torch.zeros(0, 3, dtype=torch.int64, device=x.device)
     empty = EdgeSet(torch.zeros(0, dtype=torch.int64, device=x.device), torch.zeros(0, dtype=torch.int64, device=x.device),
@@ -93,7 +93,7 @@ def _surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> tuple[EdgeSe
     return EdgeSet(sender, node[query[best]], d, signed), tri, torch.sign(signed)
 
 
-def surface_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
+def surface_edges(x: torch.Tensor, graph: GraphBatch, radius: float) -> EdgeSet:
     """Edges from the surface of one object to the vertices of another within `radius` of it
     (or inside it); `vectors` (E, 3) = x_r - closest point, `signed` (E, 1) signed distance.
 

@@ -2,7 +2,7 @@
 
 A *track* is one object through one scene. A *window* is 3 input frames (t-2, t-1, t) and the
 target frame t+1 of one scene: one graph per object of the scene, packed together and marked as
-one scene (`Graph.graph_scene`) so that collision edges can join them. With one object per
+one scene (`GraphBatch.graph_scene`) so that collision edges can join them. With one object per
 scene a window is one track and one graph. Memory holds only the poses
 (positions and quaternions, float64) and the meshes once; vertex positions are computed for the
 windows of a batch, vectorised, as R(q) (scale * rest) + p.
@@ -43,7 +43,7 @@ import torch
 from datagen.shards import Dataset, DataError, Scene
 from gns.features import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
-from gns.graph import EdgeSet, Graph, MeshLibrary, ragged_arange, graph_sizes
+from gns.graph import EdgeSet, GraphBatch, MeshLibrary, ragged_arange, graph_sizes
 
 
 def rotation_z(theta: torch.Tensor) -> torch.Tensor:
@@ -53,7 +53,7 @@ def rotation_z(theta: torch.Tensor) -> torch.Tensor:
     return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).reshape(-1, 3, 3)
 
 
-def vertices_from_poses(graph: Graph, positions: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
+def vertices_from_poses(graph: GraphBatch, positions: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
     """World vertices R (rest) + p for every node and frame.
 
     positions (B, T, 3), rotations (B, T, 3, 3) per graph of `graph` -> (N, T, 3) float64.
@@ -66,7 +66,7 @@ def vertices_from_poses(graph: Graph, positions: torch.Tensor, rotations: torch.
 class Batch:
     history: torch.Tensor  # (N, 3, 3) float64 input positions at t-2, t-1, t
     target: torch.Tensor   # (N, 3) float64 position at t+1 (noise-corrected)
-    graph: Graph
+    graph: GraphBatch
     # (N, U - 1, 3) float64 positions at t+2 .. t+U for unrolled training (noise-corrected as target)
     future: torch.Tensor | None = None
 
@@ -84,7 +84,7 @@ class Batch:
         new_graph = torch.cumsum(keep_graph, 0) - 1
         edges = keep[g.mesh_edges.senders]                     # mesh edges stay inside one graph
         faces = None if g.faces is None else new_node[g.faces[keep[g.faces[:, 0]]]]
-        graph = Graph(EdgeSet(new_node[g.mesh_edges.senders[edges]], new_node[g.mesh_edges.receivers[edges]]),
+        graph = GraphBatch(EdgeSet(new_node[g.mesh_edges.senders[edges]], new_node[g.mesh_edges.receivers[edges]]),
                       g.rest[keep], g.material[keep], new_graph[g.node_graph[keep]], int(keep_graph.sum()),
                       g.graph_scene[keep_graph] - lo, None, faces)
         future = None if self.future is None else self.future[keep]
@@ -163,7 +163,7 @@ class ObjectTracks:
     def num_windows(self) -> int:
         return len(self.window_track)
 
-    def graph(self, tracks: torch.Tensor, graph_scene: torch.Tensor | None = None) -> Graph:
+    def graph(self, tracks: torch.Tensor, graph_scene: torch.Tensor | None = None) -> GraphBatch:
         """Packed graphs of tracks (B,); graph_scene (B,) groups them into scenes of the batch
         (default: the tracks' scenes, so tracks of one scene interact)."""
         if graph_scene is None:
@@ -264,7 +264,7 @@ class ObjectTracks:
             windows = torch.from_numpy(rng.integers(0, self.num_windows, batch_size))
         return self.batch(windows, rng, rotate, noise_std, vertex_noise, track_noise, mirror, body_symmetry)
 
-    def track_vertices(self, tracks: torch.Tensor, frames: int) -> tuple[Graph, torch.Tensor, torch.Tensor]:
+    def track_vertices(self, tracks: torch.Tensor, frames: int) -> tuple[GraphBatch, torch.Tensor, torch.Tensor]:
         """For rollouts: graph, vertices (N, frames, 3) and centres (B, frames, 3) from frame 0."""
         pos, rot = self.poses(tracks, torch.zeros_like(tracks), frames)
         graph = self.graph(tracks)

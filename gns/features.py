@@ -27,7 +27,7 @@ from torch import nn
 
 from gns import parallel
 from gns.config import ConfigError
-from gns.graph import Graph
+from gns.graph import GraphBatch
 
 STD_EPSILON = 1e-5
 HISTORY = 3  # input frames t-2, t-1, t: two finite-difference velocities (paper: h = 2)
@@ -154,7 +154,7 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, colli
                          collision, float(f.collision_radius), velocity_scale, bool(f.floor_signed))
 
 
-def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph) -> dict[str, torch.Tensor]:
+def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: GraphBatch) -> dict[str, torch.Tensor]:
     """history (N, 3, 3) float64 positions at t-2, t-1, t -> {group: (N, width) float32}."""
     out = {}
     x_t = history[:, -1]
@@ -181,7 +181,7 @@ def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
     return {k: v.to(torch.float32) for k, v in out.items()}
 
 
-def raw_edge_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph) -> dict[str, torch.Tensor]:
+def raw_edge_features(layout: FeatureLayout, history: torch.Tensor, graph: GraphBatch) -> dict[str, torch.Tensor]:
     """history (N, 3, 3) float64 -> {group: (E, width) float32} for the mesh edges."""
     s, r = graph.mesh_edges.senders, graph.mesh_edges.receivers
     out = {}

@@ -41,7 +41,7 @@ class EdgeSet:
 
 
 @dataclass
-class Graph:
+class GraphBatch:
     """A packed batch of object graphs (one graph = one object in one window)."""
 
     mesh_edges: EdgeSet
@@ -67,12 +67,12 @@ class Graph:
             return self.node_graph
         return self.graph_scene[self.node_graph]
 
-    def to(self, device) -> "Graph":
+    def to(self, device) -> "GraphBatch":
         moved = {f.name: getattr(self, f.name) for f in fields(self)}
         for name, value in moved.items():
             if isinstance(value, (torch.Tensor, EdgeSet)):
                 moved[name] = value.to(device)
-        return Graph(**moved)
+        return GraphBatch(**moved)
 
 
 def _signed_permutations() -> np.ndarray:
@@ -118,7 +118,7 @@ def padded_groups(groups: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]
     return torch.from_numpy(padded), torch.tensor(counts)
 
 
-def with_symmetries(graph: "Graph") -> "Graph":
+def with_symmetries(graph: "GraphBatch") -> "GraphBatch":
     """A copy of graph carrying each graph's body-frame symmetry group (mesh_symmetries of its
     rest shape), for predictions averaged over them (LearnedSimulator.body_frames)."""
     rest = graph.rest.detach().cpu().numpy()
@@ -171,7 +171,7 @@ class MeshLibrary:
         return torch.tensor([self.index[n] for n in names], dtype=torch.int64, device=self._vertices.device)
 
     def pack(self, shape_ids: torch.Tensor, scale: torch.Tensor, friction: torch.Tensor,
-             restitution: torch.Tensor, graph_scene: torch.Tensor | None = None) -> Graph:
+             restitution: torch.Tensor, graph_scene: torch.Tensor | None = None) -> GraphBatch:
         """One graph per entry of shape_ids (B,), with per-graph scale, friction, restitution (B,).
 
         graph_scene (B,): the scene of each graph within the batch (graphs of one scene interact
@@ -192,11 +192,11 @@ class MeshLibrary:
         faces = self._faces[self._face_start[shape_ids][face_graph] + local_face] + node_offset[face_graph, None]
 
         material = torch.stack([friction, restitution], dim=1).to(torch.float32)[node_graph]
-        return Graph(EdgeSet(edges[:, 0].contiguous(), edges[:, 1].contiguous()), rest, material,
+        return GraphBatch(EdgeSet(edges[:, 0].contiguous(), edges[:, 1].contiguous()), rest, material,
                      node_graph, len(shape_ids), graph_scene, faces=faces)
 
 
-def _candidate_pairs(graph: Graph) -> tuple[torch.Tensor, torch.Tensor]:
+def _candidate_pairs(graph: GraphBatch) -> tuple[torch.Tensor, torch.Tensor]:
     """All unordered pairs (a < b) of graphs in the same scene: two (P,) int64 tensors."""
     scene = graph.graph_scene
     order = torch.argsort(scene, stable=True)
@@ -217,7 +217,7 @@ def ragged_take(counts: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor
     return owner, start[owner] + local
 
 
-def per_graph(values: torch.Tensor, graph: Graph, reduce: str, owner: torch.Tensor | None = None) -> torch.Tensor:
+def per_graph(values: torch.Tensor, graph: GraphBatch, reduce: str, owner: torch.Tensor | None = None) -> torch.Tensor:
     """Node values (N, ...) reduced over each graph's nodes -> (G, ...); reduce is "amax",
     "amin" or "sum". Values of other items (edges) need their `owner` graph (len(values),)."""
     fill = {"amax": -torch.inf, "amin": torch.inf, "sum": 0.0}[reduce]
@@ -227,18 +227,18 @@ def per_graph(values: torch.Tensor, graph: Graph, reduce: str, owner: torch.Tens
     return out.scatter_reduce(0, index, values, reduce)
 
 
-def graph_centres(x: torch.Tensor, graph: Graph) -> torch.Tensor:
+def graph_centres(x: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
     """Mean vertex position of each graph (G, 3) from positions x (N, 3)."""
     count = torch.bincount(graph.node_graph, minlength=graph.num_graphs).to(x.dtype)
     return per_graph(x, graph, "sum") / count[:, None]
 
 
-def graph_sizes(graph: Graph) -> torch.Tensor:
+def graph_sizes(graph: GraphBatch) -> torch.Tensor:
     """Largest axis extent of each graph's scaled rest mesh (G,): the object's size."""
     return (per_graph(graph.rest, graph, "amax") - per_graph(graph.rest, graph, "amin")).max(dim=1).values
 
 
-def near_pairs(x: torch.Tensor, graph: Graph, radius: float):
+def near_pairs(x: torch.Tensor, graph: GraphBatch, radius: float):
     """Broad phase: object pairs (a < b) of a scene whose bounds, one expanded by `radius`,
     overlap; returns (a, b, low, high) with every graph's bounds (G, 3), or None if none."""
     if graph.graph_scene is None or graph.num_graphs < 2:
@@ -251,7 +251,7 @@ def near_pairs(x: torch.Tensor, graph: Graph, radius: float):
     return a[near], b[near], low, high
 
 
-def vertices_near(x: torch.Tensor, graph: Graph, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
+def vertices_near(x: torch.Tensor, graph: GraphBatch, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
                    high: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Mid phase: the vertices of graphs `own` (P,) inside the bounds of `other` (P,) expanded
     by `radius`; returns (pair, node), pair indexing own/other."""
@@ -263,7 +263,7 @@ def vertices_near(x: torch.Tensor, graph: Graph, own: torch.Tensor, other: torch
 
 
 @torch.no_grad()
-def collision_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
+def collision_edges(x: torch.Tensor, graph: GraphBatch, radius: float) -> EdgeSet:
     """Edges between vertices of different objects of the same scene closer than `radius`.
 
     x (N, 3) node positions at time t. Three phases, all vectorised (no Python loop):
@@ -298,7 +298,7 @@ def collision_edges(x: torch.Tensor, graph: Graph, radius: float) -> EdgeSet:
     return EdgeSet(torch.cat([i, j]), torch.cat([j, i]))
 
 
-def select_graphs(graph: Graph, keep: torch.Tensor) -> tuple[Graph, torch.Tensor]:
+def select_graphs(graph: GraphBatch, keep: torch.Tensor) -> tuple[GraphBatch, torch.Tensor]:
     """The batch of the graphs with keep (G,) True, renumbered, and the (n,) indices of its nodes
     in `graph`. Edges (mesh, collision) and faces are kept where both ends are kept: a graph left
     out must share no collision edge with one kept (the caller's rule), else the kept one would
@@ -326,6 +326,6 @@ def select_graphs(graph: Graph, keep: torch.Tensor) -> tuple[Graph, torch.Tensor
                    num_symmetries=None if graph.num_symmetries is None else graph.num_symmetries[keep]), nodes
 
 
-def with_collision_edges(graph: Graph, x: torch.Tensor, radius: float) -> Graph:
+def with_collision_edges(graph: GraphBatch, x: torch.Tensor, radius: float) -> GraphBatch:
     """A copy of graph with its collision edges built from positions x (N, 3)."""
     return replace(graph, collision_edges=collision_edges(x, graph, radius))

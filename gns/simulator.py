@@ -15,7 +15,7 @@ from torch import nn
 from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_collision_features,
                           raw_edge_features, raw_node_features)
 from gns.contacts import surface_edges
-from gns.graph import EdgeSet, Graph, collision_edges, near_pairs, per_graph, select_graphs, with_symmetries
+from gns.graph import EdgeSet, GraphBatch, collision_edges, near_pairs, per_graph, select_graphs, with_symmetries
 from gns.network import EncodeProcessDecode
 
 
@@ -127,12 +127,12 @@ class Sleep:
     fraction: float = 0.1
     contact: float = 0.01
 
-    def asleep(self, frames: list[torch.Tensor], graph: Graph, step: float, floor_z: float | None,
+    def asleep(self, frames: list[torch.Tensor], graph: GraphBatch, step: float, floor_z: float | None,
                contacts: EdgeSet | None) -> torch.Tensor:
         """Node mask (N,) of the objects that sleep this step; `step` = |g| dt^2 (units per frame)."""
         return self.asleep_graphs(frames, graph, step, floor_z, contacts)[graph.node_graph]
 
-    def asleep_graphs(self, frames: list[torch.Tensor], graph: Graph, step: float, floor_z: float | None,
+    def asleep_graphs(self, frames: list[torch.Tensor], graph: GraphBatch, step: float, floor_z: float | None,
                       contacts: EdgeSet | None) -> torch.Tensor:
         """`asleep` per object: (G,) bool."""
         if floor_z is None:
@@ -211,7 +211,7 @@ class LearnedSimulator(nn.Module):
             out = network(*args)
         return out.to(torch.float32)
 
-    def collision_edges(self, x: torch.Tensor, graph: Graph) -> EdgeSet:
+    def collision_edges(self, x: torch.Tensor, graph: GraphBatch) -> EdgeSet:
         """The graph's collision edges if given, else built from positions x (N, 3)."""
         if graph.collision_edges is not None:
             return graph.collision_edges
@@ -219,7 +219,7 @@ class LearnedSimulator(nn.Module):
             return surface_edges(x, graph, self.layout.collision_radius)
         return collision_edges(x, graph, self.layout.collision_radius)
 
-    def _inputs(self, history: torch.Tensor, graph: Graph) -> tuple[torch.Tensor, list[tuple]]:
+    def _inputs(self, history: torch.Tensor, graph: GraphBatch) -> tuple[torch.Tensor, list[tuple]]:
         """history (N, 3, 3) float64 -> normalised node inputs (N, Fn) float32 and one
         (features, senders, receivers) per edge set: the mesh edges, then (with collisions) the
         collision edges, built from x_t here unless the graph brings them, so that a rollout
@@ -243,12 +243,12 @@ class LearnedSimulator(nn.Module):
             edge_sets.append((features, c.senders, c.receivers))
         return nodes, edge_sets
 
-    def forward(self, history: torch.Tensor, graph: Graph) -> torch.Tensor:
+    def forward(self, history: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         """history (N, 3, 3) float64 positions at t-2, t-1, t -> normalised acceleration (N, 3) float32."""
         nodes, edge_sets = self._inputs(history, graph)
         return self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
 
-    def predict_acceleration(self, history: torch.Tensor, graph: Graph) -> torch.Tensor:
+    def predict_acceleration(self, history: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2.
 
         With `self.symmetrize` (a rollout option, off by default), the prediction is averaged over
@@ -285,12 +285,12 @@ class LearnedSimulator(nn.Module):
                 total = total + a * g * weight
         return total / len(floors)
 
-    def predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: Graph) -> torch.Tensor:
+    def predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         """Vertex positions (N, 3) float64 at t-2, t-1, t -> positions at t+1 (N, 3) float64."""
         history = torch.stack([x_tm2, x_tm1, x_t], dim=1)
         return integrate(x_tm1, x_t, self.predict_acceleration(history, graph))
 
-    def in_free_flight(self, frames: list[torch.Tensor], ballistic: torch.Tensor, graph: Graph,
+    def in_free_flight(self, frames: list[torch.Tensor], ballistic: torch.Tensor, graph: GraphBatch,
                        contacts: EdgeSet | None) -> torch.Tensor:
         """(G,) objects out of reach of the floor and of every other object for the whole step:
         every vertex at least the floor feature's clip above the floor both now and after the
@@ -317,7 +317,7 @@ class LearnedSimulator(nn.Module):
         return free
 
     def inertial_step(self, pose_tm1: tuple[torch.Tensor, torch.Tensor], pose_t: tuple[torch.Tensor, torch.Tensor],
-                      graph: Graph) -> torch.Tensor:
+                      graph: GraphBatch) -> torch.Tensor:
         """Free flight, exactly: the centre of mass keeps its velocity plus gravity's g dt^2 and the
         body turns by the same rotation as in the last frame (constant angular velocity; exact for
         the isotropic inertia of cubes and spheres, which is also what shape matching assumes of a
@@ -327,7 +327,7 @@ class LearnedSimulator(nn.Module):
         centre = 2 * t1 - t0 + self.gravity_per_frame.to(t1)
         return (rot[graph.node_graph] @ graph.rest[:, :, None])[..., 0] + centre[graph.node_graph]
 
-    def advance(self, frames: list[torch.Tensor], graph: Graph, sleep: Sleep | None = None, free_flight: bool = False,
+    def advance(self, frames: list[torch.Tensor], graph: GraphBatch, sleep: Sleep | None = None, free_flight: bool = False,
                 pose: list | None = None, counts: dict | None = None) -> torch.Tensor:
         """One rollout step: positions (N, 3) at t+1 from frames [..., x_{t-2}, x_{t-1}, x_t], before
         shape matching. Sleeping objects keep x_t, free ones (with `free_flight`; `pose` holds the
@@ -377,7 +377,7 @@ class LearnedSimulator(nn.Module):
         return x
 
     @torch.no_grad()
-    def rollout(self, history: torch.Tensor, graph: Graph, steps: int, shape_matching: bool = True,
+    def rollout(self, history: torch.Tensor, graph: GraphBatch, steps: int, shape_matching: bool = True,
                 sleep: Sleep | None = None, free_flight: bool = False, poses: bool = False):
         """Run on its own predictions from history (N, 3, 3) float64 -> positions (steps, N, 3).
 
@@ -419,7 +419,7 @@ class LearnedSimulator(nn.Module):
             return torch.stack(out), torch.stack(rots), torch.stack(trans)
         return torch.stack(out)
 
-    def loss(self, history: torch.Tensor, target: torch.Tensor, graph: Graph, kind: str = "mse",
+    def loss(self, history: torch.Tensor, target: torch.Tensor, graph: GraphBatch, kind: str = "mse",
              delta: float = 1.0) -> torch.Tensor:
         """Per-node loss of the normalised acceleration: mean over nodes of the sum over x, y, z.
 
