@@ -196,7 +196,7 @@ class MeshLibrary:
                      node_graph, len(shape_ids), graph_scene, faces=faces)
 
 
-def _candidate_pairs(graph: GraphBatch) -> tuple[torch.Tensor, torch.Tensor]:
+def candidate_pairs(graph: GraphBatch) -> tuple[torch.Tensor, torch.Tensor]:
     """All unordered pairs (a < b) of graphs in the same scene: two (P,) int64 tensors."""
     scene = graph.graph_scene
     order = torch.argsort(scene, stable=True)
@@ -244,7 +244,7 @@ def near_pairs(x: torch.Tensor, graph: GraphBatch, radius: float):
     if graph.graph_scene is None or graph.num_graphs < 2:
         return None
     high, low = per_graph(x, graph, "amax"), per_graph(x, graph, "amin")
-    a, b = _candidate_pairs(graph)
+    a, b = candidate_pairs(graph)
     near = ((low[a] - high[b] <= radius) & (low[b] - high[a] <= radius)).all(dim=1)
     if not near.any():
         return None

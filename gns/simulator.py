@@ -15,7 +15,7 @@ from torch import nn
 from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_collision_features,
                           raw_edge_features, raw_node_features)
 from gns.contacts import surface_edges
-from gns.graph import EdgeSet, GraphBatch, collision_edges, near_pairs, per_graph, select_graphs, with_symmetries
+from gns.graph import EdgeSet, GraphBatch, candidate_pairs, collision_edges, per_graph, select_graphs, with_symmetries
 from gns.network import EncodeProcessDecode
 
 
@@ -294,13 +294,13 @@ class LearnedSimulator(nn.Module):
                        contacts: EdgeSet | None) -> torch.Tensor:
         """(G,) objects out of reach of the floor and of every other object for the whole step:
         every vertex at least the floor feature's clip above the floor both now and after the
-        ballistic step (`ballistic`, (N, 3) at t+1), so the network sees no floor, and no other
-        object's bounds within the collision radius plus what both can move in a step, so no
-        collision edge can appear. The network's answer for such an object depends on its own
-        motion only: its learned free flight, which the exact inertial update replaces.
-        (Free only at t measured 25.9% position against 29.0% with the network everywhere on
-        MOVi-A, but penetration 0.38% against 0.29%: an object one step from the floor had
-        been moved into it; docs/speed.md.)"""
+        ballistic step (`ballistic`, (N, 3) at t+1), so the network sees no floor; no collision
+        edge now; and no other object's box, swept over the last and the next step, within the
+        collision radius of its own swept box, so none can appear. The network's answer for such
+        an object depends on its own motion only: its learned free flight, which the exact
+        inertial update replaces. (Free only at t measured 25.9% position against 29.0% with the
+        network everywhere on MOVi-A, but penetration 0.38% against 0.29%: an object one step
+        from the floor had been moved into it; docs/speed.md.)"""
         x = frames[-1]
         free = torch.ones(graph.num_graphs, dtype=torch.bool, device=x.device)
         if self.layout.floor_z is not None:
@@ -309,11 +309,17 @@ class LearnedSimulator(nn.Module):
         if self.layout.collisions:
             if contacts is not None and len(contacts.senders):
                 free[graph.node_graph[contacts.senders]] = False
-            reach = float((ballistic - x).norm(dim=-1).max()) if len(x) else 0.0
-            near = near_pairs(x, graph, self.layout.collision_radius + 2 * reach)
-            if near is not None:
-                free[near[0]] = False
-                free[near[1]] = False
+            if graph.graph_scene is not None and graph.num_graphs > 1:
+                # each object's box swept over x_{t-1}, x_t and the ballistic x_{t+1}: a pair whose
+                # swept boxes come within the collision radius may touch during the step
+                swept = torch.stack([frames[-2], x, ballistic])
+                low = per_graph(swept.amin(0), graph, "amin")
+                high = per_graph(swept.amax(0), graph, "amax")
+                a, b = candidate_pairs(graph)
+                r = self.layout.collision_radius
+                near = ((low[a] - high[b] <= r) & (low[b] - high[a] <= r)).all(dim=1)
+                free[a[near]] = False
+                free[b[near]] = False
         return free
 
     def inertial_step(self, pose_tm1: tuple[torch.Tensor, torch.Tensor], pose_t: tuple[torch.Tensor, torch.Tensor],
