@@ -34,6 +34,7 @@ from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
 from gns.features import HISTORY
 from gns.simulator import LearnedSimulator, shape_match_packed
+from gns.spec import ModelSpec, SpecError
 
 CHECKPOINT_FORMAT = 1
 LATEST = "latest.pt"
@@ -89,6 +90,10 @@ def read_checkpoint(path: str | Path) -> dict:
         raise CheckpointError(f"unreadable checkpoint {path}: {reason}") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} is not a gns checkpoint of format {CHECKPOINT_FORMAT}")
+    try:
+        ModelSpec.from_dict(ckpt.get("spec"))  # read again where used: the file stays as written
+    except SpecError as e:
+        raise CheckpointError(f"{path}: {e}") from None
     return ckpt
 
 
