@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numbers
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +37,7 @@ from gns.features import HISTORY
 from gns.graph import GraphBatch, MeshLibrary
 from gns.ranges import outside_training
 from gns.simulator import LearnedSimulator, shape_match_packed
+from gns.spec import ModelSpec
 from gns.train import CheckpointError, load_model, parse_device, read_checkpoint
 
 
@@ -133,7 +134,7 @@ def _as_tensor(value, name: str, shape: tuple, device: torch.device) -> torch.Te
 class Model:
     """A trained simulator with what using it needs: meshes, time step, gravity, training ranges."""
 
-    def __init__(self, simulator: LearnedSimulator, config: Config, spec: dict, meshes: dict,
+    def __init__(self, simulator: LearnedSimulator, config: Config, spec: ModelSpec, meshes: dict,
                  device: torch.device, quaternion_order: str = "wxyz", source: str = ""):
         if quaternion_order not in ("wxyz", "xyzw"):
             raise ConfigError(f"quaternion_order must be 'wxyz' or 'xyzw', got {quaternion_order!r}")
@@ -142,17 +143,19 @@ class Model:
         self.meshes = meshes
         self._library = MeshLibrary(meshes)
 
-    frame_rate = property(lambda self: float(self.spec["frame_rate"]), doc="model steps per second")
+    frame_rate = property(lambda self: float(self.spec.frame_rate), doc="model steps per second")
     dt = property(lambda self: 1.0 / self.frame_rate, doc="seconds per step (the data's frame time x frame_stride)")
     frame_stride = property(lambda self: self.config.features.frame_stride,
                             doc="recorded frames per model step in training")
-    gravity = property(lambda self: np.asarray(self.spec["gravity"], np.float64), doc="(3,) scene units / s^2")
-    floor = property(lambda self: self.spec.get("floor"), doc="{'z', ...} or None")
-    shapes = property(lambda self: list(self.spec["shapes"]), doc="shapes seen in training")
-    ranges = property(lambda self: dict(self.spec["ranges"]), doc="[min, max] of what training saw")
-    uses_materials = property(lambda self: bool(self.spec["materials_vary"]),
+    gravity = property(lambda self: np.asarray(self.spec.gravity, np.float64), doc="(3,) scene units / s^2")
+    floor = property(lambda self: None if self.spec.floor is None else self.spec.floor.to_dict(),
+                     doc="{'z', ...} or None")
+    shapes = property(lambda self: list(self.spec.shapes), doc="shapes seen in training")
+    ranges = property(lambda self: {k: [lo, hi] for k, (lo, hi) in self.spec.ranges.items()},
+                      doc="[min, max] of what training saw")
+    uses_materials = property(lambda self: self.spec.materials_vary,
                               doc="friction and restitution are inputs (they varied in training)")
-    collisions = property(lambda self: bool(self.spec.get("collision_edges", False)),
+    collisions = property(lambda self: self.spec.collision_edges,
                           doc="objects of a scene interact (collision edges)")
 
     def __repr__(self) -> str:
@@ -238,14 +241,13 @@ class Model:
         speed = np.linalg.norm(p[-1] - p[-2], axis=-1) * self.frame_rate
         rel = (past_rot[-1] @ past_rot[-2].transpose(-1, -2)).detach().cpu().numpy()
         angle = Rotation.from_matrix(rel).magnitude() * self.frame_rate
-        span = lambda a: [float(np.min(a)), float(np.max(a))]  # noqa: E731
-        data = {"frame_rate": self.frame_rate, "gravity": self.spec["gravity"], "floor": self.floor,
-                "shapes": sorted(set(shapes)),
-                "ranges": {"speed": span(speed), "angular_speed": span(angle), "height": span(p[..., 2]),
-                           "scale": span(scale.detach().cpu().numpy())}}
+        span = lambda a: (float(np.min(a)), float(np.max(a)))  # noqa: E731
+        ranges = {"speed": span(speed), "angular_speed": span(angle), "height": span(p[..., 2]),
+                  "scale": span(scale.detach().cpu().numpy())}
         if self.uses_materials:
-            data["ranges"].update(friction=span(mat[0].detach().cpu().numpy()),
-                                  restitution=span(mat[1].detach().cpu().numpy()))
+            ranges.update(friction=span(mat[0].detach().cpu().numpy()), restitution=span(mat[1].detach().cpu().numpy()))
+        # the inputs' frame rate, gravity and floor are the model's own
+        data = replace(self.spec, shapes=tuple(sorted(set(shapes))), ranges=ranges)
         for problem in outside_training(self.spec, data):
             warnings.warn(f"outside training: {problem}", stacklevel=stacklevel)
         if not self.collisions and len(torch.unique(group)) < len(shapes):
@@ -289,19 +291,18 @@ class Model:
                               torch.stack([s.vertices for s in states]), state.vertex_object, self.dt)
 
 
-def _meshes_of(ckpt: dict, where: str) -> dict:
+def _meshes_of(spec: ModelSpec, where: str) -> dict:
     """The checkpoint's meshes; a checkpoint written before they were kept names its shapes,
     which are looked up among datagen's shapes."""
-    saved = ckpt["spec"].get("meshes")
-    if saved:
-        return {name: (m["vertices"].numpy(), m["faces"].numpy()) for name, m in saved.items()}
+    if spec.meshes:
+        return {name: (v.numpy(), f.numpy()) for name, (v, f) in spec.meshes.items()}
     from datagen.shapes import SHAPES, get_shape
-    unknown = [s for s in ckpt["spec"]["shapes"] if s not in SHAPES]
+    unknown = [s for s in spec.shapes if s not in SHAPES]
     if unknown:
         raise CheckpointError(f"{where} holds no meshes (written before they were kept) and its shape "
                               f"{unknown[0]!r} is not one of datagen's ({', '.join(SHAPES)}); pass meshes={{name: "
                               f"(vertices, faces)}} to gns.load")
-    return {name: (get_shape(name).vertices, get_shape(name).faces) for name in ckpt["spec"]["shapes"]}
+    return {name: (get_shape(name).vertices, get_shape(name).faces) for name in spec.shapes}
 
 
 def load(model: str | Path, device: str | torch.device = "cpu", quaternion_order: str = "wxyz",
@@ -314,6 +315,7 @@ def load(model: str | Path, device: str | torch.device = "cpu", quaternion_order
     path = checkpoint_of(model)
     ckpt = read_checkpoint(path)
     sim, cfg = load_model(ckpt, device)
-    found = meshes if meshes is not None else _meshes_of(ckpt, str(path))
-    return Model(sim, cfg, ckpt["spec"], {k: (np.asarray(v, np.float64), np.asarray(f, np.int64))
+    spec = ModelSpec.from_dict(ckpt["spec"])
+    found = meshes if meshes is not None else _meshes_of(spec, str(path))
+    return Model(sim, cfg, spec, {k: (np.asarray(v, np.float64), np.asarray(f, np.int64))
                                          for k, (v, f) in found.items()}, device, quaternion_order, str(model))

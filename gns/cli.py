@@ -78,6 +78,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     from gns.evaluate import check_ranges, checkpoint_of, load_split, provenance_of
     from gns.rollout import (DivergedError, check_output, diverged_line, rollout_scenes, scene_label,
                              write_rollouts)
+    from gns.spec import ModelSpec
     from gns.train import load_model, parse_device, read_checkpoint
 
     _threads(args.threads)
@@ -90,8 +91,9 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     sim.symmetrize = args.symmetrize
     sim.body_frames = args.body_frames
     _speed_options(sim, args)
-    ds, scenes = load_split(args.data, args.split, args.limit, saved["spec"]["frame_rate"])
-    check_ranges(saved["spec"], ds, scenes)
+    spec = ModelSpec.from_dict(saved["spec"])
+    ds, scenes = load_split(args.data, args.split, args.limit, spec.frame_rate)
+    check_ranges(spec, ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=not args.no_shape_matching,
                           batch_tracks=args.batch, sleep=_sleep(args), free_flight=args.free_flight)

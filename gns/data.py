@@ -44,6 +44,7 @@ from datagen.shards import Dataset, DataError, Scene
 from gns.features import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
 from gns.graph import EdgeSet, GraphBatch, MeshLibrary, ragged_arange, graph_sizes
+from gns.spec import Floor, ModelSpec, SpecError
 
 
 def rotation_z(theta: torch.Tensor) -> torch.Tensor:
@@ -271,27 +272,31 @@ class ObjectTracks:
         return graph, vertices_from_poses(graph, pos, rot), pos
 
 
-def _range(values: list[np.ndarray]) -> list[float]:
+def _range(values: list[np.ndarray]) -> tuple[float, float]:
     flat = np.concatenate([np.ravel(v) for v in values])
-    return [float(flat.min()), float(flat.max())]
+    return float(flat.min()), float(flat.max())
 
 
-def feature_spec(dataset: Dataset, scenes: list[Scene]) -> dict:
+def feature_spec(dataset: Dataset, scenes: list[Scene]) -> ModelSpec:
     """What a model trained on these scenes was shown: physics constants and value ranges.
 
-    Ranges are [min, max]. Speeds are finite differences between frames, as the model sees
+    Ranges are (min, max). Speeds are finite differences between frames, as the model sees
     them: centre speed in scene units per second, rotation speed in radians per second.
     """
     rate = dataset.frame_rate
-    return {
-        "frame_rate": dataset.frame_rate,
-        "gravity": dataset.gravity.tolist(),
-        "floor": dataset.floor,
-        "materials_vary": dataset.materials_vary,
+    try:
+        floor = None if dataset.floor is None else Floor.from_dict(dataset.floor)
+    except SpecError as e:
+        raise DataError(f"the data's metadata: {e}") from None
+    return ModelSpec(
+        frame_rate=dataset.frame_rate,
+        gravity=tuple(dataset.gravity.tolist()),
+        floor=floor,
+        materials_vary=dataset.materials_vary,
         # objects interact (collision edges) only if some scene holds more than one
-        "collision_edges": max(sc.num_objects for sc in scenes) > 1,
-        "shapes": sorted({s for sc in scenes for s in sc.shape}),
-        "ranges": {
+        collision_edges=max(sc.num_objects for sc in scenes) > 1,
+        shapes=tuple(sorted({s for sc in scenes for s in sc.shape})),
+        ranges={
             "speed": _range([np.linalg.norm(np.diff(sc.positions, axis=0), axis=-1) * rate for sc in scenes]),
             "angular_speed": _range([rotation_angle(sc.quaternions[1:], sc.quaternions[:-1]) * rate
                                      for sc in scenes]),
@@ -300,4 +305,4 @@ def feature_spec(dataset: Dataset, scenes: list[Scene]) -> dict:
             "friction": _range([sc.friction for sc in scenes]),
             "restitution": _range([sc.restitution for sc in scenes]),
         },
-    }
+    )

@@ -18,6 +18,7 @@ from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_
 from gns.data import feature_spec
 from gns.features import HISTORY
 from gns.ranges import outside_training
+from gns.spec import ModelSpec
 from gns.train import LATEST, load_model, parse_device, read_checkpoint
 
 
@@ -77,8 +78,9 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
         sim.compile_network()
     if plots_dir is not None:
         check_writable(plots_dir, "plots folder")
-    ds, scenes = load_split(data, split, limit, saved["spec"]["frame_rate"])
-    warnings = check_ranges(saved["spec"], ds, scenes)
+    spec = ModelSpec.from_dict(saved["spec"])
+    ds, scenes = load_split(data, split, limit, spec.frame_rate)
+    warnings = check_ranges(spec, ds, scenes)
     t0 = time.perf_counter()
     pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
                           batch_tracks=batch_tracks, progress=progress, sleep=sleep, free_flight=free_flight)
@@ -119,14 +121,14 @@ def _warn(line: str) -> None:
     print(line, file=sys.stderr)
 
 
-def check_ranges(trained_spec: dict, ds: Dataset, scenes: list, warn=None) -> list[str]:
+def check_ranges(trained_spec: ModelSpec, ds: Dataset, scenes: list, warn=None) -> list[str]:
     """Warn (stderr, one line each) where the scenes leave a checkpoint's training ranges
     (its `spec`)."""
     problems = outside_training(trained_spec, feature_spec(ds, scenes))
     for p in problems:
         (warn or _warn)(f"warning: outside training: {p}")
     crowded = sum(sc.num_objects > 1 for sc in scenes)
-    if crowded and not trained_spec.get("collision_edges", False):
+    if crowded and not trained_spec.collision_edges:
         # not an "outside training" range: the model cannot represent contact between objects at all
         (warn or _warn)(f"warning: {crowded} of {len(scenes)} scenes hold several objects, but the model was trained "
                         "on single-object scenes and has no collision edges: objects will pass through each other")

@@ -15,7 +15,7 @@ Feature groups (each normalised separately, each switchable in [features]):
         rest_relative  (E, 3)  d^U = rest_r - rest_s, and |d^U| (E, 1)
   With the absolute encoding edges get one constant zero input (E, 1), unnormalised.
   collision  collision_relative (C, 3)  d = x_r - x_s across two objects, and |d| (C, 1);
-        only when the dataset has multi-object scenes (spec["collision_edges"]); no rest-shape
+        only when the dataset has multi-object scenes (ModelSpec.collision_edges); no rest-shape
         features (meaningless across objects); the same with either encoding.
 """
 from __future__ import annotations

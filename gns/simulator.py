@@ -7,6 +7,7 @@ throughout; the network runs in float32 on normalised features.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import torch
@@ -17,6 +18,7 @@ from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_c
 from gns.contacts import surface_edges
 from gns.graph import EdgeSet, GraphBatch, candidate_pairs, collision_edges, per_graph, select_graphs, with_symmetries
 from gns.network import EncodeProcessDecode
+from gns.spec import ModelSpec
 
 
 def integrate(x_tm1: torch.Tensor, x_t: torch.Tensor, acceleration: torch.Tensor) -> torch.Tensor:
@@ -155,25 +157,23 @@ FLOOR_SYMMETRIES = ((1.0, 1.0, 1.0), (-1.0, 1.0, 1.0), (1.0, -1.0, 1.0), (-1.0, 
 
 
 class LearnedSimulator(nn.Module):
-    """GNS for rigid meshes. `spec` is the dataset's feature spec (see gns.data.feature_spec)."""
+    """GNS for rigid meshes. `spec` is what it is trained on (gns.spec.ModelSpec; gns.data.feature_spec)."""
 
     symmetrize: bool = False  # average predictions over FLOOR_SYMMETRIES (rollouts; not saved)
     body_frames: bool = False  # and over each object's equivalent body frames (graph.symmetries)
     autocast: torch.dtype | None = None  # the network (only) runs in this dtype under autocast (train.autocast)
 
-    def __init__(self, model_cfg, features_cfg, spec: dict):
+    def __init__(self, model_cfg, features_cfg, spec: ModelSpec | Mapping):
         super().__init__()
+        if not isinstance(spec, ModelSpec):  # a dict of a few keys, as benchmarks/ build untrained simulators
+            spec = ModelSpec.from_dict(spec, partial=True)
         # what Sleep's threshold is made of: |g| dt^2, in scene units per frame
-        self.gravity_step = (float(torch.tensor(spec["gravity"]).norm()) / spec["frame_rate"] ** 2
-                             if "gravity" in spec and "frame_rate" in spec else None)
+        self.gravity_step = spec.gravity_step
         # the same as a vector: the centre's second difference in free flight (units per frame^2)
-        self.gravity_per_frame = (torch.tensor(spec["gravity"], dtype=torch.float64) / spec["frame_rate"] ** 2
-                                  if "gravity" in spec and "frame_rate" in spec else None)
+        self.gravity_per_frame = spec.gravity_per_frame
         self.collision_mode = features_cfg.collision_mode  # "vertex" or "surface", checked by gns.config
-        floor = spec.get("floor")
-        self.layout: FeatureLayout = make_layout(
-            features_cfg, None if floor is None else float(floor["z"]), bool(spec["materials_vary"]),
-            collisions=bool(spec.get("collision_edges", False)), gravity_step=self.gravity_step)
+        self.layout: FeatureLayout = make_layout(features_cfg, spec.floor_z, spec.materials_vary,
+                                                 collisions=spec.collision_edges, gravity_step=self.gravity_step)
         steps = features_cfg.normalizer_steps
         self.node_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.node_groups})
         self.edge_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.edge_groups})

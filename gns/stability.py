@@ -22,6 +22,7 @@ from gns.features import HISTORY
 from gns.graph import MeshLibrary, graph_centres, graph_sizes, per_graph
 from gns.ranges import outside_training
 from gns.simulator import LearnedSimulator, Sleep
+from gns.spec import ModelSpec
 
 # Criteria. Rigidity: shape matching makes every predicted frame an exact rigid pose, so any
 # distortion beyond float64 rounding is a bug. At rest: the issue's 0.1% of the size over 1000
@@ -131,7 +132,7 @@ class _DatasetView:
             ds.frame_rate, ds.gravity, ds.floor, ds.materials_vary
 
 
-def extremes(sim: LearnedSimulator, trained_spec: dict, scenes: list[Scene], ds, steps: int | None = None) -> list[dict]:
+def extremes(sim: LearnedSimulator, trained_spec: ModelSpec, scenes: list[Scene], ds, steps: int | None = None) -> list[dict]:
     """Each extreme variant of `scenes`: the range check's warnings, and whether the rollout is
     finite and (for a shift or a float32 copy, whose exact answer is the original rollout
     shifted or unchanged) equal to the original within SAME_PCT of the object size."""

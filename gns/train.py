@@ -18,6 +18,7 @@ import random
 import shutil
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -34,6 +35,7 @@ from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
 from gns.features import HISTORY
 from gns.simulator import LearnedSimulator, shape_match_packed
+from gns.spec import Floor, ModelSpec, SpecError
 
 CHECKPOINT_FORMAT = 1
 LATEST = "latest.pt"
@@ -89,6 +91,10 @@ def read_checkpoint(path: str | Path) -> dict:
         raise CheckpointError(f"unreadable checkpoint {path}: {reason}") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} is not a gns checkpoint of format {CHECKPOINT_FORMAT}")
+    try:
+        ModelSpec.from_dict(ckpt.get("spec"))  # read again where used: the file stays as written
+    except SpecError as e:
+        raise CheckpointError(f"{path}: {e}") from None
     return ckpt
 
 
@@ -159,7 +165,7 @@ def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool =
     return out
 
 
-def build_simulator(cfg: Config, spec: dict) -> LearnedSimulator:
+def build_simulator(cfg: Config, spec: ModelSpec) -> LearnedSimulator:
     return LearnedSimulator(cfg.model, cfg.features, spec)
 
 
@@ -168,7 +174,7 @@ def load_model(checkpoint: str | Path | dict, device: str | torch.device = "cpu"
     file, or from one already read with read_checkpoint (its spec and step need no second read)."""
     ckpt = checkpoint if isinstance(checkpoint, dict) else read_checkpoint(checkpoint)
     cfg = build_config(base=ckpt["config"])
-    sim = build_simulator(cfg, ckpt["spec"])
+    sim = build_simulator(cfg, ModelSpec.from_dict(ckpt["spec"]))
     try:
         sim.load_state_dict(ckpt["model"])
     except RuntimeError as e:  # weights that do not fit the model the checkpoint's own config builds
@@ -179,46 +185,53 @@ def load_model(checkpoint: str | Path | dict, device: str | torch.device = "cpu"
     return sim, cfg
 
 
-def _with_layout(spec: dict, sim: LearnedSimulator) -> dict:
-    return {**spec, "node_features": [n for n, _ in sim.layout.node_groups],
-            "edge_features": [n for n, _ in sim.layout.edge_groups],
-            "collision_features": [n for n, _ in sim.layout.collision_groups]}
+def _with_layout(spec: ModelSpec, sim: LearnedSimulator) -> ModelSpec:
+    return replace(spec, node_features=tuple(n for n, _ in sim.layout.node_groups),
+                   edge_features=tuple(n for n, _ in sim.layout.edge_groups),
+                   collision_features=tuple(n for n, _ in sim.layout.collision_groups))
 
 
-def _merge_ranges(old: dict, new: dict) -> dict:
+def _merge_ranges(old: ModelSpec, new: ModelSpec) -> ModelSpec:
     """The spec of training on old data then new data: value ranges and shapes united."""
-    ranges = {k: [min(old["ranges"][k][0], v[0]), max(old["ranges"][k][1], v[1])]
-              for k, v in new["ranges"].items()}
-    return {**new, "ranges": ranges, "shapes": sorted(set(old["shapes"]) | set(new["shapes"])),
-            "meshes": {**old.get("meshes", {}), **new.get("meshes", {})}}
+    ranges = {k: (min(old.ranges[k][0], v[0]), max(old.ranges[k][1], v[1])) for k, v in new.ranges.items()}
+    return replace(new, ranges=ranges, shapes=tuple(sorted(set(old.shapes) | set(new.shapes))),
+                   meshes={**(old.meshes or {}), **(new.meshes or {})})
 
 
-def _init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: dict) -> dict:
+def _shown(value):
+    """A spec value as checkpoints hold it (lists, dicts), for messages."""
+    return value.to_dict() if isinstance(value, Floor) else list(value) if isinstance(value, tuple) else value
+
+
+def _init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec) -> ModelSpec:
     """Load another run's weights and normalisers into a new run's simulator (fine-tuning); returns
     the spec with the two datasets' ranges united. The loaded normalisers have spent their
     accumulation budget, so they stay as the weights were trained with."""
     path = Path(source)
     path = path / LATEST if path.is_dir() else path
     init = read_checkpoint(path)
-    problems = [_incompatibility(init, cfg, spec)]
+    trained = ModelSpec.from_dict(init["spec"])
+    problems = [_incompatibility(init["config"], trained, cfg, spec)]
     for key in ("frame_rate", "gravity"):
-        if init["spec"].get(key) != spec.get(key):
-            problems.append(f"{key} is {init['spec'].get(key)} there, {spec.get(key)} in this data")
+        if getattr(trained, key) != getattr(spec, key):
+            problems.append(f"{key} is {_shown(getattr(trained, key))} there, {_shown(getattr(spec, key))} in this data")
     problem = "; ".join(p for p in problems if p)
     if problem:
         raise CheckpointError(f"cannot start from {path} (train.init_from): {problem}")
     sim.load_state_dict(init["model"])
-    return _merge_ranges(init["spec"], spec)
+    return _merge_ranges(trained, spec)
 
 
-def _incompatibility(ckpt: dict, cfg: Config, spec: dict) -> str | None:
-    diffs = architecture_differences(ckpt["config"], cfg)
+def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec) -> str | None:
+    """How a checkpoint (its config and spec) cannot carry on as the model of cfg on data of spec."""
+    diffs = architecture_differences(config, cfg)
     for key in ("node_features", "edge_features", "collision_features"):
-        if ckpt["spec"].get(key, []) != spec[key]:
-            diffs.append(f"{key} are {ckpt['spec'][key]} in the checkpoint, {spec[key]} with this data")
-    old_floor, new_floor = ckpt["spec"]["floor"], spec["floor"]
-    if (old_floor is None) != (new_floor is None) or (old_floor and old_floor["z"] != new_floor["z"]):
-        diffs.append(f"floor is {old_floor} in the checkpoint, {new_floor} in this data")
+        if (getattr(trained, key) or ()) != getattr(spec, key):
+            diffs.append(f"{key} are {list(getattr(trained, key) or ())} in the checkpoint, "
+                         f"{list(getattr(spec, key))} with this data")
+    old_floor, new_floor = trained.floor, spec.floor
+    if (old_floor is None) != (new_floor is None) or (old_floor and old_floor.z != new_floor.z):
+        diffs.append(f"floor is {_shown(old_floor)} in the checkpoint, {_shown(new_floor)} in this data")
     return "; ".join(diffs) or None
 
 
@@ -451,7 +464,7 @@ def run_provenance(data_dir: str | Path, fingerprint: str, step: int, earlier: d
             "earlier": history}
 
 
-def load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, ObjectTracks | None]:
+def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTracks, ObjectTracks | None]:
     """Feature spec, train tracks and (if validating and present) valid tracks of a dataset."""
     dataset = Dataset(data_dir, stride=cfg.features.frame_stride)
     scenes = dataset.load("train")
@@ -472,11 +485,10 @@ def load_data(data_dir: str | Path, cfg: Config) -> tuple[dict, ObjectTracks, Ob
     valid = None
     if cfg.valid.every > 0 and "valid" in dataset.splits:
         valid = ObjectTracks(dataset.load("valid"), library, "valid split")
-    spec = feature_spec(dataset, scenes)
     # the meshes travel with the model: gns.load rolls out without the dataset
-    spec["meshes"] = {name: {"vertices": torch.as_tensor(np.asarray(v, np.float64)),
-                             "faces": torch.as_tensor(np.asarray(f, np.int64))}
-                      for name, (v, f) in dataset.meshes.items()}
+    spec = replace(feature_spec(dataset, scenes),
+                   meshes={name: (torch.as_tensor(np.asarray(v, np.float64)), torch.as_tensor(np.asarray(f, np.int64)))
+                           for name, (v, f) in dataset.meshes.items()})
     return spec, tracks, valid
 
 
@@ -553,8 +565,8 @@ def _seed(cfg: Config, log: Callable[[str], None]) -> np.random.Generator:
     return np.random.default_rng(cfg.train.seed)
 
 
-def _build_model(cfg: Config, data_spec: dict, resumed: tuple[Path, dict] | None,
-                 rng: np.random.Generator) -> tuple[LearnedSimulator, torch.optim.Optimizer, dict, int]:
+def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] | None,
+                 rng: np.random.Generator) -> tuple[LearnedSimulator, torch.optim.Optimizer, ModelSpec, int]:
     """The simulator and its optimiser: new, started from train.init_from's weights, or where
     the resumed checkpoint left them (weights, optimiser, step, feature ranges, random state).
     Returns (simulator, optimiser, spec, step)."""
@@ -566,13 +578,14 @@ def _build_model(cfg: Config, data_spec: dict, resumed: tuple[Path, dict] | None
             spec = _init_from(sim, cfg.train.init_from, cfg, spec)
         return sim, optimizer, spec, 0
     path, ckpt = resumed
-    problem = _incompatibility(ckpt, cfg, spec)
+    trained = ModelSpec.from_dict(ckpt["spec"])
+    problem = _incompatibility(ckpt["config"], trained, cfg, spec)
     if problem:
         raise CheckpointError(f"cannot resume {path}: {problem}")
     sim.load_state_dict(ckpt["model"])
     optimizer.load_state_dict(ckpt["optimizer"])
     step = int(ckpt["step"])
-    spec = _merge_ranges(ckpt["spec"], spec)
+    spec = _merge_ranges(trained, spec)
     _restore_rng(ckpt["rng"], rng)
     return sim, optimizer, spec, step
 
@@ -593,7 +606,7 @@ def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world
 
 
 def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer,
-                tracks: ObjectTracks, valid: ObjectTracks | None, spec: dict, step: int,
+                tracks: ObjectTracks, valid: ObjectTracks | None, spec: ModelSpec, step: int,
                 rng: np.random.Generator, device: torch.device, world: parallel.World, stale: list[Path],
                 resumed_from: Path | None, provenance: dict, log: Callable[[str], None]) -> int:
     """Steps from `step` to cfg.train.steps: a batch, an Adam step, a metrics line every
@@ -605,7 +618,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
 
     def state() -> dict:
         return {"format": CHECKPOINT_FORMAT, "step": step, "seed": cfg.train.seed, "config": config_dict,
-                "spec": spec, "model": sim.state_dict(), "optimizer": optimizer.state_dict(),
+                "spec": spec.to_dict(), "model": sim.state_dict(), "optimizer": optimizer.state_dict(),
                 "rng": _rng_state(rng), "provenance": provenance}
 
     log(_start_line(cfg, sim, tracks, spec, step, world, resumed_from))
@@ -672,7 +685,7 @@ def _start_run_folder(run: Path, stale: list[Path], resumed_from: Path | None, s
             tmp.write_text(json.dumps(content, indent=2) + "\n")
 
 
-def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: dict, step: int,
+def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: ModelSpec, step: int,
                 world: parallel.World, resumed_from: Path | None) -> str:
     """The log's first line: what is trained on what."""
     n_params = sum(p.numel() for p in sim.parameters())
@@ -681,7 +694,7 @@ def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: 
     processes = f" on {world.size} processes" if world.size > 1 else ""
     return (f"{'resuming' if resumed_from else 'training'} at step {step} of {cfg.train.steps}{processes}: "
             f"{tracks.num_windows} windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
-            f"node features {spec['node_features']}, edge features {spec['edge_features']}")
+            f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}")
 
 
 def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, world: parallel.World,

@@ -50,6 +50,7 @@ from datagen.simulate import simulate
 from datagen.tilted import side, tilted_scene, training_scene
 from gns.evaluate import checkpoint_of, evaluate_run, write_json
 from gns.rollout import rollout_scenes
+from gns.spec import ModelSpec
 from gns.train import load_model, read_checkpoint
 from pipelines.common import finished_dataset, guarded, say, train_stage
 
@@ -209,7 +210,7 @@ def evaluate(ckpt: Path, drops: Dataset, out: Path, shape: str) -> dict:
             return old
     results = {"version": VERSION, "checkpoint": str(ckpt), "checkpoint_step": int(saved["step"]), "angles": angles, "shape": shape,
                "size": float(drops.meta["config"]["sizes"][SIZE]), "material": MATERIAL, "frames": FRAMES,
-               "trained_shapes": saved["spec"]["shapes"]}
+               "trained_shapes": list(ModelSpec.from_dict(saved["spec"]).shapes)}
     curves = {}
     for name, sym, body in VARIANTS:
         say(f"eval: rolling out the drops ({name})")

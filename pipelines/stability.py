@@ -22,6 +22,7 @@ from datagen.outputs import check_writable
 from gns.simulator import Sleep
 from gns.evaluate import checkpoint_of, load_split, write_json
 from gns.stability import REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene
+from gns.spec import ModelSpec
 from gns.train import load_model, read_checkpoint
 from pipelines.common import guarded, say
 
@@ -36,14 +37,14 @@ def run(run_dir: Path, data: Path, out: Path, limit: int, factor: int, rest_step
     ckpt = checkpoint_of(run_dir)
     saved = read_checkpoint(ckpt)
     sim, _ = load_model(saved)
-    spec = saved["spec"]
-    ds, scenes = load_split(data, "test", limit, spec["frame_rate"])
+    spec = ModelSpec.from_dict(saved["spec"])
+    ds, scenes = load_split(data, "test", limit, spec.frame_rate)
     floor_z = float(ds.floor["z"]) if ds.floor else None
     say(f"long rollouts: {len(scenes)} scenes, {factor}x their length")
     long = long_rollouts(sim, scenes, ds.meshes, floor_z, factor)
     say("at rest: each shape lying on the floor")
-    scale = float(max(spec["ranges"]["scale"]))
-    resting = [resting_scene(shape, scale, ds.meshes, floor_z or 0.0) for shape in spec["shapes"]]
+    scale = float(max(spec.ranges["scale"]))
+    resting = [resting_scene(shape, scale, ds.meshes, floor_z or 0.0) for shape in spec.shapes]
     rest = at_rest(sim, resting, ds.meshes, rest_steps)
     rest_sleeping = at_rest(sim, resting, ds.meshes, rest_steps, sleep=Sleep())
     say("extreme inputs")

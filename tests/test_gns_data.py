@@ -120,8 +120,7 @@ def test_material_and_floor_features_follow_the_dataset(tmp_path):
     floorless = Dataset(write_toss_dataset(tmp_path / "nofloor", train=2, valid=0, floor=False))
     def groups(ds):
         spec = feature_spec(ds, ds.load("train"))
-        z = None if spec["floor"] is None else spec["floor"]["z"]
-        return [n for n, _ in make_layout(FeatureConfig(), z, spec["materials_vary"]).node_groups]
+        return [n for n, _ in make_layout(FeatureConfig(), spec.floor_z, spec.materials_vary).node_groups]
     assert groups(varying) == ["velocity", "floor", "material", "rest_position"]
     assert groups(floorless) == ["velocity", "rest_position"]
 
@@ -129,12 +128,12 @@ def test_material_and_floor_features_follow_the_dataset(tmp_path):
 def test_feature_spec_ranges(dataset):
     scenes = dataset.load("train")
     spec = feature_spec(dataset, scenes)
-    assert spec["shapes"] == ["cube"] and spec["frame_rate"] == 12
-    lo, hi = spec["ranges"]["scale"]
+    assert spec.shapes == ("cube",) and spec.frame_rate == 12
+    lo, hi = spec.ranges["scale"]
     assert lo >= 0.7 and hi <= 1.4
     fastest = max(np.linalg.norm(np.diff(s.positions, axis=0), axis=-1).max() for s in scenes) * 12
-    assert spec["ranges"]["speed"][1] == pytest.approx(fastest)
-    lo, hi = spec["ranges"]["angular_speed"]
+    assert spec.ranges["speed"][1] == pytest.approx(fastest)
+    lo, hi = spec.ranges["angular_speed"]
     assert 0.5 - 1e-9 <= lo <= hi <= 3.0 + 1e-9, "the fixture spins at a constant rate in [0.5, 3] rad/s"
 
 

@@ -1,4 +1,6 @@
 """Collision edges between objects of a scene: graph building, features, model, data, metric."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -13,6 +15,7 @@ from gns.graph import MeshLibrary, collision_edges, with_collision_edges
 from gns.metrics import evaluate_scenes, interpenetration_pct
 from gns.rollout import rollout_scenes
 from gns.simulator import LearnedSimulator
+from gns.spec import ModelSpec
 from gns.train import load_model, train
 
 R = 0.15
@@ -83,19 +86,19 @@ def test_collision_edges_equal_brute_force_on_random_scenes():
     assert got == want and len(want) > 0
 
 
-SPEC = {"floor": None, "materials_vary": False}
+SPEC = ModelSpec(floor=None, materials_vary=False)
 
 
 def simulator(collisions: bool):
     torch.manual_seed(0)
     return LearnedSimulator(ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2, processor_repeats=1),
-                            FeatureConfig(collision_radius=R), {**SPEC, "collision_edges": collisions})
+                            FeatureConfig(collision_radius=R), replace(SPEC, collision_edges=collisions))
 
 
 def test_feature_selection_follows_the_dataset(tmp_path):
     single = Dataset(write_toss_dataset(tmp_path / "one", train=2, valid=0, frames=6))
     spec = feature_spec(single, single.load("train"))
-    assert spec["collision_edges"] is False
+    assert spec.collision_edges is False
     sim = LearnedSimulator(ModelConfig(latent_size=8, hidden_size=8), FeatureConfig(), spec)
     assert not [k for k in sim.state_dict() if "collision" in k]
     assert not sim.layout.collisions
@@ -104,7 +107,7 @@ def test_feature_selection_follows_the_dataset(tmp_path):
                          "--frames", "6", "--quiet"]) == 0
     multi = Dataset(tmp_path / "multi")
     spec = feature_spec(multi, multi.load("train"))
-    assert spec["collision_edges"] is True
+    assert spec.collision_edges is True
     keys = [k for k in LearnedSimulator(ModelConfig(latent_size=8, hidden_size=8), FeatureConfig(), spec).state_dict()
             if "collision" in k]
     assert any(k.startswith("collision_normalizers.") for k in keys)

@@ -14,6 +14,7 @@ from gns.config import build_config
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
 from datagen.shards import Dataset
+from gns.spec import ModelSpec
 from gns.train import build_simulator, read_checkpoint, train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,7 +61,7 @@ def test_two_processes_match_one_on_the_same_global_batch(runs):
             assert torch.equal(a, b), key
     # the runs trained: their weights left the common initialisation
     torch.manual_seed(0)
-    start = build_simulator(build_config(path=TINY, overrides=SETTINGS), one["spec"])
+    start = build_simulator(build_config(path=TINY, overrides=SETTINGS), ModelSpec.from_dict(one["spec"]))
     assert any(not torch.allclose(start.state_dict()[k], one["model"][k]) for k in one["model"] if "network" in k)
     # normaliser statistics are those of the whole global batch in both runs
     for count in ("node_normalizers.velocity.count", "collision_normalizers.collision_relative.count"):

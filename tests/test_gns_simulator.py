@@ -11,8 +11,9 @@ from gns.geometry import quat_to_matrix
 from gns.graph import MeshLibrary
 from gns.simulator import (LearnedSimulator, acceleration_of, integrate, shape_match,
                            shape_match_packed)
+from gns.spec import Floor, ModelSpec
 
-SPEC = {"floor": {"z": 0.0}, "materials_vary": False}
+SPEC = ModelSpec(floor=Floor(0.0), materials_vary=False)
 DTYPE = torch.float64
 
 
@@ -97,7 +98,7 @@ def test_eval_mode_does_not_accumulate():
 
 @pytest.mark.parametrize("floor, shift", [(True, [1e3, -1e3, 0.0]), (False, [1e3, -1e3, 1e3])])
 def test_relative_encoding_is_translation_equivariant(floor, shift):
-    sim = small_simulator(spec={"floor": {"z": 0.0} if floor else None, "materials_vary": False})
+    sim = small_simulator(spec=ModelSpec(floor=Floor(0.0) if floor else None, materials_vary=False))
     graph, hist = cube_batch(seed=3)
     moved = hist + torch.tensor(shift, dtype=DTYPE)
     with torch.no_grad():

@@ -5,6 +5,7 @@ The bypass must (1) move a free object exactly (a parabola and a constant spin, 
 network's weights), (2) leave every other object's trajectory as the network alone makes it,
 whatever else shares the batch, and (3) hand the network only the objects that need it.
 """
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,12 +18,13 @@ from gns.config import build_config
 from gns.data import ObjectTracks
 from gns.graph import EdgeSet, MeshLibrary, collision_edges, select_graphs
 from gns.simulator import LearnedSimulator, Sleep
+from gns.spec import Floor, ModelSpec
 from gns.stability import resting_scene
 from gns.train import load_model
 
 MODEL = Path(__file__).parent / "data" / "gns_movi_a_small.pt"
 FRAME_RATE, G = 12.0, 10.0
-SPEC = {"frame_rate": FRAME_RATE, "gravity": [0.0, 0.0, -G], "floor": {"z": 0.0}, "materials_vary": False}
+SPEC = ModelSpec(frame_rate=FRAME_RATE, gravity=(0.0, 0.0, -G), floor=Floor(0.0), materials_vary=False)
 
 
 def meshes(*names):
@@ -34,7 +36,7 @@ def untrained(collisions=False, seed=0) -> LearnedSimulator:
     come from the inertial update."""
     torch.manual_seed(seed)
     cfg = build_config(path="configs/gns_tiny.toml")
-    return LearnedSimulator(cfg.model, cfg.features, {**SPEC, "collision_edges": collisions}).eval()
+    return LearnedSimulator(cfg.model, cfg.features, replace(SPEC, collision_edges=collisions)).eval()
 
 
 def flying_frames(lib, graph, centre0, velocity, spin, frames):
@@ -152,7 +154,7 @@ def test_sleeping_objects_stay_out_of_the_network_and_keep_their_pose():
 
 def test_free_flight_needs_gravity_and_frame_rate():
     cfg = build_config(path="configs/gns_tiny.toml")
-    sim = LearnedSimulator(cfg.model, cfg.features, {"floor": None, "materials_vary": False}).eval()
+    sim = LearnedSimulator(cfg.model, cfg.features, ModelSpec(floor=None, materials_vary=False)).eval()
     lib = MeshLibrary(meshes("cube"))
     graph = lib.pack(lib.shape_ids(["cube"]), torch.ones(1, dtype=torch.float64), torch.ones(1), torch.ones(1))
     with pytest.raises(ValueError, match="free flight needs the model's gravity"):
@@ -218,7 +220,7 @@ def test_signed_floor_distance_shows_how_deep_a_vertex_is_below_the_floor():
     for signed, bottom in ((False, 0.0), (True, -0.3)):
         cfg = build_config(path="configs/gns_tiny.toml", overrides=[f"features.floor_signed={signed}",
                                                                       "features.floor_clip=0.5"])
-        sim = LearnedSimulator(cfg.model, cfg.features, {**SPEC, "collision_edges": False})
+        sim = LearnedSimulator(cfg.model, cfg.features, replace(SPEC, collision_edges=False))
         floor = raw_node_features(sim.layout, history, graph)["floor"][:, 0]
         assert float(floor.min()) == pytest.approx(bottom, abs=1e-6)
         assert float(floor.max()) == pytest.approx(0.5)  # the top face (0.7 up) is clipped
@@ -227,7 +229,7 @@ def test_signed_floor_distance_shows_how_deep_a_vertex_is_below_the_floor():
 def test_the_python_api_rolls_out_with_free_flight_exactly_in_the_air():
     import gns
     model = gns.load(MODEL)
-    g = model.spec["gravity"][2]
+    g = model.spec.gravity[2]
     out = model.rollout(["sphere"], positions=[[0.0, 0.0, 100.0]], quaternions=[[1.0, 0, 0, 0]],
                         velocities=[[1.0, 0.0, 0.0]], steps=6, scales=1.4, friction=[0.4], restitution=[0.3],
                         free_flight=True)

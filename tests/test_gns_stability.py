@@ -19,6 +19,7 @@ from gns.graph import MeshLibrary
 from gns.ranges import outside_training
 from gns.graph import EdgeSet
 from gns.simulator import LearnedSimulator, Sleep, shape_match
+from gns.spec import ModelSpec
 from gns.stability import (REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene)
 from gns.train import load_model, read_checkpoint
 from pipelines import stability as stability_pipeline
@@ -40,7 +41,7 @@ def movi(tmp_path_factory):
 def trained():
     torch.set_num_threads(1)
     sim, _ = load_model(MODEL)
-    return sim, read_checkpoint(MODEL)["spec"]
+    return sim, ModelSpec.from_dict(read_checkpoint(MODEL)["spec"])
 
 
 def constructed(ds, scenes, acceleration=(0.0, 0.0, 0.0)) -> LearnedSimulator:
@@ -101,7 +102,7 @@ def test_constructed_gravity_model_falls_exactly_as_the_parabola(movi):
 def test_trained_model_at_rest_stays_at_rest(movi, trained):
     ds, _ = movi
     sim, spec = trained
-    resting = [resting_scene(s, 1.4, ds.meshes, 0.0) for s in spec["shapes"]]
+    resting = [resting_scene(s, 1.4, ds.meshes, 0.0) for s in spec.shapes]
     rows = at_rest(sim, resting, ds.meshes, steps=1000)
     assert all(r["drift_pct"] < REST_DRIFT_PCT for r in rows), rows
 
@@ -109,7 +110,7 @@ def test_trained_model_at_rest_stays_at_rest(movi, trained):
 def test_trained_model_at_rest_stays_at_rest_when_rollouts_sleep(movi, trained):
     ds, _ = movi
     sim, spec = trained
-    resting = [resting_scene(s, 1.4, ds.meshes, 0.0) for s in spec["shapes"]]
+    resting = [resting_scene(s, 1.4, ds.meshes, 0.0) for s in spec.shapes]
     rows = at_rest(sim, resting, ds.meshes, steps=1000, sleep=Sleep())
     assert all(r["drift_pct"] < REST_DRIFT_PCT for r in rows), rows
 

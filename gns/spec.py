@@ -1,0 +1,185 @@
+"""What a model was trained on: the typed model spec (`ModelSpec`), kept in every checkpoint.
+
+Training builds it from the data (gns.data.feature_spec), adds the meshes and the feature
+layout, and saves it as a plain dict (`ModelSpec.to_dict`, the checkpoint's `spec`,
+docs/gns.md); everything that reads a checkpoint turns that dict back into a ModelSpec
+(`ModelSpec.from_dict`), which accepts every checkpoint written so far: older ones lack
+`collision_edges`, `collision_features` or `meshes`. The dict exists only at that boundary.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+
+import torch
+
+# keys every checkpoint written so far holds; older ones lack the others
+REQUIRED = ("frame_rate", "gravity", "floor", "materials_vary", "shapes", "ranges", "node_features", "edge_features")
+
+
+class SpecError(ValueError):
+    """A model spec that cannot be read; one line (read_checkpoint adds the file)."""
+
+
+@dataclass(frozen=True)
+class Floor:
+    """The ground plane z = `z`; friction and restitution as the data's metadata gave them."""
+
+    z: float
+    friction: float | None = None
+    restitution: float | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> Floor:
+        if not isinstance(d, Mapping):
+            raise SpecError(f"floor must be a table or null, got {type(d).__name__}")
+        unknown = sorted(set(d) - {f.name for f in fields(cls)})
+        if "z" not in d or unknown:
+            raise SpecError(f"floor {dict(d)} needs 'z'" + (f" and has unknown {', '.join(map(repr, unknown))}"
+                                                              if unknown else ""))
+        try:
+            return cls(z=float(d["z"]), **{k: None if d.get(k) is None else float(d[k])
+                                           for k in ("friction", "restitution")})
+        except (TypeError, ValueError):
+            raise SpecError(f"floor {dict(d)}: values must be numbers") from None
+
+    def to_dict(self) -> dict:
+        """As in the data's metadata.json: sorted keys, absent values left out."""
+        return {k: v for k, v in (("friction", self.friction), ("restitution", self.restitution), ("z", self.z))
+                if v is not None}
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModelSpec:
+    """Physics constants, shapes, value ranges, meshes and feature layout of a model's training data.
+
+    frame_rate and gravity are None only for a simulator built without them (tests and
+    benchmarks: no sleeping, no free flight); every checkpoint holds both. node_features,
+    edge_features and collision_features (the layout, gns.features) are set by training
+    (None before: a spec of data). meshes {name: (vertices (V, 3) float64, faces (F, 3) int64)}
+    tensors; None in checkpoints written before they were kept."""
+
+    frame_rate: float | None = None                     # model steps per second
+    gravity: tuple[float, float, float] | None = None   # scene units / s^2
+    floor: Floor | None = None
+    materials_vary: bool = False                        # friction and restitution are node inputs
+    collision_edges: bool = False                       # some training scene held several objects
+    shapes: tuple[str, ...] = ()                        # shapes seen in training, sorted
+    ranges: dict[str, tuple[float, float]] = field(default_factory=dict)  # (min, max) seen in training
+    meshes: dict[str, tuple[torch.Tensor, torch.Tensor]] | None = field(default=None, compare=False, repr=False)
+    node_features: tuple[str, ...] | None = None
+    edge_features: tuple[str, ...] | None = None
+    collision_features: tuple[str, ...] | None = None
+
+    @property
+    def floor_z(self) -> float | None:
+        return None if self.floor is None else self.floor.z
+
+    @property
+    def gravity_step(self) -> float | None:
+        """|g| dt^2, in scene units per frame (what Sleep's threshold is made of)."""
+        if self.gravity is None or self.frame_rate is None:
+            return None
+        return float(torch.tensor(self.gravity).norm()) / self.frame_rate ** 2
+
+    @property
+    def gravity_per_frame(self) -> torch.Tensor | None:
+        """g dt^2 as a float64 (3,) vector: the centre's second difference in free flight."""
+        if self.gravity is None or self.frame_rate is None:
+            return None
+        return torch.tensor(self.gravity, dtype=torch.float64) / self.frame_rate ** 2
+
+    @classmethod
+    def from_dict(cls, d: Mapping, partial: bool = False) -> ModelSpec:
+        """A checkpoint's `spec`. Raises SpecError (one line) on a missing key, an unknown key
+        or a value of the wrong kind. partial: only materials_vary is required (the few keys a
+        benchmark builds an untrained simulator from)."""
+        if not isinstance(d, Mapping):
+            raise SpecError(f"model spec must be a table, got {type(d).__name__}")
+        # a checkpoint's floor may be null (no floor), nothing else it must hold
+        missing = [k for k in (("materials_vary",) if partial else REQUIRED)
+                   if k not in d or (d[k] is None and k != "floor")]
+        if missing:
+            raise SpecError(f"model spec lacks {', '.join(map(repr, missing))}")
+        unknown = sorted(set(d) - {f.name for f in fields(cls)})
+        if unknown:
+            raise SpecError(f"model spec has unknown key(s) {', '.join(map(repr, unknown))}")
+        out = {}
+        for key, read in _READERS.items():
+            if d.get(key) is None:
+                continue
+            try:
+                out[key] = read(d[key])
+            except SpecError:
+                raise
+            except (TypeError, ValueError, KeyError, IndexError, AttributeError):
+                raise SpecError(f"model spec: {key} is not {_KINDS[key]} (got {str(d[key])[:80]})") from None
+        return cls(**out)
+
+    def to_dict(self) -> dict:
+        """What checkpoints store: plain lists, floats and strings (meshes as tensors), in the
+        order training has always written them; keys whose value is None left out."""
+        out = {"frame_rate": self.frame_rate, "gravity": None if self.gravity is None else list(self.gravity),
+               "floor": None if self.floor is None else self.floor.to_dict(),
+               "materials_vary": self.materials_vary, "collision_edges": self.collision_edges,
+               "shapes": list(self.shapes), "ranges": {k: [lo, hi] for k, (lo, hi) in self.ranges.items()}}
+        if self.frame_rate is None:
+            del out["frame_rate"]
+        if self.gravity is None:
+            del out["gravity"]
+        if self.meshes is not None:
+            out["meshes"] = {name: {"vertices": v, "faces": f} for name, (v, f) in self.meshes.items()}
+        for key in ("node_features", "edge_features", "collision_features"):
+            if getattr(self, key) is not None:
+                out[key] = list(getattr(self, key))
+        return out
+
+
+def _gravity(g) -> tuple[float, float, float]:
+    out = tuple(float(x) for x in g)
+    if len(out) != 3:
+        raise ValueError
+    return out
+
+
+def _pair(v) -> tuple[float, float]:
+    lo, hi = v
+    return float(lo), float(hi)
+
+
+def _names(v) -> tuple[str, ...]:
+    if isinstance(v, str) or not all(isinstance(x, str) for x in v):
+        raise TypeError
+    return tuple(v)
+
+
+def _bool(v) -> bool:
+    if not isinstance(v, bool):
+        raise TypeError
+    return v
+
+
+def _rate(v) -> float:
+    if isinstance(v, (str, bool)) or not float(v) > 0:
+        raise ValueError
+    return float(v)
+
+
+_READERS = {
+    "frame_rate": _rate,
+    "gravity": _gravity,
+    "floor": Floor.from_dict,
+    "materials_vary": _bool,
+    "collision_edges": _bool,
+    "shapes": _names,
+    "ranges": lambda r: {str(k): _pair(v) for k, v in r.items()},
+    "meshes": lambda m: {str(name): (x["vertices"], x["faces"]) for name, x in m.items()},
+    "node_features": _names,
+    "edge_features": _names,
+    "collision_features": _names,
+}
+_KINDS = {"frame_rate": "a number > 0", "gravity": "3 numbers", "materials_vary": "true or false",
+          "collision_edges": "true or false", "shapes": "a list of names",
+          "ranges": "a table of [min, max] pairs", "meshes": "a table of {vertices, faces}",
+          "node_features": "a list of names", "edge_features": "a list of names",
+          "collision_features": "a list of names"}
