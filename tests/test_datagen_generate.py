@@ -186,3 +186,16 @@ def test_ray_backend_on_a_local_cluster_gives_the_same_bytes(reference, tmp_path
     out = tmp_path / "d"
     assert toss(out, "--seed", "7", "--backend", "ray", "--workers", "2") == 0
     assert files(out) == files(reference)
+
+
+def test_keeping_freed_heap_memory_changes_no_byte(reference, tmp_path):
+    """datagen.simulate.keep_freed_memory only changes how the C heap gives memory back; a run
+    with glibc's defaults (DATAGEN_KEEP_HEAP=0, a fresh process) writes the same dataset."""
+    import os
+    out = tmp_path / "default_heap"
+    subprocess.run([sys.executable, "-m", "datagen.cli", "toss", "--out", str(out), *SMALL, "--seed", "7",
+                    "--workers", "2"], env={**os.environ, "DATAGEN_KEEP_HEAP": "0"}, check=True)
+    ours, theirs = files(out), files(reference)
+    strip = lambda b: {k: v for k, v in json.loads(b).items() if k != "provenance"}  # noqa: E731
+    assert strip(ours.pop("metadata.json")) == strip(theirs.pop("metadata.json"))
+    assert ours == theirs
