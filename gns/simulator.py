@@ -152,6 +152,11 @@ class Sleep:
         return slow
 
 
+# Below this share of nodes left out of a step (free or asleep), the network runs on the whole
+# batch and their rows are replaced: cutting the graph cost more than it saved at 7.5% left
+# out (multi-object MOVi-style scenes, benchmarks/bench_learned_vs_physics.py).
+SUBGRAPH_MIN_SHARE = 0.2
+
 # Diagonals of the world maps that keep the floor: identity, mirror x, mirror y, half turn about z.
 FLOOR_SYMMETRIES = ((1.0, 1.0, 1.0), (-1.0, 1.0, 1.0), (1.0, -1.0, 1.0), (-1.0, -1.0, 1.0))
 
@@ -359,9 +364,17 @@ class LearnedSimulator(nn.Module):
             free = self.in_free_flight(frames, ballistic, graph, contacts) & ~skip
             counts["free_flight"] += int(free.sum())
             skip |= free
-        if not skip.any():
+        skip_node = skip[graph.node_graph]
+        if int(skip_node.sum()) < SUBGRAPH_MIN_SHARE * graph.num_nodes:
+            # few to leave out: one call on everything is cheaper than cutting the graph, and
+            # the others' answers are the same (a skipped object shares no edge with them)
             x = self.predict_next(*frames[-HISTORY:], step_graph)
             counts["network"] += graph.num_graphs
+            if skip.any():
+                kept = ballistic if free_flight else frames[-1]
+                if sleep is not None and free_flight:
+                    kept = torch.where(free[graph.node_graph, None], ballistic, frames[-1])
+                x = torch.where(skip_node[:, None], kept, x)
         else:
             x = frames[-1].clone()  # sleeping objects keep their pose
             if free_flight:

@@ -236,3 +236,31 @@ def test_the_python_api_rolls_out_with_free_flight_exactly_in_the_air():
     t = torch.arange(7, dtype=torch.float64) * model.dt
     np.testing.assert_allclose(out.positions[:, 0, 2].numpy(), (100.0 + 0.5 * g * t ** 2).numpy(), atol=1e-9)
     np.testing.assert_allclose(out.positions[:, 0, 0].numpy(), t.numpy(), atol=1e-9)
+
+
+def test_with_few_objects_free_the_network_runs_on_all_and_the_free_ones_still_fly_exactly():
+    """Below SUBGRAPH_MIN_SHARE of the nodes left out, one call on the whole batch is cheaper
+    than cutting it: the free object's rows are replaced by the inertial update, the others'
+    answers are the plain rollout's."""
+    from gns.simulator import SUBGRAPH_MIN_SHARE
+    torch.set_num_threads(1)
+    sim, _ = load_model(MODEL)
+    ms = meshes("beveled_cube", "cylinder", "sphere")
+    scenes = []
+    for k in range(6):
+        low = resting_scene("beveled_cube", 0.7, ms, floor_z=0.0)
+        low.positions[:, 0, :2] += np.arange(low.num_frames)[:, None] * np.array([0.1 * k, -0.05])
+        scenes.append(low)
+    high = resting_scene("sphere", 0.7, ms, floor_z=0.0)
+    high.positions[:, 0, 2] += 50.0 - 0.5 * G * (np.arange(high.num_frames) / FRAME_RATE) ** 2
+    scenes.append(high)
+    graph, verts, _ = ObjectTracks(scenes, MeshLibrary(ms)).track_vertices(torch.arange(7), 3)
+    assert int((graph.node_graph == 6).sum()) < SUBGRAPH_MIN_SHARE * graph.num_nodes
+    plain = sim.rollout(verts, graph, 5)
+    mixed = sim.rollout(verts, graph, 5, free_flight=True)
+    assert sim.rollout_counts == {"object_steps": 35, "network": 35, "free_flight": 5, "asleep": 0}
+    low_nodes = graph.node_graph < 6
+    assert torch.equal(mixed[:, low_nodes], plain[:, low_nodes])
+    t = (np.arange(3, 8)) / FRAME_RATE
+    z = mixed[:, ~low_nodes, 2].mean(1).numpy() - verts[~low_nodes, 0, 2].mean().item() + 50.0
+    np.testing.assert_allclose(z, 50.0 - 0.5 * G * t ** 2, atol=1e-8)
