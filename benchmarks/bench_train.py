@@ -155,6 +155,7 @@ def main(argv=None) -> None:
     for r in rows:
         key = (r["threads"], r["dtype"])
         if key not in peaks:
+            torch.set_num_threads(r["threads"])  # the last preset's count is still set: measure with the row's
             peaks[key] = matmul_gflops(dtype=torch.bfloat16 if r["dtype"] == "bf16" else torch.float32)
         peak = peaks[key]
         print(f"{r['preset']:<11}{r['threads']:>8}{r['LxK']:>6}{r['latent']:>7}{r['batch']:>6}{r['nodes']:>7.0f}"
