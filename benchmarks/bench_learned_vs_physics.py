@@ -68,6 +68,82 @@ def pybullet_specs(ds, scenes, split: str) -> tuple[dict, list]:
     return cfg, specs
 
 
+class Roller:
+    """Rolls the scenes out in one variant: sets the number type, the compiled network (compiled
+    once, reused) and the rollout options."""
+
+    def __init__(self, sim, scenes, ds):
+        self.sim, self.scenes, self.ds, self.compiled = sim, scenes, ds, None
+
+    def __call__(self, parts: set[str]):
+        sim = self.sim
+        sim.autocast = torch.bfloat16 if "bf16" in parts else None
+        sim.__dict__.pop("_compiled", None)
+        if "compile" in parts:
+            if self.compiled is None:
+                sim.compile_network()
+                self.compiled = sim.__dict__["_compiled"]
+            sim.__dict__["_compiled"] = self.compiled
+        return rollout_scenes(sim, self.scenes, self.ds.meshes, self.ds.frame_rate, progress=False,
+                              free_flight="free" in parts, sleep=Sleep() if "sleep" in parts else None)
+
+
+def timed_rounds(roll: Roller, variants, specs, cfg, repeats: int) -> tuple[dict, dict, dict, dict]:
+    """Warm every variant up (compiling, filling caches), then time rounds that alternate
+    PyBullet and every variant, so that a change of the machine's load hits all alike. Returns
+    the best seconds per name ("physics" for PyBullet), first-call seconds, predictions and
+    object-step counts per variant."""
+    first = {}
+    for name, parts in variants:
+        t0 = time.perf_counter()
+        roll(parts)
+        first[name] = time.perf_counter() - t0
+    best = {"physics": float("inf"), **{name: float("inf") for name, _ in variants}}
+    preds, counts = {}, {}
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for spec in specs:
+            step_only(spec, cfg)
+        best["physics"] = min(best["physics"], time.perf_counter() - t0)
+        for name, parts in variants:
+            t0 = time.perf_counter()
+            preds[name] = roll(parts)
+            best[name] = min(best[name], time.perf_counter() - t0)
+            counts[name] = dict(roll.sim.rollout_counts)
+    return best, first, preds, counts
+
+
+def result_rows(best, first, preds, counts, variants, scenes, ds, cfg) -> list[dict]:
+    """One row for PyBullet and one a variant: cost per simulated second, ratio, errors."""
+    physics_ms = 1e3 * best["physics"] / sum((sc.num_frames - 1) / ds.frame_rate for sc in scenes)
+    simulated = sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
+    rows = [{"variant": f"PyBullet {cfg['physics']['rate']} Hz, {cfg['physics']['solver_iterations']} iterations",
+             "ms_per_simulated_second": physics_ms, "x_pybullet": 1.0, "network_share_pct": None,
+             "position_error_pct": 0.0, "rotation_error_deg": 0.0, "penetration_pct": None}]
+    floor_z = float(ds.floor["z"]) if ds.floor else 0.0
+    for name, _ in variants:
+        r = evaluate_scenes(preds[name], scenes, ds.meshes, floor_z=floor_z)
+        ms = 1e3 * best[name] / simulated
+        c = counts[name]
+        rows.append({"variant": f"GNS {name}", "ms_per_simulated_second": ms, "x_pybullet": physics_ms / ms,
+                     "network_share_pct": 100.0 * c["network"] / c["object_steps"],
+                     "position_error_pct": r["position_error_pct"], "rotation_error_deg": r["rotation_error_deg"],
+                     "penetration_pct": r["penetration_pct"], "first_call_seconds": first[name], "counts": c})
+    return rows
+
+
+def print_table(rows: list[dict]) -> None:
+    print("| simulator | ms per simulated s | x PyBullet throughput | object-steps in the network | "
+          "position % | rotation deg | penetration % |")
+    print("|---|---|---|---|---|---|---|")
+    fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
+    for r in rows:
+        print(f"| {r['variant']} | {r['ms_per_simulated_second']:.2f} | {r['x_pybullet']:.2f} | "
+              f"{fmt(r['network_share_pct'], '.1f')}{'' if r['network_share_pct'] is None else '%'} | "
+              f"{fmt(r['position_error_pct'], '.2f')} | {fmt(r['rotation_error_deg'], '.2f')} | "
+              f"{fmt(r['penetration_pct'], '.3f')} |")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", required=True, help="run folder, checkpoint or shipped model name")
@@ -90,69 +166,11 @@ def main(argv=None) -> int:
         raise SystemExit("error: the model steps at a stride of the data's frames; this benchmark compares "
                          "at the data's own rate")
     cfg, specs = pybullet_specs(ds, scenes, a.split)
-
-    physics_simulated = sum((sc.num_frames - 1) / ds.frame_rate for sc in scenes)
-    simulated = sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
-    compiled = None
-
-    def configure(parts: set[str]):
-        nonlocal compiled
-        sim.autocast = torch.bfloat16 if "bf16" in parts else None
-        sim.__dict__.pop("_compiled", None)
-        if "compile" in parts:
-            if compiled is None:
-                sim.compile_network()
-                compiled = sim.__dict__["_compiled"]
-            sim.__dict__["_compiled"] = compiled
-
-    def roll(parts: set[str]):
-        configure(parts)
-        return rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, progress=False,
-                              free_flight="free" in parts, sleep=Sleep() if "sleep" in parts else None)
-
-    first = {}
-    for name, parts in variants:  # warm-up: compiles, fills caches
-        t0 = time.perf_counter()
-        roll(parts)
-        first[name] = time.perf_counter() - t0
-    # rounds alternate PyBullet and every variant, so a change of the machine's load hits all alike
-    best = {"physics": float("inf"), **{name: float("inf") for name, _ in variants}}
-    preds, counts = {}, {}
-    for _ in range(a.repeats):
-        t0 = time.perf_counter()
-        for s in specs:
-            step_only(s, cfg)
-        best["physics"] = min(best["physics"], time.perf_counter() - t0)
-        for name, parts in variants:
-            t0 = time.perf_counter()
-            preds[name] = roll(parts)
-            best[name] = min(best[name], time.perf_counter() - t0)
-            counts[name] = dict(sim.rollout_counts)
-    physics_ms = 1e3 * best["physics"] / physics_simulated
-    rows = [{"variant": f"PyBullet {cfg['physics']['rate']} Hz, {cfg['physics']['solver_iterations']} iterations",
-             "ms_per_simulated_second": physics_ms, "x_pybullet": 1.0, "network_share_pct": None,
-             "position_error_pct": 0.0, "rotation_error_deg": 0.0, "penetration_pct": None}]
-    floor_z = float(ds.floor["z"]) if ds.floor else 0.0
-    for name, _ in variants:
-        r = evaluate_scenes(preds[name], scenes, ds.meshes, floor_z=floor_z)
-        ms = 1e3 * best[name] / simulated
-        c = counts[name]
-        rows.append({"variant": f"GNS {name}", "ms_per_simulated_second": ms, "x_pybullet": physics_ms / ms,
-                     "network_share_pct": 100.0 * c["network"] / c["object_steps"],
-                     "position_error_pct": r["position_error_pct"], "rotation_error_deg": r["rotation_error_deg"],
-                     "penetration_pct": r["penetration_pct"], "first_call_seconds": first[name], "counts": c})
-
+    timings = timed_rounds(Roller(sim, scenes, ds), variants, specs, cfg, a.repeats)
+    rows = result_rows(*timings, variants, scenes, ds, cfg)
     print(f"{len(scenes)} {a.split} scenes of {a.data} ({ds.frame_rate:g} fps), model {a.run}; "
           f"one thread, best of {a.repeats}; GNS scenes batched")
-    print("| simulator | ms per simulated s | x PyBullet throughput | object-steps in the network | "
-          "position % | rotation deg | penetration % |")
-    print("|---|---|---|---|---|---|---|")
-    fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
-    for r in rows:
-        print(f"| {r['variant']} | {r['ms_per_simulated_second']:.2f} | {r['x_pybullet']:.2f} | "
-              f"{fmt(r['network_share_pct'], '.1f')}{'' if r['network_share_pct'] is None else '%'} | "
-              f"{fmt(r['position_error_pct'], '.2f')} | {fmt(r['rotation_error_deg'], '.2f')} | "
-              f"{fmt(r['penetration_pct'], '.3f')} |")
+    print_table(rows)
     if a.json:
         Path(a.json).write_text(json.dumps({"run": a.run, "data": a.data, "split": a.split, "scenes": len(scenes),
                                             "repeats": a.repeats, "rows": rows}, indent=2, default=float) + "\n")

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from datagen.outputs import check_output_folder, check_writable, overlapping
-from datagen.quaternions import continuous as _continuous  # the name rollout_tracks calls it by
+from datagen.quaternions import continuous
 from datagen.quaternions import rotation, wxyz
 from datagen.shards import Dataset, DataError, Scene, shard_name, write_metadata, write_shard
 from gns.data import ObjectTracks
@@ -74,7 +74,7 @@ def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Ten
     bad = np.maximum.accumulate(~np.isfinite(positions).all(-1) | ~np.isfinite(quaternions).all(-1), axis=0)
     positions[bad] = np.nan
     quaternions[bad] = np.nan
-    return positions, _continuous(quaternions)
+    return positions, continuous(quaternions)
 
 
 def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, frame_rate: float,
@@ -247,7 +247,7 @@ def upsample_scene(pred: Scene, stride: int, true: Scene, frame_rate: float) -> 
     quaternions = np.empty((len(fine), pred.num_objects, 4))
     for n in range(pred.num_objects):
         slerp = Slerp(coarse, rotation(pred.quaternions[:, n]))
-        quaternions[:, n] = _continuous(wxyz(slerp(fine).as_quat()))
+        quaternions[:, n] = continuous(wxyz(slerp(fine).as_quat()))
     dt = 1.0 / frame_rate
     velocities = np.zeros_like(positions)
     velocities[1:] = (positions[1:] - positions[:-1]) / dt
