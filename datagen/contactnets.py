@@ -172,6 +172,77 @@ def _plan_splits(available: list[int], ids: Iterable[int] | None,
     return plan
 
 
+def _read_tosses(toss_dir: Path, plan: dict[str, list[int]], consts: Mapping, min_frames: int,
+                 allow_pickle: bool, progress: bool) -> dict[str, list[Scene]]:
+    """Every planned toss read, checked and converted, by split (DataError on the first bad one)."""
+    from tqdm import tqdm
+
+    scenes: dict[str, list[Scene]] = {}
+    todo = [(s, i) for s, lst in plan.items() for i in lst]
+    for s, i in tqdm(todo, desc="reading tosses", disable=not progress, unit="toss"):
+        arr = read_toss(toss_dir / f"{i}.pt", min_frames=min_frames, allow_pickle=allow_pickle)
+        scenes.setdefault(s, []).append(toss_to_scene(arr, i, f"{i}.pt", consts))
+    return scenes
+
+
+def _write_shards(out_dir: Path, scenes: dict[str, list[Scene]], meshes: dict, shard_size: int,
+                  written: list[Path]) -> dict[str, dict]:
+    """Write each split's shards, appending each path to `written` as it lands; returns the splits' metadata."""
+    split_meta = {}
+    for s, lst in scenes.items():
+        names = []
+        for k in range(0, len(lst), shard_size):
+            name = shard_name(s, k // shard_size)
+            write_shard(out_dir / name, lst[k:k + shard_size], meshes, attrs={"split": s, "source": "contactnets"})
+            written.append(out_dir / name)
+            names.append(name)
+        split_meta[s] = {"num_scenes": len(lst), "shards": names, "toss_ids": [sc.attrs["toss_id"] for sc in lst]}
+    return split_meta
+
+
+def _metadata(scenes: dict[str, list[Scene]], consts: Mapping, split_meta: dict[str, dict]) -> dict:
+    """The dataset's metadata.json (write_metadata adds checksums, fingerprint and provenance)."""
+    lengths = [sc.num_frames for lst in scenes.values() for sc in lst]
+    dt = float(consts["dt"])
+    return {
+        "source": "contactnets",
+        "source_url": "https://github.com/DAIRLab/contact-nets (data/, BSD-3-Clause)",
+        "units": f"cube half-widths (1 = {HALF_WIDTH_M} m)",
+        "frame_rate": round(1.0 / dt, 9),
+        "gravity": [0.0, 0.0, -float(consts["g"])],
+        "floor": {"z": 0.0, "friction": float(consts["mu"]), "restitution": float(consts["restitution"])},
+        "materials_vary": False,
+        "shapes": ["cube"],
+        "materials": [MATERIAL],
+        "objects_per_scene": 1,
+        "num_frames": {"min": int(min(lengths)), "max": int(max(lengths))},
+        "angular_velocity_frame": "world (converted from the data's body frame)",
+        "constants": {k: consts[k] for k in sorted(consts) if isinstance(consts[k], (int, float))},
+        "splits": split_meta,
+    }
+
+
+def _write_dataset(out_dir: Path, scenes: dict[str, list[Scene]], consts: Mapping, overwrite: bool,
+                   shard_size: int) -> None:
+    """Shards, then metadata.json; on any failure removes what it wrote, and out_dir if it made it."""
+    shape = get_shape("cube")
+    meshes = {"cube": (shape.vertices, shape.faces)}
+    created = not out_dir.exists()
+    written: list[Path] = []
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if overwrite:
+            clear_dataset(out_dir)
+        split_meta = _write_shards(out_dir, scenes, meshes, shard_size, written)
+        write_metadata(out_dir, _metadata(scenes, consts, split_meta))
+    except BaseException:
+        for p in written:
+            p.unlink(missing_ok=True)
+        if created and out_dir.is_dir() and not any(out_dir.iterdir()):
+            out_dir.rmdir()
+        raise
+
+
 def import_contactnets(src_dir: str | Path, out_dir: str | Path, ids: Iterable[int] | None = None,
                        overwrite: bool = False, progress: bool = True,
                        splits: Mapping[str, Iterable[int]] | None = None, min_frames: int = MIN_FRAMES,
@@ -186,61 +257,12 @@ def import_contactnets(src_dir: str | Path, out_dir: str | Path, ids: Iterable[i
     written atomically, metadata.json last. An existing non-empty out_dir is refused unless
     overwrite, which replaces only metadata.json and *.h5 files in it.
     """
-    from tqdm import tqdm
-
     src_dir, out_dir = Path(src_dir), Path(out_dir)
     toss_dir = _toss_dir(src_dir)
     plan = _plan_splits(list_toss_ids(src_dir), ids, splits)
     check_output_folder(out_dir, overwrite, "pass overwrite=True to replace a dataset")
     consts = read_experiment(src_dir)
-
     # Read and check everything first: a bad toss must not leave half a dataset behind.
-    scenes: dict[str, list[Scene]] = {}
-    todo = [(s, i) for s, lst in plan.items() for i in lst]
-    for s, i in tqdm(todo, desc="reading tosses", disable=not progress, unit="toss"):
-        arr = read_toss(toss_dir / f"{i}.pt", min_frames=min_frames, allow_pickle=allow_pickle)
-        scenes.setdefault(s, []).append(toss_to_scene(arr, i, f"{i}.pt", consts))
-
-    shape = get_shape("cube")
-    meshes = {"cube": (shape.vertices, shape.faces)}
-    created = not out_dir.exists()
-    written: list[Path] = []
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        if overwrite:
-            clear_dataset(out_dir)
-        split_meta = {}
-        for s, lst in scenes.items():
-            names = []
-            for k in range(0, len(lst), shard_size):
-                name = shard_name(s, k // shard_size)
-                write_shard(out_dir / name, lst[k:k + shard_size], meshes, attrs={"split": s, "source": "contactnets"})
-                written.append(out_dir / name)
-                names.append(name)
-            split_meta[s] = {"num_scenes": len(lst), "shards": names, "toss_ids": [sc.attrs["toss_id"] for sc in lst]}
-        lengths = [sc.num_frames for lst in scenes.values() for sc in lst]
-        dt = float(consts["dt"])
-        meta = {
-            "source": "contactnets",
-            "source_url": "https://github.com/DAIRLab/contact-nets (data/, BSD-3-Clause)",
-            "units": f"cube half-widths (1 = {HALF_WIDTH_M} m)",
-            "frame_rate": round(1.0 / dt, 9),
-            "gravity": [0.0, 0.0, -float(consts["g"])],
-            "floor": {"z": 0.0, "friction": float(consts["mu"]), "restitution": float(consts["restitution"])},
-            "materials_vary": False,
-            "shapes": ["cube"],
-            "materials": [MATERIAL],
-            "objects_per_scene": 1,
-            "num_frames": {"min": int(min(lengths)), "max": int(max(lengths))},
-            "angular_velocity_frame": "world (converted from the data's body frame)",
-            "constants": {k: consts[k] for k in sorted(consts) if isinstance(consts[k], (int, float))},
-            "splits": split_meta,
-        }
-        write_metadata(out_dir, meta)
-    except BaseException:
-        for p in written:
-            p.unlink(missing_ok=True)
-        if created and out_dir.is_dir() and not any(out_dir.iterdir()):
-            out_dir.rmdir()
-        raise
+    scenes = _read_tosses(toss_dir, plan, consts, min_frames, allow_pickle, progress)
+    _write_dataset(out_dir, scenes, consts, overwrite, shard_size)
     return json.loads((out_dir / METADATA_FILE).read_text())

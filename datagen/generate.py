@@ -217,15 +217,8 @@ def _ray_tasks(jobs: list[ShardTask], cfg: dict, seed: int, out: Path, workers: 
 BACKENDS = ("process", "ray")
 
 
-def generate(cfg: dict, seed: int, counts: dict[str, int], out: str | Path, workers: int = 1,
-             per_shard: int = 50, resume: bool = False, overwrite: bool = False, progress: bool = True,
-             backend: str = "process", shard_index: int | None = None, num_shards: int | None = None,
-             ray_address: str | None = None) -> dict:
-    """Generate a dataset into `out`, or, with `num_shards`, the part `shard_index` of it: the
-    shards whose position in the plan (train, then valid, then test shards, each in order)
-    modulo num_shards is shard_index. Returns the metadata written last; its `complete` is
-    false when other parts are still missing."""
-    out = Path(out)
+def _check_arguments(counts: dict[str, int], workers: int, per_shard: int, backend: str) -> None:
+    """Refuse bad counts, sizes or backend before anything is written."""
     for split, n in counts.items():
         if n < 0:
             raise DataError(f"scene count for {split} must be >= 0, got {n}")
@@ -239,6 +232,10 @@ def generate(cfg: dict, seed: int, counts: dict[str, int], out: str | Path, work
         raise DataError(f"unknown backend {backend!r}; use {' or '.join(BACKENDS)}")
     if backend == "ray":
         require_ray()
+
+
+def _check_sharding(shard_index: int | None, num_shards: int | None, overwrite: bool) -> bool:
+    """Whether this run is one part of a sharded generation; refuses a half-given or impossible part."""
     sharded = num_shards is not None or shard_index is not None
     if sharded:
         if num_shards is None or shard_index is None:
@@ -249,47 +246,86 @@ def generate(cfg: dict, seed: int, counts: dict[str, int], out: str | Path, work
         if overwrite:
             raise DataError("--overwrite cannot be used with --num-shards: the runs would delete each other's "
                             "shards; clear the folder before starting them")
-    tasks = plan(counts, per_shard)
-    meta = metadata(cfg, seed, counts, tasks, complete=False)
-    mine = [t for k, t in enumerate(tasks) if not sharded or k % num_shards == shard_index]
+    return sharded
+
+
+def _start_output(out: Path, meta: dict, mine: list[ShardTask], sharded: bool, resume: bool,
+                  overwrite: bool) -> None:
+    """Make the folder ready and write the incomplete metadata (a shared folder's only if none is there)."""
     if sharded:
         prepare_shared_output(out, meta, mine)
     else:
         prepare_output(out, meta, resume, overwrite)
         write_metadata(out, meta)
-    # A sharded run skips its shards already written, so a requeued array task redoes only what
-    # is missing; a whole run does so only with --resume (without it the folder was empty).
-    todo = [t for t in mine if not ((resume or sharded) and _shard_ok(out / t.name, t.count))]
-    total = sum(t.count for t in mine)
-    bar = tqdm(total=total, initial=total - sum(t.count for t in todo),
-               unit="scene", desc="toss", disable=not progress, file=sys.stderr)
+
+
+def _shard_results(todo: list[ShardTask], cfg: dict, seed: int, out: Path, workers: int, backend: str,
+                   ray_address: str | None):
+    """Write the shards of `todo` on the chosen backend, yielding (name, count, tunnelled ids) for each."""
     jobs = [(t, cfg, seed, str(out)) for t in todo]
-    tunnelled: list[str] = []
     if backend == "ray" and todo:
-        for _, n, bad in _ray_tasks(todo, cfg, seed, out, workers, ray_address):
-            bar.update(n)
-            tunnelled += bad
+        yield from _ray_tasks(todo, cfg, seed, out, workers, ray_address)
     elif workers == 1 or len(todo) <= 1:
         for job in jobs:
-            _, n, bad = run_task(job)
-            bar.update(n)
-            tunnelled += bad
+            yield run_task(job)
     else:
         # fork where the platform has it: a spawned worker pays ~0.5 s re-importing trimesh and
         # h5py, a fifth of a small run. Safe because the parent holds no PyBullet client.
         method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
         with mp.get_context(method).Pool(min(workers, len(todo))) as pool:
-            for _, n, bad in pool.imap_unordered(run_task, jobs):
-                bar.update(n)
-                tunnelled += bad
+            yield from pool.imap_unordered(run_task, jobs)
+
+
+def _make_shards(mine: list[ShardTask], todo: list[ShardTask], cfg: dict, seed: int, out: Path, workers: int,
+                  backend: str, ray_address: str | None, progress: bool) -> list[str]:
+    """Write the missing shards under a progress bar counting all of this run's scenes; returns
+    the ids of tunnelled scenes."""
+    total = sum(t.count for t in mine)
+    bar = tqdm(total=total, initial=total - sum(t.count for t in todo),
+               unit="scene", desc="toss", disable=not progress, file=sys.stderr)
+    tunnelled: list[str] = []
+    for _, n, bad in _shard_results(todo, cfg, seed, out, workers, backend, ray_address):
+        bar.update(n)
+        tunnelled += bad
     bar.close()
+    return tunnelled
+
+
+def _warn_tunnelled(tunnelled: list[str]) -> None:
     if tunnelled:
         # Kept, not dropped, so the dataset stays a function of the seed; inspect lists them.
         print(f"warning: {len(tunnelled)} scene(s) sank through the floor (objects too fast for "
               f"physics.rate; set physics.ccd=true or raise the rate): {', '.join(sorted(tunnelled)[:10])}",
               file=sys.stderr)
+
+
+def _finalise(out: Path, meta: dict, tasks: list[ShardTask]) -> dict:
+    """The complete metadata, written, once every shard of the plan exists; else `meta` unchanged."""
     # Shards appear only complete (temporary file, then rename), so existing means written.
     if any(not (out / t.name).exists() for t in tasks):
         return meta
     meta["complete"] = True
     return write_metadata(out, meta)
+
+
+def generate(cfg: dict, seed: int, counts: dict[str, int], out: str | Path, workers: int = 1,
+             per_shard: int = 50, resume: bool = False, overwrite: bool = False, progress: bool = True,
+             backend: str = "process", shard_index: int | None = None, num_shards: int | None = None,
+             ray_address: str | None = None) -> dict:
+    """Generate a dataset into `out`, or, with `num_shards`, the part `shard_index` of it: the
+    shards whose position in the plan (train, then valid, then test shards, each in order)
+    modulo num_shards is shard_index. Returns the metadata written last; its `complete` is
+    false when other parts are still missing."""
+    out = Path(out)
+    _check_arguments(counts, workers, per_shard, backend)
+    sharded = _check_sharding(shard_index, num_shards, overwrite)
+    tasks = plan(counts, per_shard)
+    meta = metadata(cfg, seed, counts, tasks, complete=False)
+    mine = [t for k, t in enumerate(tasks) if not sharded or k % num_shards == shard_index]
+    _start_output(out, meta, mine, sharded, resume, overwrite)
+    # A sharded run skips its shards already written, so a requeued array task redoes only what
+    # is missing; a whole run does so only with --resume (without it the folder was empty).
+    todo = [t for t in mine if not ((resume or sharded) and _shard_ok(out / t.name, t.count))]
+    tunnelled = _make_shards(mine, todo, cfg, seed, out, workers, backend, ray_address, progress)
+    _warn_tunnelled(tunnelled)
+    return _finalise(out, meta, tasks)

@@ -98,22 +98,29 @@ def _row(name: str, r: dict) -> str:
     return f"| {name} | " + " | ".join(number(r[k]) for k in METRICS) + " |"
 
 
-def report(out: Path, results: dict) -> Path:
+def _engine_names(engines: list[str]) -> str:
+    return " and ".join(ENGINE_LABELS[e] for e in engines)
+
+
+def _intro(out: Path, results: dict) -> list[str]:
+    """Title, the command that made the report and how the tosses were split."""
     preset, split = results["preset"], results["split"]
-    head = "| | position error, % of width | rotation error, degrees | penetration, % of width |\n|---|---|---|---|"
     cmd = f"python -m pipelines.real_cubes --src {results['src']} --preset {preset} --out {out}" + (
         f" --test-dir {results['external']['dir']}" if results["external"] else "")
+    return [f"# Real cube tosses: GNS against identified {_engine_names(results['engines'])}, preset `{preset}`", "",
+            f"Made by `{cmd}`.", "",
+            f"Tosses: {split['num_tosses']} from `{results['src']}`, split with seed {split['seed']} into "
+            f"{split['test']} test, {split['valid']} valid and a pool of {split['pool']} training tosses; "
+            f"{len(split['duplicates'])} groups of rotated copies were kept on one side (split.json). Every "
+            "model is rolled out from the first 3 frames of each test toss to its end; metrics are averaged over "
+            "all frames of a toss, then over tosses (ContactNets convention, docs/metrics.md). "
+            f"The ground truth's own penetration is {number(results['true_penetration_pct'])}% (the metric's floor).", ""]
+
+
+def _sizes_section(results: dict) -> list[str]:
+    """Figure 4: errors against the number of training tosses, the verdict and the identified parameters."""
     engines = results["engines"]
-    names = " and ".join(ENGINE_LABELS[e] for e in engines)
-    lines = [f"# Real cube tosses: GNS against identified {names}, preset `{preset}`", "",
-             f"Made by `{cmd}`.", "",
-             f"Tosses: {split['num_tosses']} from `{results['src']}`, split with seed {split['seed']} into "
-             f"{split['test']} test, {split['valid']} valid and a pool of {split['pool']} training tosses; "
-             f"{len(split['duplicates'])} groups of rotated copies were kept on one side (split.json). Every "
-             "model is rolled out from the first 3 frames of each test toss to its end; metrics are averaged over "
-             "all frames of a toss, then over tosses (ContactNets convention, docs/metrics.md). "
-             f"The ground truth's own penetration is {number(results['true_penetration_pct'])}% (the metric's floor).", "",
-             "## Error against the number of training tosses (Figure 4)", "",
+    lines = ["## Error against the number of training tosses (Figure 4)", "",
              "Each engine's contact parameters are identified on the training tosses of the row "
              "(pipelines/real_cubes_baselines.py); \"GNS better\" is the share of test tosses on which the GNS "
              "has a lower error than that engine (position / rotation).", "",
@@ -127,54 +134,84 @@ def report(out: Path, results: dict) -> Path:
                          + " | " + " | ".join(f"{r['gns_wins'][e]['position']:.0%} / {r['gns_wins'][e]['rotation']:.0%}"
                                               for e in engines) + " |")
     pub = results["pybullet_published"]
-    lines += ["", f"PyBullet with the published constants (friction 0.18, restitution 0.125, g 187.21): "
-              f"{number(pub['position_error_pct'])}% position, {number(pub['rotation_error_deg'])} degrees, "
-              f"{number(pub['penetration_pct'])}% penetration.", "", verdict(results), "",
-              "![position](plots/fig4_position_error_pct.png) ![rotation](plots/fig4_rotation_error_deg.png) "
-              "![penetration](plots/fig4_penetration_pct.png)", "", "Identified parameters (objective: mean "
-              "position error % + 0.5 x rotation error in degrees on the tosses fitted on):", "",
-              *fits_table([(e, int(n), r["seed"], r["fits"][e]) for n, rows in results["sizes"].items()
-                           for r in rows for e in engines]), "",
-              f"## Ablations at {results['ablation_size']} training tosses (Figure 5)", "", head]
+    return lines + ["", f"PyBullet with the published constants (friction 0.18, restitution 0.125, g 187.21): "
+                    f"{number(pub['position_error_pct'])}% position, {number(pub['rotation_error_deg'])} degrees, "
+                    f"{number(pub['penetration_pct'])}% penetration.", "", verdict(results), "",
+                    "![position](plots/fig4_position_error_pct.png) ![rotation](plots/fig4_rotation_error_deg.png) "
+                    "![penetration](plots/fig4_penetration_pct.png)", "", "Identified parameters (objective: mean "
+                    "position error % + 0.5 x rotation error in degrees on the tosses fitted on):", "",
+                    *fits_table([(e, int(n), r["seed"], r["fits"][e]) for n, rows in results["sizes"].items()
+                                 for r in rows for e in engines]), ""]
+
+
+def _ablations_section(results: dict) -> list[str]:
+    """Figure 5: the ablations beside the engines identified on the same tosses."""
+    head = "| | position error, % of width | rotation error, degrees | penetration, % of width |\n|---|---|---|---|"
+    lines = [f"## Ablations at {results['ablation_size']} training tosses (Figure 5)", "", head]
     lines += [_row(name, r) for name, r in results["ablations"].items()]
     row = results["sizes"][str(results["ablation_size"])][0]
-    lines += [_row(f"{ENGINE_LABELS[e]} identified on the same tosses", row[e]) for e in engines] + ["",
-              "\"no shape matching\" is the full model rolled out without the rigid projection; the other rows "
-              "are trained anew with one change each.", "", "![ablations](plots/fig5_ablations.png)", "",
-              f"## Noise in training at {results['noise_size']} training tosses (Figure 7)", "",
-              "Corner noise: one Gaussian offset per cube corner (std as a fraction of the cube's size, 2 "
-              "half-widths), fixed across the 4 frames of a training window. Tracking noise: Gaussian noise on "
-              "the centre at every frame, std as a fraction of that frame's displacement.", "",
-              "| noise | std | position error % | rotation error deg | penetration % |", "|---|---|---|---|---|"]
+    return lines + [_row(f"{ENGINE_LABELS[e]} identified on the same tosses", row[e]) for e in results["engines"]] + [
+        "", "\"no shape matching\" is the full model rolled out without the rigid projection; the other rows "
+        "are trained anew with one change each.", "", "![ablations](plots/fig5_ablations.png)", ""]
+
+
+def _noise_section(results: dict) -> list[str]:
+    """Figure 7: errors after training on noisy corners or tracks."""
+    lines = [f"## Noise in training at {results['noise_size']} training tosses (Figure 7)", "",
+             "Corner noise: one Gaussian offset per cube corner (std as a fraction of the cube's size, 2 "
+             "half-widths), fixed across the 4 frames of a training window. Tracking noise: Gaussian noise on "
+             "the centre at every frame, std as a fraction of that frame's displacement.", "",
+             "| noise | std | position error % | rotation error deg | penetration % |", "|---|---|---|---|---|"]
     for kind, levels in results["noise"].items():
         for level, r in levels.items():
             lines.append(f"| {kind} | {level} | " + " | ".join(number(r[k]) for k in METRICS) + " |")
-    lines += ["", "![corner noise](plots/fig7_vertex_noise.png) ![tracking noise](plots/fig7_track_noise.png)", ""]
+    return lines + ["", "![corner noise](plots/fig7_vertex_noise.png) ![tracking noise](plots/fig7_track_noise.png)", ""]
+
+
+def _external_section(results: dict) -> list[str]:
+    """The scores on a --test-dir folder's tosses; none without one."""
     ext = results["external"]
-    if ext:
-        lines += ["## External test tosses", "", f"All tosses of `{ext['dir']}`, imported and scored the same way.", ""]
-        if ext["overlap"]:
-            lines += [f"Warning: {len(ext['overlap'])} of them are copies of tosses in the source folder "
-                      "(so possibly of training tosses): " + ", ".join(f"{k} = {v}" for k, v in ext["overlap"].items()), ""]
-        lines += ["| model | training tosses | seed | position error % | rotation error deg | penetration % |",
-                  "|---|---|---|---|---|---|",
-                  "| PyBullet, published constants | - | - | " + " | ".join(number(ext["pybullet_published"][k]) for k in METRICS) + " |"]
-        for n, rows in ext["sizes"].items():
-            for r in rows:
-                for who, label in [("gns", "GNS")] + [(e, f"{ENGINE_LABELS[e]} identified") for e in engines]:
-                    lines.append(f"| {label} | {n} | {r['seed']} | " + " | ".join(number(r[who][k]) for k in METRICS) + " |")
-        lines.append("")
+    if not ext:
+        return []
+    lines = ["## External test tosses", "", f"All tosses of `{ext['dir']}`, imported and scored the same way.", ""]
+    if ext["overlap"]:
+        lines += [f"Warning: {len(ext['overlap'])} of them are copies of tosses in the source folder "
+                  "(so possibly of training tosses): " + ", ".join(f"{k} = {v}" for k, v in ext["overlap"].items()), ""]
+    lines += ["| model | training tosses | seed | position error % | rotation error deg | penetration % |",
+              "|---|---|---|---|---|---|",
+              "| PyBullet, published constants | - | - | " + " | ".join(number(ext["pybullet_published"][k]) for k in METRICS) + " |"]
+    for n, rows in ext["sizes"].items():
+        for r in rows:
+            for who, label in [("gns", "GNS")] + [(e, f"{ENGINE_LABELS[e]} identified") for e in results["engines"]]:
+                lines.append(f"| {label} | {n} | {r['seed']} | " + " | ".join(number(r[who][k]) for k in METRICS) + " |")
+    return lines + [""]
+
+
+def _cost_section(results: dict) -> list[str]:
     costs = results["costs_seconds"]
-    lines += ["## Cost", "", f"Wall-clock seconds of the stages, summed: {results['total_cost_seconds']:.0f} s "
-              f"(training {sum(v for k, v in costs.items() if k.startswith('train')):.0f} s, baseline fits "
-              f"{sum(v for k, v in costs.items() if k.startswith('baseline')):.0f} s, evaluations "
-              f"{sum(v for k, v in costs.items() if k.startswith('eval')):.0f} s); costs.json has each stage.", ""]
+    return ["## Cost", "", f"Wall-clock seconds of the stages, summed: {results['total_cost_seconds']:.0f} s "
+            f"(training {sum(v for k, v in costs.items() if k.startswith('train')):.0f} s, baseline fits "
+            f"{sum(v for k, v in costs.items() if k.startswith('baseline')):.0f} s, evaluations "
+            f"{sum(v for k, v in costs.items() if k.startswith('eval')):.0f} s); costs.json has each stage.", ""]
+
+
+def _trajectories_section(results: dict) -> list[str]:
+    """The worst, median and best test toss of each model at the largest size; none when the preset has no plots."""
+    if not results["preset_settings"]["plots"]:
+        return []
+    engines = results["engines"]
     largest = max(int(n) for n in results["sizes"])
-    if results["preset_settings"]["plots"]:
-        lines += ["## Trajectories", "", f"GNS trained on {largest} tosses, then {names} identified on them; "
-                  "worst, median and best test toss by position error.", ""]
-        for who in [f"gns_n{largest}_s0"] + [f"{e}_n{largest}_s0" for e in engines]:
-            lines += [f"![{who} {w}](plots/{who}/trajectory_{w}.png)" for w in ("worst", "median", "best")] + [""]
+    lines = ["## Trajectories", "", f"GNS trained on {largest} tosses, then {_engine_names(engines)} identified on "
+             "them; worst, median and best test toss by position error.", ""]
+    for who in [f"gns_n{largest}_s0"] + [f"{e}_n{largest}_s0" for e in engines]:
+        lines += [f"![{who} {w}](plots/{who}/trajectory_{w}.png)" for w in ("worst", "median", "best")] + [""]
+    return lines
+
+
+def report(out: Path, results: dict) -> Path:
+    lines = [*_intro(out, results), *_sizes_section(results), *_ablations_section(results),
+             *_noise_section(results), *_external_section(results), *_cost_section(results),
+             *_trajectories_section(results)]
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
