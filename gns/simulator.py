@@ -370,10 +370,8 @@ class LearnedSimulator(nn.Module):
             # the others' answers are the same (a skipped object shares no edge with them)
             x = self.predict_next(*frames[-HISTORY:], step_graph)
             counts["network"] += graph.num_graphs
-            if skip.any():
-                kept = ballistic if free_flight else frames[-1]
-                if sleep is not None and free_flight:
-                    kept = torch.where(free[graph.node_graph, None], ballistic, frames[-1])
+            if skip.any():  # free objects fly, sleeping ones keep their pose
+                kept = torch.where(free[graph.node_graph, None], ballistic, frames[-1]) if free_flight else frames[-1]
                 x = torch.where(skip_node[:, None], kept, x)
         else:
             x = frames[-1].clone()  # sleeping objects keep their pose
