@@ -32,7 +32,7 @@ def test_the_256_toss_model_rolls_out_real_tosses_within_its_measured_error(tmp_
 
 def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path):
     """gns_movi_a_long (MOVi-A, 120k steps: 29.1% / 38.4 deg on its 100 test scenes, README),
-    gns_movi_a_long2 (96k steps, bf16 + compile, signed floor clipped at 1.5: 27.5% / 39.2 deg) and
+    gns_movi_a_long2 (bf16 + compile, signed floor clipped at 1.5, 96k + 60k steps: 26.3% / 36.0 deg) and
     gns_diagnostic_45 (cube drops, 8 of 8 with body-frame rollouts) load by name and roll out
     fresh scenes of what they were trained on, far better than a broken model would."""
     from datagen.cli import main as datagen
