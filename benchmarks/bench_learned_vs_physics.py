@@ -69,22 +69,15 @@ def pybullet_specs(ds, scenes, split: str) -> tuple[dict, list]:
 
 
 class Roller:
-    """Rolls the scenes out in one variant: sets the number type, the compiled network (compiled
-    once, reused) and the rollout options."""
+    """Rolls the scenes out in one variant: number type, compiled network (compiled once,
+    reused) and rollout options."""
 
     def __init__(self, sim, scenes, ds):
-        self.sim, self.scenes, self.ds, self.compiled = sim, scenes, ds, None
+        self.sim, self.scenes, self.ds = sim, scenes, ds
 
     def __call__(self, parts: set[str]):
-        sim = self.sim
-        sim.autocast = torch.bfloat16 if "bf16" in parts else None
-        sim.__dict__.pop("_compiled", None)
-        if "compile" in parts:
-            if self.compiled is None:
-                sim.compile_network()
-                self.compiled = sim.__dict__["_compiled"]
-            sim.__dict__["_compiled"] = self.compiled
-        return rollout_scenes(sim, self.scenes, self.ds.meshes, self.ds.frame_rate, progress=False,
+        self.sim.set_speed("bf16" if "bf16" in parts else "none", "compile" in parts)
+        return rollout_scenes(self.sim, self.scenes, self.ds.meshes, self.ds.frame_rate, progress=False,
                               free_flight="free" in parts, sleep=Sleep() if "sleep" in parts else None)
 
 

@@ -78,9 +78,7 @@ def bench_preset(name: str, tracks: ObjectTracks, spec: dict, steps: int, warmup
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     sim = build_simulator(cfg, spec).train()
-    sim.autocast = torch.bfloat16 if autocast == "bf16" else None
-    if compile:
-        sim.compile_network()
+    sim.set_speed(autocast, compile)
     optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
 
     def step(i):

@@ -90,7 +90,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     sim, _ = load_model(saved, device)
     sim.symmetrize = args.symmetrize
     sim.body_frames = args.body_frames
-    _speed_options(sim, args)
+    sim.set_speed(args.autocast, args.compile)
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(args.data, args.split, args.limit, spec.frame_rate)
     check_ranges(spec, ds, scenes)
@@ -147,13 +147,6 @@ def cmd_eval(args: argparse.Namespace) -> None:
         print(f"wrote {args.json}")
     if args.plots:
         print(f"plots in {args.plots}")
-
-
-def _speed_options(sim, args: argparse.Namespace) -> None:
-    import torch
-    sim.autocast = torch.bfloat16 if args.autocast == "bf16" else None
-    if args.compile:
-        sim.compile_network()
 
 
 def _sleep(args: argparse.Namespace):

@@ -8,7 +8,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from datagen.atomic import atomic_file
 from datagen.outputs import check_writable
@@ -73,9 +72,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     sim, _ = load_model(saved, device)
     sim.symmetrize = symmetrize
     sim.body_frames = body_frames
-    sim.autocast = torch.bfloat16 if autocast == "bf16" else None
-    if compile:
-        sim.compile_network()
+    sim.set_speed(autocast, compile)
     if plots_dir is not None:
         check_writable(plots_dir, "plots folder")
     spec = ModelSpec.from_dict(saved["spec"])

@@ -198,17 +198,22 @@ class LearnedSimulator(nn.Module):
         checkpoints stay those of one process; eval mode calls the network directly."""
         self.__dict__["_parallel"] = wrapper
 
-    def compile_network(self) -> None:
-        """Run the network through torch.compile (dynamic shapes: every batch has its own node
-        and edge counts). Kept out of the module tree like `distribute`, so state_dict keys and
-        checkpoints are unchanged. The first calls compile (tens of seconds on a CPU); measured
-        in benchmarks/bench_learned_vs_physics.py and bench_train.py."""
-        self.__dict__["_compiled"] = torch.compile(self.network, dynamic=True)
+    def set_speed(self, autocast: str = "none", compile: bool = False) -> None:
+        """How the network runs: autocast "bf16" (the network only, under bfloat16 autocast) or
+        "none"; `compile` through torch.compile (dynamic shapes: every batch has its own node and
+        edge counts), compiled once and reused when switched on again. The compiled module is
+        kept out of the module tree like `distribute`, so state_dict keys and checkpoints are
+        unchanged. The first calls compile (tens of seconds on a CPU)."""
+        self.autocast = torch.bfloat16 if autocast == "bf16" else None
+        if compile and "_compiled_cache" not in self.__dict__:
+            self.__dict__["_compiled_cache"] = torch.compile(self.network, dynamic=True)
+        self.__dict__["_compiled"] = self.__dict__["_compiled_cache"] if compile else None
 
     def run_network(self, *args: torch.Tensor) -> torch.Tensor:
         wrapper = self.__dict__.get("_parallel")
+        compiled = self.__dict__.get("_compiled")
         network = wrapper if wrapper is not None and self.training else \
-            self.__dict__.get("_compiled", self.network)
+            (self.network if compiled is None else compiled)
         if self.autocast is None:
             return network(*args)
         # features, normalisers, the integrator and shape matching stay outside, in float32/float64
@@ -365,18 +370,17 @@ class LearnedSimulator(nn.Module):
             counts["free_flight"] += int(free.sum())
             skip |= free
         skip_node = skip[graph.node_graph]
+        # where a skipped object goes: free ones fly, sleeping ones keep their pose
+        held = torch.where(free[graph.node_graph, None], ballistic, frames[-1]) if free_flight else frames[-1]
         if int(skip_node.sum()) < SUBGRAPH_MIN_SHARE * graph.num_nodes:
             # few to leave out: one call on everything is cheaper than cutting the graph, and
             # the others' answers are the same (a skipped object shares no edge with them)
             x = self.predict_next(*frames[-HISTORY:], step_graph)
             counts["network"] += graph.num_graphs
-            if skip.any():  # free objects fly, sleeping ones keep their pose
-                kept = torch.where(free[graph.node_graph, None], ballistic, frames[-1]) if free_flight else frames[-1]
-                x = torch.where(skip_node[:, None], kept, x)
+            if skip.any():
+                x = torch.where(skip_node[:, None], held, x)
         else:
-            x = frames[-1].clone()  # sleeping objects keep their pose
-            if free_flight:
-                x = torch.where(free[graph.node_graph, None], ballistic, x)
+            x = held
             needed = ~skip
             if contacts is not None and len(contacts.senders):
                 # a skipped object whose vertices an active one feels (a sleeper touching a

@@ -594,9 +594,7 @@ def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world
     """The simulator on its device in training mode, under bf16 autocast and compiled if asked, joined to
     the other processes' (DistributedDataParallel) when there are several."""
     sim.to(device).train()
-    sim.autocast = torch.bfloat16 if cfg.train.autocast == "bf16" else None
-    if cfg.train.compile:
-        sim.compile_network()
+    sim.set_speed(cfg.train.autocast, cfg.train.compile)
     if device.type == "cuda":
         torch.cuda.set_device(device)
     parallel.start(world, device)

@@ -152,13 +152,13 @@ FAST = "free flight + bf16"  # the rollout options of issue 12: gns eval --free-
 def _rollout_all(sim, scenes, ds, batch: int, count: int, fast: bool = False) -> tuple[list, float]:
     """Roll out the first `count` scenes `batch` at a time; (predictions, seconds per simulated
     second per trajectory). `fast`: free flight and the network under bf16 autocast."""
-    sim.autocast = torch.bfloat16 if fast else None
+    sim.set_speed("bf16" if fast else "none")
     t0 = time.perf_counter()
     pred = []
     for k in range(0, count, batch):
         pred += rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, batch_tracks=batch,
                                progress=False, free_flight=fast)
-    sim.autocast = None
+    sim.set_speed()
     return pred, (time.perf_counter() - t0) / sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes[:len(pred)])
 
 

@@ -192,7 +192,7 @@ def test_a_compiled_network_rolls_out_as_the_eager_one():
                                             torch.ones(1), torch.ones(1)), [0, 0, 0.8], [1, 0, 0], [0, 1, 0], 3)
     history = torch.cat([frames, frames * 2 + 0.5], dim=0)[: graph.num_nodes]
     eager = sim.rollout(history, graph, 4)
-    sim.compile_network()
+    sim.set_speed(compile=True)
     compiled = sim.rollout(history, graph, 4)
     assert "_compiled" not in dict(sim.named_modules())  # checkpoints keep their keys
     np.testing.assert_allclose(compiled.numpy(), eager.numpy(), rtol=0, atol=1e-5)
