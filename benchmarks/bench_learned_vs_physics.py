@@ -11,8 +11,11 @@ batched, in each variant asked:
   sleep     resting objects keep their pose and leave the network call (`--sleep`)
   bf16      the network under bfloat16 autocast (`--autocast bf16`)
   compile   the network through torch.compile (`--compile`; compiled before timing)
+  sym       each step averaged over the floor's 4 mirror symmetries (`--symmetrize`): the most
+            accurate rollouts, at 4x the network's work
 
-joined with "+" (e.g. free+bf16). Cost is wall-clock ms per simulated second per trajectory
+joined with "+" (e.g. free+bf16). Several --run give every variant of every model, all in the
+same rounds (e.g. a model on the full meshes against one on coarse meshes). Cost is wall-clock ms per simulated second per trajectory
 (best of --repeats rounds, each round timing PyBullet and every variant in turn, so that the
 load of a shared machine hits all alike); "x PyBullet" is PyBullet's cost over the variant's (above 1: faster than
 PyBullet); accuracy is the MOVi-A metrics against the dataset (PyBullet's own scenes, so
@@ -20,6 +23,8 @@ PyBullet's error is 0 by construction). One thread throughout.
 
     python benchmarks/bench_learned_vs_physics.py --run gns_movi_a_long --data runs/data/movi_a_4000
     python benchmarks/bench_learned_vs_physics.py --run RUN --data DIR --variants plain,free,free+bf16 --json out.json
+    python benchmarks/bench_learned_vs_physics.py --run gns_movi_a_long2 --run gns_movi_a_coarse --data DIR \
+        --variants free+bf16+compile,free+sym+bf16+compile
 """
 from __future__ import annotations
 
@@ -42,7 +47,7 @@ from gns.rollout import rollout_scenes  # noqa: E402
 from gns.simulator import Sleep  # noqa: E402
 from gns.train import load_model, read_checkpoint  # noqa: E402
 
-KNOWN = ("plain", "free", "sleep", "bf16", "compile")
+KNOWN = ("plain", "free", "sleep", "bf16", "compile", "sym")
 
 
 def parse_variants(text: str) -> list[tuple[str, set[str]]]:
@@ -69,36 +74,37 @@ def pybullet_specs(ds, scenes, split: str) -> tuple[dict, list]:
 
 
 class Roller:
-    """Rolls the scenes out in one variant: number type, compiled network (compiled once,
-    reused) and rollout options."""
+    """Rolls the scenes out with one model in one variant: number type, compiled network
+    (compiled once, reused), symmetrized steps and rollout options."""
 
     def __init__(self, sim, scenes, ds):
         self.sim, self.scenes, self.ds = sim, scenes, ds
 
     def __call__(self, parts: set[str]):
         self.sim.set_speed("bf16" if "bf16" in parts else "none", "compile" in parts)
+        self.sim.symmetrize = "sym" in parts
         return rollout_scenes(self.sim, self.scenes, self.ds.meshes, self.ds.frame_rate, progress=False,
                               free_flight="free" in parts, sleep=Sleep() if "sleep" in parts else None)
 
 
-def timed_rounds(roll: Roller, variants, specs, cfg, repeats: int) -> tuple[dict, dict, dict, dict]:
+def timed_rounds(variants: list[tuple[str, Roller, set[str]]], specs, cfg, repeats: int) -> tuple[dict, dict, dict, dict]:
     """Warm every variant up (compiling, filling caches), then time rounds that alternate
     PyBullet and every variant, so that a change of the machine's load hits all alike. Returns
     the best seconds per name ("physics" for PyBullet), first-call seconds, predictions and
     object-step counts per variant."""
     first = {}
-    for name, parts in variants:
+    for name, roll, parts in variants:
         t0 = time.perf_counter()
         roll(parts)
         first[name] = time.perf_counter() - t0
-    best = {"physics": float("inf"), **{name: float("inf") for name, _ in variants}}
+    best = {"physics": float("inf"), **{name: float("inf") for name, _, _ in variants}}
     preds, counts = {}, {}
     for _ in range(repeats):
         t0 = time.perf_counter()
         for spec in specs:
             step_only(spec, cfg)
         best["physics"] = min(best["physics"], time.perf_counter() - t0)
-        for name, parts in variants:
+        for name, roll, parts in variants:
             t0 = time.perf_counter()
             preds[name] = roll(parts)
             best[name] = min(best[name], time.perf_counter() - t0)
@@ -114,7 +120,7 @@ def result_rows(best, first, preds, counts, variants, scenes, ds, cfg) -> list[d
              "ms_per_simulated_second": physics_ms, "x_pybullet": 1.0, "network_share_pct": None,
              "position_error_pct": 0.0, "rotation_error_deg": 0.0, "penetration_pct": None}]
     floor_z = float(ds.floor["z"]) if ds.floor else 0.0
-    for name, _ in variants:
+    for name, _, _ in variants:
         r = evaluate_scenes(preds[name], scenes, ds.meshes, floor_z=floor_z)
         ms = 1e3 * best[name] / simulated
         c = counts[name]
@@ -139,7 +145,8 @@ def print_table(rows: list[dict]) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", required=True, help="run folder, checkpoint or shipped model name")
+    p.add_argument("--run", required=True, action="append",
+                   help="run folder, checkpoint or shipped model name; repeat to compare models in the same rounds")
     p.add_argument("--data", required=True, help="a datagen toss dataset (its config and seed remake the scenes)")
     p.add_argument("--split", default="test")
     p.add_argument("--limit", type=int, help="first N scenes only")
@@ -151,17 +158,23 @@ def main(argv=None) -> int:
     variants = parse_variants(a.variants)
     torch.set_num_threads(1)
 
-    saved = read_checkpoint(checkpoint_of(a.run))
-    sim, _ = load_model(saved, "cpu")
-    sim.eval()
-    ds, scenes = load_split(a.data, a.split, a.limit, saved["spec"]["frame_rate"])
-    if ds.stride != 1:
-        raise SystemExit("error: the model steps at a stride of the data's frames; this benchmark compares "
-                         "at the data's own rate")
+    runs = []
+    for run in a.run:
+        saved = read_checkpoint(checkpoint_of(run))
+        sim, _ = load_model(saved, "cpu")
+        sim.eval()
+        ds, scenes = load_split(a.data, a.split, a.limit, saved["spec"]["frame_rate"])
+        if ds.stride != 1:
+            raise SystemExit(f"error: {run} steps at a stride of the data's frames; this benchmark compares "
+                             "at the data's own rate")
+        runs.append((run, Roller(sim, scenes, ds)))
+    # one model keeps the variant names short; several name theirs
+    jobs = [(name if len(runs) == 1 else f"{run} {name}", roller, parts)
+            for run, roller in runs for name, parts in variants]
     cfg, specs = pybullet_specs(ds, scenes, a.split)
-    timings = timed_rounds(Roller(sim, scenes, ds), variants, specs, cfg, a.repeats)
-    rows = result_rows(*timings, variants, scenes, ds, cfg)
-    print(f"{len(scenes)} {a.split} scenes of {a.data} ({ds.frame_rate:g} fps), model {a.run}; "
+    timings = timed_rounds(jobs, specs, cfg, a.repeats)
+    rows = result_rows(*timings, jobs, scenes, ds, cfg)
+    print(f"{len(scenes)} {a.split} scenes of {a.data} ({ds.frame_rate:g} fps), model {', '.join(a.run)}; "
           f"one thread, best of {a.repeats}; GNS scenes batched")
     print_table(rows)
     if a.json:

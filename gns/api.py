@@ -95,7 +95,7 @@ class State:
 
     positions: torch.Tensor        # (B, 3) centres at the current frame
     quaternions: torch.Tensor      # (B, 4) in the model's quaternion_order
-    vertices: torch.Tensor         # (N, 3) world vertices; object of each: vertex_object
+    vertices: torch.Tensor         # (N, 3) world vertices of the network's meshes (coarse with features.mesh_vertices); object of each: vertex_object
     time: float                    # seconds since the first state
     frames: tuple[torch.Tensor, ...] = field(repr=False)   # HISTORY x (N, 3) float64, oldest first
     graph: GraphBatch = field(repr=False)
@@ -141,7 +141,8 @@ class Model:
         self.simulator, self.config, self.spec, self.device = simulator, config, spec, device
         self.quaternion_order, self.source = quaternion_order, source
         self.meshes = meshes
-        self._library = MeshLibrary(meshes)
+        # the graphs the network was trained on: the coarse meshes of features.mesh_vertices, if any
+        self._library = MeshLibrary(meshes, simulator.mesh_vertices)
 
     frame_rate = property(lambda self: float(self.spec.frame_rate), doc="model steps per second")
     dt = property(lambda self: 1.0 / self.frame_rate, doc="seconds per step (the data's frame time x frame_stride)")

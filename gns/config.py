@@ -44,6 +44,9 @@ class FeatureConfig:
     # > 0 adds v / (|v| + s) per input velocity, s = velocity_direction x |g| dt^2: the direction
     # of slow motion (friction's sign), resolved at any speed above s; 0 = off (paper)
     velocity_direction: float = 0.0
+    # > 0: the network sees this many vertices of each mesh (farthest-point subset joined by its
+    # hull's edges, gns.coarse_mesh); shape matching and the scores keep the full mesh. 0 = all
+    mesh_vertices: int = 0
 
 
 @dataclass
@@ -188,6 +191,8 @@ def validate(cfg: Config) -> None:
         (cfg.features.collision_mode in ("vertex", "surface"), "features.collision_mode must be 'vertex' or 'surface'"),
         (cfg.features.frame_stride >= 1, "features.frame_stride must be >= 1"),
         (cfg.features.velocity_direction >= 0, "features.velocity_direction must be >= 0"),
+        (cfg.features.mesh_vertices == 0 or cfg.features.mesh_vertices >= 4,
+         "features.mesh_vertices must be 0 (every vertex) or >= 4"),
         (cfg.augment.noise_std >= 0, "augment.noise_std must be >= 0"),
         (cfg.augment.vertex_noise >= 0, "augment.vertex_noise must be >= 0"),
         (cfg.augment.track_noise >= 0, "augment.track_noise must be >= 0"),

@@ -15,6 +15,8 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 import torch
 
+from gns.coarse_mesh import network_meshes
+
 
 def mesh_edges(faces: np.ndarray) -> np.ndarray:
     """Directed edges of a triangle mesh, both directions, without duplicates.
@@ -137,7 +139,10 @@ def ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 class MeshLibrary:
     """The dataset's rest meshes, stored once, from which batches of graphs are packed."""
 
-    def __init__(self, meshes: dict[str, tuple[np.ndarray, np.ndarray]]):
+    def __init__(self, meshes: dict[str, tuple[np.ndarray, np.ndarray]], max_vertices: int = 0):
+        """max_vertices > 0: graphs of each mesh's coarse version (gns.coarse_mesh), as the
+        network of a model trained with features.mesh_vertices sees them."""
+        meshes = network_meshes(meshes, max_vertices)
         self.names = sorted(meshes)
         self.index = {name: i for i, name in enumerate(self.names)}
         verts = [np.asarray(meshes[n][0], np.float64) for n in self.names]

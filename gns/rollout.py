@@ -84,7 +84,7 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
     `sleep` and `free_flight`: see LearnedSimulator.rollout; the share of object-steps that
     entered the network is left in `sim.rollout_counts` (summed over batches)."""
     sim.eval()
-    tracks = ObjectTracks(scenes, MeshLibrary(meshes), name="rollout scenes")
+    tracks = ObjectTracks(scenes, MeshLibrary(meshes, sim.mesh_vertices), name="rollout scenes")
     if int(tracks.length.min()) <= HISTORY:
         raise DataError(f"every scene needs more than {HISTORY} frames to roll out")
     T_max, B = int(tracks.length.max()), tracks.num_tracks

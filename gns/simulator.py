@@ -177,6 +177,8 @@ class LearnedSimulator(nn.Module):
         # the same as a vector: the centre's second difference in free flight (units per frame^2)
         self.gravity_per_frame = spec.gravity_per_frame
         self.collision_mode = features_cfg.collision_mode  # "vertex" or "surface", checked by gns.config
+        # graphs for this model: MeshLibrary(meshes, sim.mesh_vertices) (gns.coarse_mesh)
+        self.mesh_vertices = int(getattr(features_cfg, "mesh_vertices", 0))
         self.layout: FeatureLayout = make_layout(features_cfg, spec.floor_z, spec.materials_vary,
                                                  collisions=spec.collision_edges, gravity_step=self.gravity_step)
         steps = features_cfg.normalizer_steps

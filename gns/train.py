@@ -211,7 +211,7 @@ def _init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec)
     path = path / LATEST if path.is_dir() else path
     init = read_checkpoint(path)
     trained = ModelSpec.from_dict(init["spec"])
-    problems = [_incompatibility(init["config"], trained, cfg, spec)]
+    problems = [_incompatibility(init["config"], trained, cfg, spec, fine_tune=True)]
     for key in ("frame_rate", "gravity"):
         if getattr(trained, key) != getattr(spec, key):
             problems.append(f"{key} is {_shown(getattr(trained, key))} there, {_shown(getattr(spec, key))} in this data")
@@ -222,9 +222,17 @@ def _init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec)
     return _merge_ranges(trained, spec)
 
 
-def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec) -> str | None:
-    """How a checkpoint (its config and spec) cannot carry on as the model of cfg on data of spec."""
+# keys a fine-tuning run (train.init_from) may change: the weights do not depend on them
+FINE_TUNE_FREE = ("features.mesh_vertices",)
+
+
+def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec,
+                     fine_tune: bool = False) -> str | None:
+    """How a checkpoint (its config and spec) cannot carry on as the model of cfg on data of spec.
+    fine_tune: as the start of a new run, which may change FINE_TUNE_FREE (a resumed run may not)."""
     diffs = architecture_differences(config, cfg)
+    if fine_tune:
+        diffs = [d for d in diffs if not d.startswith(FINE_TUNE_FREE)]
     for key in ("node_features", "edge_features", "collision_features"):
         if (getattr(trained, key) or ()) != getattr(spec, key):
             diffs.append(f"{key} are {list(getattr(trained, key) or ())} in the checkpoint, "
@@ -475,7 +483,7 @@ def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTrack
         full = Dataset(data_dir).load("train")
         scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
     try:
-        library = MeshLibrary(dataset.meshes)
+        library = MeshLibrary(dataset.meshes, cfg.features.mesh_vertices)
     except ValueError as e:
         raise DataError(f"{data_dir}: {e}") from None
     tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)

@@ -73,3 +73,23 @@ def test_bench_learned_vs_physics_times_pybullet_and_each_variant_on_the_same_sc
     assert plain["network_share_pct"] == 100.0 and fast["network_share_pct"] < 100.0  # tosses start in the air
     assert abs(fast["position_error_pct"] - plain["position_error_pct"]) < 0.5 * plain["position_error_pct"]
     assert "| GNS free+bf16 |" in capsys.readouterr().out
+
+
+def test_bench_learned_vs_physics_compares_several_models_in_the_same_rounds(tmp_path):
+    import json
+
+    from datagen.cli import main as datagen_main
+    data = tmp_path / "d"
+    assert datagen_main(["toss", "--out", str(data), "--scenes", "0", "--test", "2", "--seed", "6",
+                         "--shapes", "cube", "--quiet"]) == 0
+    spec = importlib.util.spec_from_file_location("bench_lvp2", BENCH.parent / "bench_learned_vs_physics.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    model = str(Path(__file__).parent / "data" / "gns_movi_a_small.pt")
+    assert bench.main(["--run", model, "--run", model, "--data", str(data), "--repeats", "1",
+                       "--variants", "plain,sym", "--json", str(tmp_path / "b.json")]) == 0
+    rows = json.loads((tmp_path / "b.json").read_text())["rows"]
+    assert [r["variant"] for r in rows[1:]] == [f"GNS {model} plain", f"GNS {model} sym"] * 2
+    # the same model gives the same rollouts in both places; symmetrizing changes them
+    assert rows[1]["position_error_pct"] == rows[3]["position_error_pct"]
+    assert rows[2]["position_error_pct"] != rows[1]["position_error_pct"]
