@@ -217,10 +217,19 @@ def validate(cfg: Config) -> None:
 
 def architecture_differences(saved: dict, current: Config) -> list[str]:
     """Keys of the architecture sections whose values differ, as 'key: saved -> current'."""
+    return config_differences(saved, current, ARCHITECTURE_SECTIONS)
+
+
+def config_differences(saved: dict, current: Config, sections=None, ignore: tuple[str, ...] = ()) -> list[str]:
+    """Keys of `sections` (default all) whose values differ between a checkpoint's config dict
+    and `current`, as 'section.key is old in the checkpoint, new now'; `ignore` names
+    'section.key's left out."""
     now, default = config_to_dict(current), config_to_dict(Config())
     out = []
-    for section in ARCHITECTURE_SECTIONS:
+    for section in sections or now:
         for key, value in now[section].items():
+            if f"{section}.{key}" in ignore:
+                continue
             # a key newer than the checkpoint had its default value then
             old = saved.get(section, {}).get(key, default[section][key])
             if old != value:

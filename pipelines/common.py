@@ -11,9 +11,9 @@ from pathlib import Path
 from datagen.config import config_dir, load_config as load_scene_config
 from datagen.generate import generate
 from datagen.shards import Dataset, DataError
-from gns.config import build_config
+from gns.config import build_config, config_differences
 from gns.evaluate import write_json
-from gns.train import LATEST, checkpoint_paths, resume_point, train
+from gns.train import LATEST, CheckpointError, checkpoint_paths, read_checkpoint, resume_point, train
 
 CONFIGS = config_dir()
 
@@ -119,11 +119,23 @@ def resumable(run: Path) -> tuple[Path | None, int, str | None]:
     return path, int(ckpt["step"]), note
 
 
+# settings that do not change what a run learns: a finished run is a result with any of them
+SETTINGS_FREE = ("train.steps", "train.threads", "train.device", "train.log_every", "train.checkpoint_every",
+                 "train.keep_checkpoints", "valid.every", "valid.windows", "valid.rollout_scenes", "valid.rollout_steps")
+
+
 def train_stage(data: Path, run: Path, preset: str, overrides: list[str]) -> Path:
     """Train (or finish training) a run; skip when its checkpoint has reached the step count.
     Returns the checkpoint to evaluate: latest.pt, or the newest readable one if it is torn."""
     cfg = build_config(path=CONFIGS / f"gns_{preset}.toml", overrides=overrides)
     path, step, note = resumable(run)
+    if path is not None:
+        # a run left by an earlier call with other settings is neither a result of these
+        # settings (skipped) nor their start (resumed)
+        changed = config_differences(read_checkpoint(path)["config"], cfg, ignore=SETTINGS_FREE)
+        if changed:
+            raise CheckpointError(f"{run} was trained with other settings ({'; '.join(changed[:3])}"
+                                  f"{'; ...' if len(changed) > 3 else ''}): rerun with --fresh, or give another --out")
     if step >= cfg.train.steps:
         if note:
             say(note)

@@ -87,6 +87,21 @@ def test_pipeline_skips_a_finished_run_with_a_torn_latest(made, run, capsys):
     assert "has reached step 4, skipping" in capsys.readouterr().err
 
 
+def test_pipeline_refuses_a_run_trained_with_other_settings(made, run, capsys):
+    data, _ = made
+    before = {p.name: p.read_bytes() for p in run.glob("*.pt")}
+    # finished: skipping it would report a result of other settings; unfinished: resuming would mix them
+    for steps in (4, 6):
+        capsys.readouterr()
+        assert guarded(lambda: train_stage(data, run, "tiny", [f"train.steps={steps}", *STEPS, "train.lr_init=0.01"])) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "other settings" in err[0] and "train.lr_init" in err[0] and "--fresh" in err[0], err
+    assert {p.name: p.read_bytes() for p in run.glob("*.pt")} == before
+    # settings that change nothing learned (the step count, logging, threads) are not a difference
+    train_stage(data, run, "tiny", ["train.steps=5", *STEPS, "train.threads=1", "train.log_every=2"])
+    assert read_checkpoint(run / "latest.pt")["step"] == 5
+
+
 def test_pipeline_with_no_readable_checkpoint_stops_and_keeps_them(made, tmp_path, capsys):
     data, _ = made
     run = tmp_path / "run"
