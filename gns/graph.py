@@ -331,6 +331,40 @@ def select_graphs(graph: GraphBatch, keep: torch.Tensor) -> tuple[GraphBatch, to
                    num_symmetries=None if graph.num_symmetries is None else graph.num_symmetries[keep]), nodes
 
 
+def stack_graphs(graphs: list[GraphBatch]) -> GraphBatch:
+    """One batch holding the given batches one after the other (nodes, edges, faces renumbered);
+    each keeps its scenes to itself (scene numbers offset), so no collision edge joins two of
+    them. Collision edges are kept only if every batch has them (else rebuilt by the caller)."""
+    first = graphs[0]
+    node_offset = torch.cumsum(torch.tensor([0] + [g.num_nodes for g in graphs[:-1]]), 0).tolist()
+    graph_offset = torch.cumsum(torch.tensor([0] + [g.num_graphs for g in graphs[:-1]]), 0).tolist()
+
+    def edges(sets: list[EdgeSet | None]) -> EdgeSet | None:
+        if any(e is None for e in sets):
+            return None
+        extra = [None if sets[0].vectors is None else torch.cat([e.vectors for e in sets]),
+                 None if sets[0].signed is None else torch.cat([e.signed for e in sets])]
+        return EdgeSet(torch.cat([e.senders + o for e, o in zip(sets, node_offset)]),
+                       torch.cat([e.receivers + o for e, o in zip(sets, node_offset)]), *extra)
+
+    scenes = None
+    if first.graph_scene is not None:
+        # scene numbers of each batch moved past the previous batch's largest
+        parts, base = [], 0
+        for g in graphs:
+            parts.append(g.graph_scene + base)
+            base += int(g.graph_scene.max()) + 1 if g.num_graphs else 0
+        scenes = torch.cat(parts)
+    cat = lambda name: None if getattr(first, name) is None else torch.cat([getattr(g, name) for g in graphs])  # noqa: E731
+    return GraphBatch(
+        mesh_edges=edges([g.mesh_edges for g in graphs]), rest=cat("rest"), material=cat("material"),
+        node_graph=torch.cat([g.node_graph + o for g, o in zip(graphs, graph_offset)]),
+        num_graphs=sum(g.num_graphs for g in graphs), graph_scene=scenes,
+        collision_edges=edges([g.collision_edges for g in graphs]),
+        faces=None if first.faces is None else torch.cat([g.faces + o for g, o in zip(graphs, node_offset)]),
+        symmetries=cat("symmetries"), num_symmetries=cat("num_symmetries"))
+
+
 def with_collision_edges(graph: GraphBatch, x: torch.Tensor, radius: float) -> GraphBatch:
     """A copy of graph with its collision edges built from positions x (N, 3)."""
     return replace(graph, collision_edges=collision_edges(x, graph, radius))

@@ -281,3 +281,32 @@ def test_example_script_runs():
     assert len(rows) >= 3
     heights = [float(r[-1]) for r in rows]
     assert heights[0] > heights[-1] > 0          # tossed from 3 half-widths, it lands on the floor
+
+
+def test_symmetrized_images_in_one_call_equal_one_call_per_image(run):
+    # scenes of several touching objects: each image keeps its own collision edges
+    from dataclasses import replace
+
+    import gns.simulator as simulator
+    from gns.simulator import FLOOR_SYMMETRIES
+    model = gns.load(run / "run")
+    sim = model.simulator
+    state = model.state(**three_cubes(), warn=False)
+    history = torch.stack(state.frames, dim=1)
+    sim.symmetrize = True
+    try:
+        batched = sim.predict_acceleration(history, state.graph)
+        one = []
+        for m in FLOOR_SYMMETRIES:
+            g = torch.tensor(m, dtype=torch.float64)
+            mapped = replace(state.graph, rest=state.graph.rest * g, collision_edges=None)
+            one.append(sim.target_normalizer.inverse(sim(history * g, mapped).to(torch.float64)) * g)
+        torch.testing.assert_close(batched, sum(one) / 4, rtol=0, atol=1e-9)
+        # and split over several calls when the images exceed a call's size
+        old, simulator.IMAGE_NODES = simulator.IMAGE_NODES, state.graph.num_nodes
+        try:
+            torch.testing.assert_close(sim.predict_acceleration(history, state.graph), batched, rtol=0, atol=1e-9)
+        finally:
+            simulator.IMAGE_NODES = old
+    finally:
+        sim.symmetrize = False
