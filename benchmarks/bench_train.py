@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import time
 from pathlib import Path
 
@@ -38,7 +39,7 @@ CONFIGS = config_dir()
 SHAPES = ("beveled_cube", "cylinder", "sphere")  # MOVi-A's shapes: 51-64 vertices each
 
 
-def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0) -> tuple[ObjectTracks, dict]:
+def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0, mesh_vertices: int = 0) -> tuple[ObjectTracks, dict]:
     """Ballistic spinning tosses of the MOVi-A shapes; speed depends on graph sizes, not physics."""
     rng = np.random.default_rng(seed)
     meshes = {name: (get_shape(name).vertices, get_shape(name).faces) for name in SHAPES}
@@ -53,7 +54,7 @@ def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0) -> tuple
                          mass=np.ones(1), friction=np.array([rng.choice([0.4, 0.8])]),
                          restitution=np.array([rng.choice([0.3, 0.7])])))
     spec = {"floor": {"z": 0.0}, "materials_vary": True}
-    return ObjectTracks(out, MeshLibrary(meshes)), spec
+    return ObjectTracks(out, MeshLibrary(meshes, mesh_vertices)), spec
 
 
 def matmul_gflops(size: int = 1024, seconds: float = 1.0, dtype=torch.float32) -> float:
@@ -114,30 +115,38 @@ def main(argv=None) -> None:
     p.add_argument("--autocast", action="store_true",
                    help="time every preset in float32 and under bf16 autocast (train.autocast=bf16), alternated")
     p.add_argument("--variants", help="comma list of fp32, bf16, compile, bf16+compile (default fp32; "
-                                      "--autocast = fp32,bf16)")
+                                      "--autocast = fp32,bf16); +coarseN: the network on N vertices of each "
+                                      "mesh (features.mesh_vertices=N), e.g. bf16+compile+coarse16")
     p.add_argument("--batch", type=int, help="training batch size for every preset (default: the preset's)")
     p.add_argument("--rounds", type=int, default=1,
                    help="with several variants: alternate them this many times and keep each one's best")
     args = p.parse_args(argv)
 
+    variants = (args.variants or ("fp32,bf16" if args.autocast else "fp32")).split(",")
+    coarse = {}
+    for v in variants:
+        for part in v.split("+"):
+            if not (part in ("fp32", "bf16", "compile") or re.fullmatch(r"coarse\d+", part)):
+                raise SystemExit(f"error: unknown variant {v!r}; parts are fp32, bf16, compile, coarseN")
+        coarse[v] = next((int(part[6:]) for part in v.split("+") if part.startswith("coarse")), 0)
+        if 0 < coarse[v] < 4:
+            raise SystemExit(f"error: variant {v!r}: a coarse mesh needs at least 4 vertices")
     if args.data:
         dataset = Dataset(args.data)
         scenes = dataset.load("train")
-        tracks, spec = ObjectTracks(scenes, MeshLibrary(dataset.meshes)), feature_spec(dataset, scenes)
+        spec = feature_spec(dataset, scenes)
+        tracks = {n: ObjectTracks(scenes, MeshLibrary(dataset.meshes, n)) for n in set(coarse.values())}
         source = f"{args.data} ({len(scenes)} train scenes)"
     else:
-        tracks, spec = synthetic_tracks()
+        tracks = {n: synthetic_tracks(mesh_vertices=n)[0] for n in set(coarse.values())}
+        spec = synthetic_tracks(scenes=1)[1]
         source = "synthetic tosses of " + ", ".join(SHAPES)
     print(f"data: {source}; load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
-    header = (f"{'preset':<11}{'threads':>8}{'LxK':>6}{'latent':>7}{'batch':>6}{'nodes':>7}{'edges':>7}{'steps/s':>9}"
+    header = (f"{'preset':<26}{'threads':>8}{'LxK':>6}{'latent':>7}{'batch':>6}{'nodes':>7}{'edges':>7}{'steps/s':>9}"
               f"{'graphs/s':>10}{'GFLOP/step':>11}{'GFLOP/s':>9}{'matmul':>8}{'of peak':>9}")
     print(header)
     print("-" * len(header))
     peaks = {}
-    variants = (args.variants or ("fp32,bf16" if args.autocast else "fp32")).split(",")
-    for v in variants:
-        if set(v.split("+")) - {"fp32", "bf16", "compile"}:
-            raise SystemExit(f"error: unknown variant {v!r}; parts are fp32, bf16, compile")
     rows = []
     for name in args.presets.split(","):
         # alternated, so that a change of the machine's load hits all alike
@@ -145,8 +154,10 @@ def main(argv=None) -> None:
         for _ in range(args.rounds):
             for v in variants:
                 parts = set(v.split("+"))
-                r = bench_preset(name.strip(), tracks, spec, args.steps, args.warmup, args.threads,
+                r = bench_preset(name.strip(), tracks[coarse[v]], spec, args.steps, args.warmup, args.threads,
                                  "bf16" if "bf16" in parts else "none", "compile" in parts, args.batch)
+                if coarse[v]:
+                    r["preset"] += f"+coarse{coarse[v]}"
                 if v not in best or r["steps_per_sec"] > best[v]["steps_per_sec"]:
                     best[v] = r
         rows += [best[v] for v in variants]
@@ -156,7 +167,7 @@ def main(argv=None) -> None:
             torch.set_num_threads(r["threads"])  # the last preset's count is still set: measure with the row's
             peaks[key] = matmul_gflops(dtype=torch.bfloat16 if r["dtype"] == "bf16" else torch.float32)
         peak = peaks[key]
-        print(f"{r['preset']:<11}{r['threads']:>8}{r['LxK']:>6}{r['latent']:>7}{r['batch']:>6}{r['nodes']:>7.0f}"
+        print(f"{r['preset']:<26}{r['threads']:>8}{r['LxK']:>6}{r['latent']:>7}{r['batch']:>6}{r['nodes']:>7.0f}"
               f"{r['edges']:>7.0f}{r['steps_per_sec']:>9.2f}{r['graphs_per_sec']:>10.1f}{r['gflop_per_step']:>11.3f}"
               f"{r['gflops']:>9.2f}{peak:>8.1f}{r['gflops'] / peak:>9.1%}")
     print("\nGFLOP counts Linear layers only, training step = 3x forward; matmul = measured 1024^3 "
