@@ -44,7 +44,8 @@ SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 PRESETS = {
     "tiny": dict(scenes=2, frames=12, fine=2, rates=[120, 240], iterations=[10], reference=(1200, 200),
                  architectures=[(1, 1, 16)], batches=[1, 2], single_scenes=2,
-                 train=dict(scenes=4, model="tiny", steps=20, strides=[1, 2], architectures=[(1, 1, 8)])),
+                 train=dict(scenes=4, model="tiny", steps=20, strides=[1, 2], architectures=[(1, 1, 8)]),
+                 compile=False),  # compiling every tiny model would cost more than the whole preset
     "quick": dict(scenes=40, frames=24, fine=4, rates=[60, 120, 240, 480, 960], iterations=[5, 10, 50],
                   reference=(9600, 200), architectures=[(1, 1, 64), (5, 1, 32), (5, 1, 64), (5, 1, 128), (10, 3, 128)],
                   batches=[1, 8, 40], single_scenes=8,
@@ -146,25 +147,33 @@ def sweep_runs(p: dict, out: Path) -> list[tuple[str, Path]]:
     return [(knob, run) for knob, run, _ in runs]
 
 
-FAST = "free flight + bf16"  # the rollout options of issue 12: gns eval --free-flight --autocast bf16
+# the rollout options of issue 12: gns eval --free-flight --autocast bf16 --compile (and --symmetrize)
+FAST = "free flight + bf16 + compile"
+FAST_SYM = FAST + " + symmetrized"
+MODES = {None: "gns batched", "fast": "gns fast", "fast sym": "gns fast sym"}
 
 
-def _rollout_all(sim, scenes, ds, batch: int, count: int, fast: bool = False) -> tuple[list, float]:
+def _rollout_all(sim, scenes, ds, batch: int, count: int, mode: str | None = None,
+                 compile: bool = True) -> tuple[list, float]:
     """Roll out the first `count` scenes `batch` at a time; (predictions, seconds per simulated
-    second per trajectory). `fast`: free flight and the network under bf16 autocast."""
-    sim.set_speed("bf16" if fast else "none")
+    second per trajectory). mode "fast": free flight, the network under bf16 autocast and
+    compiled (FAST); "fast sym": also symmetrized (FAST_SYM), the most accurate and 4x the network."""
+    fast = mode is not None
+    sim.set_speed("bf16" if fast else "none", compile=fast and compile)
+    sim.symmetrize = mode == "fast sym"
     t0 = time.perf_counter()
     pred = []
     for k in range(0, count, batch):
         pred += rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, batch_tracks=batch,
                                progress=False, free_flight=fast)
     sim.set_speed()
+    sim.symmetrize = False
     return pred, (time.perf_counter() - t0) / sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes[:len(pred)])
 
 
 def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[dict]:
     """Trained runs scored against the fine reference at 12 fps, timed single and batched, and
-    batched again with free flight and bf16 (FAST) where the model knows gravity.
+    batched again with FAST and FAST_SYM where the model knows gravity.
 
     A run at a finer time step rolls out on the reference read at its own rate and is scored
     on every (12 fine / its rate)-th frame, so every run is judged at the same instants."""
@@ -178,22 +187,28 @@ def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[di
         ds, scenes = load_split(ref.root, "test", None, saved["spec"]["frame_rate"])
         keep = round(ds.frame_rate / truth.frame_rate)
         m = cfg.model
-        modes = [(1, False), (len(scenes), False)] + ([(len(scenes), True)] if sim.gravity_per_frame is not None else [])
-        for batch, fast in modes:
-            _rollout_all(sim, scenes, ds, batch, 1, fast)  # warm-up: first-call costs are not the rollout's
-            pred, cost = _rollout_all(sim, scenes, ds, batch, len(scenes) if batch > 1 else p["single_scenes"], fast)
+        modes = [(1, None), (len(scenes), None)]
+        if sim.gravity_per_frame is not None:
+            modes += [(len(scenes), "fast"), (len(scenes), "fast sym")]
+        for batch, mode in modes:
+            # warm-up (compiling, at the batch's size): first-call costs are not the rollout's
+            _rollout_all(sim, scenes, ds, batch, batch, mode, p.get("compile", True))
+            pred, cost = _rollout_all(sim, scenes, ds, batch, len(scenes) if batch > 1 else p["single_scenes"], mode,
+                                      p.get("compile", True))
             res = {}
             if batch > 1:  # diverged rollouts are counted, not averaged in
                 kept, kept_true, diverged = split_diverged([sc.every(keep) for sc in pred], true)
                 res = {**evaluate_scenes(kept, kept_true, ref.meshes, floor_z=0.0), "diverged": len(diverged)}
             counts = sim.rollout_counts
-            rows.append({"family": "gns" if batch == 1 else ("gns fast" if fast else "gns batched"), "knob": knob,
+            rows.append({"family": "gns" if batch == 1 else MODES[mode], "knob": knob,
                          "label": f"{run_name(run)}: L{m.message_passing_steps}xK{m.processor_repeats}, "
-                                  f"latent {m.latent_size}, dt {1e3 / ds.frame_rate:.1f} ms, batch {batch}"
-                                  + (f", {FAST}" if fast else ""),
+                                  f"latent {m.latent_size}"
+                                  + (f", {cfg.features.mesh_vertices} vertices a mesh" if cfg.features.mesh_vertices else "")
+                                  + f", dt {1e3 / ds.frame_rate:.1f} ms, batch {batch}"
+                                  + {None: "", "fast": f", {FAST}", "fast sym": f", {FAST_SYM}"}[mode],
                          "run": str(run), "batch": batch, "L": m.message_passing_steps, "K": m.processor_repeats,
                          "latent": m.latent_size, "frame_rate": ds.frame_rate, "steps": int(saved["step"]),
-                         "seconds_per_simulated_second": cost, "fast": fast,
+                         "seconds_per_simulated_second": cost, "fast": mode is not None, "mode": mode,
                          "network_share_pct": 100.0 * counts["network"] / max(counts["object_steps"], 1), **res})
         single = next(r for r in rows[-len(modes):] if r["batch"] == 1)
         batched = next(r for r in rows[-len(modes):] if r["family"] == "gns batched")
@@ -225,7 +240,8 @@ def pareto_plot(rows: list[dict], path: Path) -> Path:
                             fontsize=7, xytext=(-4, -11), textcoords="offset points")
     for family, marker, color, what in (("gns", "s", "C5", "GNS, one scene at a time"),
                                         ("gns batched", "^", "C6", "GNS, all test scenes batched"),
-                                        ("gns fast", "*", "C3", f"GNS batched, {FAST}")):
+                                        ("gns fast", "*", "C3", f"GNS batched, {FAST}"),
+                                        ("gns fast sym", "P", "C1", f"GNS batched, {FAST_SYM}")):
         pts = [r for r in rows if r["family"] == family]
         if not pts:
             continue
@@ -260,7 +276,8 @@ def table(rows: list[dict]) -> str:
 def throughput_ratio(rows: list[dict]) -> str:
     """GNS batched rollout throughput against PyBullet at the data's own settings (240 Hz, 50
     iterations), for the GNS at the same 12 fps step: the sweep's base model (L5 K1 latent 64)
-    if trained, else the first 12 fps run; and the most accurate 12 fps run, plain and FAST."""
+    if trained, else the first 12 fps run; the most accurate 12 fps run; every FAST and FAST_SYM
+    rollout of it and of the given runs; and last, the most accurate GNS rollout of all."""
     bullet = [r for r in rows if r["family"] == "pybullet" and r["physics_rate"] == 240 and r["solver_iterations"] == 50]
     at12 = [r for r in rows if abs(r.get("frame_rate", 12.0) - 12.0) < 1e-9]
     gns = [r for r in at12 if r["family"] == "gns batched"]
@@ -268,17 +285,19 @@ def throughput_ratio(rows: list[dict]) -> str:
     if not bullet or not gns:
         return ""
     b = bullet[0]["seconds_per_simulated_second"]
+    options = {"gns fast": f", {FAST}", "gns fast sym": f", {FAST_SYM}"}
 
-    def line(r):
+    def line(r, what=""):
         g = r["seconds_per_simulated_second"]
-        return (f"{run_name(r['run'])} at 12 fps{', ' + FAST if r.get('fast') else ''}: {b / g:.2f}x "
+        return (f"{what}{run_name(r['run'])} at 12 fps{options.get(r['family'], '')}: {b / g:.2f}x "
                 f"({g * 1e3:.3g} vs {b * 1e3:.3g} ms per simulated second per trajectory, "
                 f"{r['position_error_pct']:.3g}% position)")
     lines = ["GNS batched rollout throughput / PyBullet (240 Hz, 50 iterations, one scene a process):", line(gns[0])]
     best = min(gns, key=lambda r: r["position_error_pct"])
     lines.append(line(best))
-    fast = [r for r in at12 if r["family"] == "gns fast" and r["run"] == best["run"]]
-    lines += [line(r) for r in fast]
+    lines += [line(r) for r in at12 if r["family"] in options and (r["run"] == best["run"] or r.get("knob") == "given")]
+    scored = [r for r in at12 if r["family"] in ("gns batched", *options) and "position_error_pct" in r]
+    lines.append(line(min(scored, key=lambda r: r["position_error_pct"]), "at the best accuracy of any GNS rollout: "))
     return "\n".join(dict.fromkeys(lines))
 
 

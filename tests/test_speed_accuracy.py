@@ -21,9 +21,10 @@ def test_tiny_sweep_writes_table_plot_and_a_point_per_setting(tmp_path):
     assert rates == sorted(12.0 * p["fine"] / s for s in t["strides"])
     assert all(r["steps"] == t["steps"] and r["position_error_pct"] >= 0 for r in trained)
     # each trained run again with free flight and bf16 (issue 12), scored and with its network share
-    fast = [r for r in rows if r["family"] == "gns fast"]
-    assert sorted(r["run"] for r in fast) == sorted(r["run"] for r in trained)
-    assert all(0 <= r["network_share_pct"] <= 100 and r["position_error_pct"] >= 0 for r in fast)
+    for family in ("gns fast", "gns fast sym"):
+        fast = [r for r in rows if r["family"] == family]
+        assert sorted(r["run"] for r in fast) == sorted(r["run"] for r in trained)
+        assert all(0 <= r["network_share_pct"] <= 100 and r["position_error_pct"] >= 0 for r in fast)
     assert (out / "pareto.png").stat().st_size > 0 and "| pybullet |" in (out / "table.md").read_text()
 
 
@@ -35,11 +36,15 @@ def test_throughput_ratio_names_the_base_the_most_accurate_and_its_fast_rollout(
             {"family": "gns batched", "knob": "given", "run": "long", "frame_rate": 12.0,
              "seconds_per_simulated_second": 0.01, "position_error_pct": 30.0},
             {"family": "gns fast", "knob": "given", "run": "long", "frame_rate": 12.0, "fast": True,
-             "seconds_per_simulated_second": 0.004, "position_error_pct": 28.0}]
+             "seconds_per_simulated_second": 0.004, "position_error_pct": 28.0},
+            {"family": "gns fast sym", "knob": "given", "run": "long", "frame_rate": 12.0, "fast": True,
+             "seconds_per_simulated_second": 0.01, "position_error_pct": 26.0}]
     lines = speed_accuracy.throughput_ratio(rows).splitlines()
     assert lines[1].startswith("stride4 at 12 fps: 0.25x")
     assert lines[2].startswith("long at 12 fps: 0.50x")
-    assert lines[3].startswith("long at 12 fps, free flight + bf16: 1.25x") and "28% position" in lines[3]
+    assert lines[3].startswith("long at 12 fps, free flight + bf16 + compile: 1.25x") and "28% position" in lines[3]
+    assert lines[4].startswith("long at 12 fps, free flight + bf16 + compile + symmetrized: 0.50x")
+    assert lines[5].startswith("at the best accuracy of any GNS rollout: long") and "26% position" in lines[5]
 
 
 def test_dataset_stride_reads_every_kth_frame_and_refuses_bad_strides(tmp_path):
