@@ -87,6 +87,9 @@ class TrainConfig:
     all_phases: bool = False
     loss: str = "mse"                  # "mse" (paper), "huber" or "l1" on the normalised acceleration
     huber_delta: float = 1.0           # huber: quadratic within this many normalised units
+    # > 0: each node's loss weighted by its object's size^-p (normalised to mean 1 over the
+    # batch): p = 2 makes the loss of a small object count as its error in % of its size does
+    size_weight: float = 0.0
     tensorboard: bool = False          # also write TensorBoard event files to RUN/tb (the tensorboard extra)
     # Start a new run from another run's weights and normalisers (a run folder or .pt): fine-tuning,
     # e.g. on real tosses after training on an engine's. Same architecture, features, frame rate.
@@ -206,6 +209,7 @@ def validate(cfg: Config) -> None:
         (cfg.train.unroll_steps >= 1, "train.unroll_steps must be >= 1"),
         (cfg.train.loss in ("mse", "huber", "l1"), "train.loss must be 'mse', 'huber' or 'l1'"),
         (cfg.train.huber_delta > 0, "train.huber_delta must be > 0"),
+        (cfg.train.size_weight >= 0, "train.size_weight must be >= 0"),
         (cfg.train.log_every >= 1 and cfg.train.checkpoint_every >= 1,
          "train.log_every and train.checkpoint_every must be >= 1"),
         (cfg.valid.every >= 0 and cfg.valid.rollout_steps >= 1, "valid.every must be >= 0, valid.rollout_steps >= 1"),

@@ -455,7 +455,7 @@ class LearnedSimulator(nn.Module):
         return torch.stack(out)
 
     def loss(self, history: torch.Tensor, target: torch.Tensor, graph: GraphBatch, kind: str = "mse",
-             delta: float = 1.0) -> torch.Tensor:
+             delta: float = 1.0, node_weight: torch.Tensor | None = None) -> torch.Tensor:
         """Per-node loss of the normalised acceleration: mean over nodes of the sum over x, y, z.
 
         history (N, 3, 3) float64 (possibly noisy) inputs; target (N, 3) float64 positions at t+1
@@ -463,6 +463,7 @@ class LearnedSimulator(nn.Module):
         kind "mse" is the paper's; "huber" (quadratic within `delta` normalised units, linear
         beyond) and "l1" keep the rare, barely predictable impact accelerations, which are most
         of the normaliser's spread, from drowning the small but systematic ones of friction.
+        node_weight (N,): each node's share of the mean (mean 1: train.size_weight).
         """
         accel = acceleration_of(history[:, -2], history[:, -1], target).to(torch.float32)
         target_norm = self.target_normalizer(accel, accumulate=self.training)
@@ -475,4 +476,5 @@ class LearnedSimulator(nn.Module):
             per = error.abs()
         else:
             raise ValueError(f"unknown loss {kind!r}")
-        return per.sum(-1).mean()
+        per = per.sum(-1)
+        return (per if node_weight is None else per * node_weight).mean()

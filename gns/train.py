@@ -32,7 +32,7 @@ from datagen.shards import Dataset, DataError
 from gns import parallel
 from gns.config import Config, ConfigError, architecture_differences, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
-from gns.graph import MeshLibrary
+from gns.graph import GraphBatch, MeshLibrary, graph_sizes
 from gns.features import HISTORY
 from gns.simulator import LearnedSimulator, shape_match_packed
 from gns.spec import Floor, ModelSpec, SpecError
@@ -245,7 +245,7 @@ def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelS
 
 def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: Batch, lr: float,
                grad_clip: float, loss_kind: str = "mse", huber_delta: float = 1.0,
-               fraction: float = 1.0, processes: int = 1) -> float:
+               fraction: float = 1.0, processes: int = 1, size_weight: float = 0.0) -> float:
     """One Adam step on the per-node MSE of a batch; returns the loss.
 
     On several processes `batch` is this process's share of the global batch, holding
@@ -256,7 +256,7 @@ def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: B
     """
     for group in optimizer.param_groups:
         group["lr"] = lr
-    loss = unrolled_loss(sim, batch, loss_kind, huber_delta)
+    loss = unrolled_loss(sim, batch, loss_kind, huber_delta, size_weight)
     if processes > 1:
         # every process sees the same global loss, so all stop together on a NaN
         total = parallel.sum_over_processes(loss.detach() * fraction)
@@ -274,7 +274,19 @@ def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: B
     return total.item()
 
 
-def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta: float = 1.0) -> torch.Tensor:
+def size_weights(graph: GraphBatch, power: float) -> torch.Tensor | None:
+    """(N,) each node's loss weight, its object's size^-power over the batch's mean, or None for
+    power 0. The metrics score errors in % of each object's size while the loss sums absolute
+    accelerations, so small objects, whose vertices move less, count for less in training than
+    in the score: power 2 evens that out (train.size_weight)."""
+    if not power:
+        return None
+    w = graph_sizes(graph).to(torch.float32)[graph.node_graph] ** -power
+    return w / w.mean()
+
+
+def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta: float = 1.0,
+                  size_weight: float = 0.0) -> torch.Tensor:
     """The one-step loss, averaged over the batch's target frames (pushforward training).
 
     Step k > 1 starts from the model's own earlier predictions, shape-matched as in rollouts and
@@ -283,10 +295,11 @@ def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta:
     acceleration asked for pulls a drifted prediction back toward the truth."""
     targets = batch.targets
     frames = list(batch.history.unbind(1))
+    weight = size_weights(batch.graph, size_weight)
     total = 0.0
     for k in range(targets.shape[1]):
         history = torch.stack(frames[-HISTORY:], dim=1)
-        total = total + sim.loss(history, targets[:, k], batch.graph, kind, delta)
+        total = total + sim.loss(history, targets[:, k], batch.graph, kind, delta, weight)
         if k + 1 < targets.shape[1]:
             with torch.no_grad():
                 x = sim.predict_next(*frames[-HISTORY:], batch.graph)
@@ -643,7 +656,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
             batch, fraction = _next_batch(tracks, rng, cfg, world, lo, hi)
             try:
                 loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, cfg.train.loss,
-                                  cfg.train.huber_delta, fraction, world.size)
+                                  cfg.train.huber_delta, fraction, world.size, cfg.train.size_weight)
             except FloatingPointError as e:
                 raise TrainingError(_stopped(str(e), step + 1, last_good)) from None
             step += 1

@@ -218,3 +218,30 @@ def test_all_phases_gives_a_strided_model_every_window_of_the_data(tmp_path):
     ds = Dataset(data)
     sc = ds.load("train")[0]
     assert np.array_equal(phased.positions[6:12].numpy(), sc.positions[1::2, 0])
+
+
+def test_size_weights_make_a_small_objects_error_count_as_its_share_of_its_size(tmp_path):
+    from gns.graph import graph_sizes
+    from gns.train import size_weights
+    from gns.data import feature_spec
+    ds = Dataset(write_toss_dataset(tmp_path, train=8, valid=0, frames=6))
+    scenes = ds.load("train")
+    assert len({float(sc.scale[0]) for sc in scenes}) == 2      # both MOVi-A sizes
+    sim = build_simulator(build_config(path=TINY), feature_spec(ds, scenes)).eval()
+    tracks = ObjectTracks(scenes, MeshLibrary(ds.meshes))
+    b = tracks.batch(torch.arange(tracks.num_windows))
+    assert size_weights(b.graph, 0.0) is None
+    w = size_weights(b.graph, 2.0)
+    size = graph_sizes(b.graph)[b.graph.node_graph].to(torch.float32)
+    assert torch.allclose(w.mean(), torch.tensor(1.0))
+    # two nodes' weights stand in the inverse square of their objects' sizes
+    i, j = int(size.argmin()), int(size.argmax())
+    assert size[i] < size[j]
+    assert torch.allclose(w[i] / w[j], (size[j] / size[i]) ** 2)
+    # equal weights change nothing; weights move the loss toward the heavier nodes
+    plain = sim.loss(b.history, b.target, b.graph)
+    assert torch.allclose(sim.loss(b.history, b.target, b.graph, node_weight=torch.ones_like(w)), plain)
+    weighted = sim.loss(b.history, b.target, b.graph, node_weight=w)
+    assert not torch.allclose(weighted, plain)
+    with pytest.raises(ConfigError, match="train.size_weight"):
+        build_config(path=TINY, overrides=["train.size_weight=-1"])
