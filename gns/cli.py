@@ -293,8 +293,8 @@ def main(argv: list[str] | None = None) -> None:
     except OSError as e:  # an output that became unwritable, or a full disk, after the checks
         print(f"error: {e.strerror or e}: {e.filename}", file=sys.stderr)
         raise SystemExit(EXIT_FAILED)
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:  # a training says the step it stopped at and saved
+        print(f"error: interrupted{': ' + str(e) if str(e) else ''}", file=sys.stderr)
         raise SystemExit(130)
 
 

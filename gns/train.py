@@ -11,12 +11,15 @@ scheduler state to save.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import random
 import shutil
+import signal
 import sys
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -46,6 +49,35 @@ TENSORBOARD_DIR = "tb"
 
 class TrainingError(Exception):
     """Training cannot go on (e.g. the loss became NaN). One line for a user."""
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C or SIGTERM stopped a training after saving a checkpoint at the step it had reached."""
+
+
+class _StopRequest:
+    """SIGINT and SIGTERM, while installed, ask the loop to stop after the step under way (a
+    checkpoint of a half-done Adam step would not resume exactly); a second signal stops at once.
+    One process only: processes of a parallel run stopping at different steps would hang."""
+
+    def __init__(self):
+        self.asked, self.previous = None, {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self.previous[sig] = signal.signal(sig, self._ask)
+        return self
+
+    def _ask(self, signum, frame):
+        if self.asked is not None:  # asked twice: do not wait for the step
+            raise KeyboardInterrupt
+        self.asked = signal.Signals(signum).name
+
+    def __exit__(self, *exc):
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+        return False
 
 
 class CheckpointError(Exception):
@@ -635,52 +667,23 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
     if world.main:
         _start_run_folder(run, stale, resumed_from, step, config_dict, provenance, log)
 
-    def state() -> dict:
+    def state(step: int) -> dict:
         return {"format": CHECKPOINT_FORMAT, "step": step, "seed": cfg.train.seed, "config": config_dict,
                 "spec": spec.to_dict(), "model": sim.state_dict(), "optimizer": optimizer.state_dict(),
                 "rng": _rng_state(rng), "provenance": provenance}
 
     log(_start_line(cfg, sim, tracks, spec, step, world, resumed_from))
-    lo, hi = parallel.share(cfg.train.batch_size, world)
     last_good = resumed_from
-    loss_sum, loss_count, busy, t_mark = 0.0, 0, 0.0, time.perf_counter()
     bar = tqdm(total=cfg.train.steps, initial=step, unit="step", disable=None if world.main else True,
                dynamic_ncols=True)
     metrics = open(run / METRICS, "a") if world.main else None
     writer = (_tensorboard_writer(run, step + 1 if resumed_from else None)
               if cfg.train.tensorboard and world.main else None)
+    stop = _StopRequest() if world.size == 1 else contextlib.nullcontext()
     try:
-        while step < cfg.train.steps:
-            t0 = time.perf_counter()
-            lr = learning_rate(cfg, step)
-            batch, fraction = _next_batch(tracks, rng, cfg, world, lo, hi)
-            try:
-                loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, cfg.train.loss,
-                                  cfg.train.huber_delta, fraction, world.size, cfg.train.size_weight)
-            except FloatingPointError as e:
-                raise TrainingError(_stopped(str(e), step + 1, last_good)) from None
-            step += 1
-            busy += time.perf_counter() - t0
-            loss_sum += loss
-            loss_count += 1
-            bar.update(1)
-            bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
-
-            validating = valid is not None and step % cfg.valid.every == 0
-            if world.main and (step % cfg.train.log_every == 0 or validating or step == cfg.train.steps):
-                entry = {"step": step, "loss": loss_sum / loss_count, "lr": lr,
-                         "steps_per_sec": loss_count / busy,
-                         "graphs_per_sec": loss_count * cfg.train.batch_size / busy,
-                         "time": time.perf_counter() - t_mark}
-                if validating:
-                    entry.update(validate(sim, valid, cfg, device))
-                _write_metrics(metrics, writer, entry)
-                loss_sum, loss_count, busy = 0.0, 0, 0.0
-            if step % cfg.train.checkpoint_every == 0 or step == cfg.train.steps:
-                if not all(torch.isfinite(p).all() for p in sim.parameters()):
-                    raise TrainingError(_stopped("a weight is not finite", step, last_good))
-                if world.main:
-                    last_good = save_checkpoint(run, state(), cfg.train.keep_checkpoints)
+        with stop:
+            step, last_good = _steps(run, cfg, sim, optimizer, tracks, valid, step, rng, device, world, state,
+                                     last_good, bar, metrics, writer, stop)
     finally:
         bar.close()
         if metrics is not None:
@@ -688,6 +691,54 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
         if writer is not None:
             writer.close()
     return step
+
+
+def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer, tracks: ObjectTracks,
+           valid: ObjectTracks | None, step: int, rng: np.random.Generator, device: torch.device,
+           world: parallel.World, state: Callable[[int], dict], last_good: Path | None, bar, metrics, writer,
+           stop) -> tuple[int, Path | None]:
+    """The loop of _train_loop; returns (step reached, last checkpoint). Stops on a signal
+    (`stop.asked`) after the step under way, with a checkpoint there."""
+    lo, hi = parallel.share(cfg.train.batch_size, world)
+    loss_sum, loss_count, busy = 0.0, 0, 0.0
+    t_mark = time.perf_counter()
+    while step < cfg.train.steps:
+        t0 = time.perf_counter()
+        lr = learning_rate(cfg, step)
+        batch, fraction = _next_batch(tracks, rng, cfg, world, lo, hi)
+        try:
+            loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, cfg.train.loss,
+                              cfg.train.huber_delta, fraction, world.size, cfg.train.size_weight)
+        except FloatingPointError as e:
+            raise TrainingError(_stopped(str(e), step + 1, last_good)) from None
+        step += 1
+        busy += time.perf_counter() - t0
+        loss_sum += loss
+        loss_count += 1
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
+
+        validating = valid is not None and step % cfg.valid.every == 0
+        if world.main and (step % cfg.train.log_every == 0 or validating or step == cfg.train.steps):
+            entry = {"step": step, "loss": loss_sum / loss_count, "lr": lr,
+                     "steps_per_sec": loss_count / busy,
+                     "graphs_per_sec": loss_count * cfg.train.batch_size / busy,
+                     "time": time.perf_counter() - t_mark}
+            if validating:
+                entry.update(validate(sim, valid, cfg, device))
+            _write_metrics(metrics, writer, entry)
+            loss_sum, loss_count, busy = 0.0, 0, 0.0
+        if step % cfg.train.checkpoint_every == 0 or step == cfg.train.steps:
+            if not all(torch.isfinite(p).all() for p in sim.parameters()):
+                raise TrainingError(_stopped("a weight is not finite", step, last_good))
+            if world.main:
+                last_good = save_checkpoint(run, state(step), cfg.train.keep_checkpoints)
+        if getattr(stop, "asked", None):
+            if last_good is None or last_good.name != f"ckpt-{step:06d}.pt":
+                last_good = save_checkpoint(run, state(step), cfg.train.keep_checkpoints)
+            raise TrainingInterrupted(f"{stop.asked}: stopped at step {step} of {cfg.train.steps}, "
+                                      f"checkpoint saved; resume with the same command and --resume")
+    return step, last_good
 
 
 def _start_run_folder(run: Path, stale: list[Path], resumed_from: Path | None, step: int, config_dict: dict,

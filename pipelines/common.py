@@ -82,6 +82,9 @@ def guarded(stages) -> int:
     except OSError as e:  # a folder that became unwritable or a full disk after the checks
         print(f"error: {e.strerror or e}: {e.filename}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:  # a training stopped by Ctrl-C or SIGTERM says where it stopped
+        print(f"error: interrupted{': ' + str(e) if str(e) else ''}; rerun the same command to go on", file=sys.stderr)
+        return 130
     return 0
 
 

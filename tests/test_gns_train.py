@@ -154,3 +154,38 @@ def test_a_cuda_device_on_a_cpu_build_is_one_line(data, tmp_path):
     with pytest.raises(ConfigError, match="CUDA is not available"):
         train(data, tmp_path / "run", tiny("train.device=cuda", "train.steps=2"), log=quiet)
     assert not (tmp_path / "run").exists()
+
+
+def test_a_signal_stops_training_after_the_step_with_a_checkpoint_there(data, tmp_path):
+    import os
+    import signal
+    import threading
+    import time
+
+    from gns.train import TrainingInterrupted
+    cfg = tiny("train.steps=100000", "train.checkpoint_every=100000", "valid.every=0", "train.log_every=1")
+    # SIGTERM (a cluster's preemption, `kill`) once steps are logged; the default would lose every step
+    done = threading.Event()
+
+    def send():
+        log = tmp_path / "metrics.jsonl"
+        while not done.is_set():
+            if log.exists() and len(log.read_text().splitlines()) >= 3:
+                os.kill(os.getpid(), signal.SIGTERM)
+                return
+            time.sleep(0.05)
+    sender = threading.Thread(target=send)
+    sender.start()
+    try:
+        with pytest.raises(TrainingInterrupted, match="SIGTERM: stopped at step"):
+            train(data, tmp_path, cfg, log=quiet)
+    finally:
+        done.set()
+        sender.join()
+    ckpt = read_checkpoint(tmp_path / "latest.pt")
+    assert 0 < ckpt["step"] < 100000 and metrics(tmp_path)[-1]["step"] == ckpt["step"]
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL           # handlers given back
+    # and it goes on from there, as a resumed run does
+    train(data, tmp_path, tiny("train.steps=" + str(ckpt["step"] + 2), "train.checkpoint_every=100000",
+                               "valid.every=0", "train.log_every=1"), resume=True, log=quiet)
+    assert read_checkpoint(tmp_path / "latest.pt")["step"] == ckpt["step"] + 2
