@@ -5,6 +5,18 @@ from pathlib import Path
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_train.py"
 
 
+def learned_vs_physics(tmp_path, test: int, seed: int, shapes: str):
+    """The bench_learned_vs_physics module and a dataset of `test` test scenes to run it on."""
+    from datagen.cli import main as datagen_main
+    data = tmp_path / "d"
+    assert datagen_main(["toss", "--out", str(data), "--scenes", "0", "--test", str(test), "--seed", str(seed),
+                         "--shapes", shapes, "--quiet"]) == 0
+    spec = importlib.util.spec_from_file_location("bench_lvp", BENCH.parent / "bench_learned_vs_physics.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    return bench, data
+
+
 def test_bench_train_prints_a_row_per_preset(capsys):
     spec = importlib.util.spec_from_file_location("bench_train", BENCH)
     bench = importlib.util.module_from_spec(spec)
@@ -56,13 +68,7 @@ def test_bench_train_times_float32_against_bf16_autocast(capsys):
 def test_bench_learned_vs_physics_times_pybullet_and_each_variant_on_the_same_scenes(tmp_path, capsys):
     import json
 
-    from datagen.cli import main as datagen_main
-    data = tmp_path / "d"
-    assert datagen_main(["toss", "--out", str(data), "--scenes", "0", "--test", "3", "--seed", "5",
-                         "--shapes", "beveled_cube,cylinder,sphere", "--quiet"]) == 0
-    spec = importlib.util.spec_from_file_location("bench_lvp", BENCH.parent / "bench_learned_vs_physics.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench, data = learned_vs_physics(tmp_path, 3, 5, "beveled_cube,cylinder,sphere")
     model = Path(__file__).parent / "data" / "gns_movi_a_small.pt"
     assert bench.main(["--run", str(model), "--data", str(data), "--repeats", "1", "--variants", "plain,free+bf16",
                        "--json", str(tmp_path / "b.json")]) == 0
@@ -78,13 +84,7 @@ def test_bench_learned_vs_physics_times_pybullet_and_each_variant_on_the_same_sc
 def test_bench_learned_vs_physics_compares_several_models_in_the_same_rounds(tmp_path):
     import json
 
-    from datagen.cli import main as datagen_main
-    data = tmp_path / "d"
-    assert datagen_main(["toss", "--out", str(data), "--scenes", "0", "--test", "2", "--seed", "6",
-                         "--shapes", "cube", "--quiet"]) == 0
-    spec = importlib.util.spec_from_file_location("bench_lvp2", BENCH.parent / "bench_learned_vs_physics.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench, data = learned_vs_physics(tmp_path, 2, 6, "cube")
     model = str(Path(__file__).parent / "data" / "gns_movi_a_small.pt")
     assert bench.main(["--run", model, "--run", model, "--data", str(data), "--repeats", "1",
                        "--variants", "plain,sym", "--json", str(tmp_path / "b.json")]) == 0
