@@ -90,25 +90,9 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
     T_max, B = int(tracks.length.max()), tracks.num_tracks
     positions = np.full((T_max, B, 3), np.nan)
     quaternions = np.full((T_max, B, 4), np.nan)
-    # Tracks of different lengths share a batch: each batch runs to its longest track and the
-    # others are cut. Real tosses have nearly as many lengths as tosses (80-442 frames), and a
-    # network call costs about the same for 1 or 100 small graphs, so one batch per length
-    # would cost the sum of the lengths in calls instead of the longest.
-    # All objects of a scene are rolled out together (one batch), so collision edges between
-    # them are rebuilt from the predicted positions at every step: batches hold whole scenes.
-    scene_length = torch.tensor([sc.num_frames for sc in scenes])
-    order = torch.argsort(scene_length, stable=True).tolist()
-    batches, current = [], []
-    for i in order:
-        current.append(i)
-        if sum(scenes[j].num_objects for j in current) >= batch_tracks:
-            batches.append(current)
-            current = []
-    if current:
-        batches.append(current)
     bar = tqdm(total=B, unit="track", desc="rollout", disable=not progress)
     counts: dict[str, int] = {}
-    for batch_scenes in batches:
+    for batch_scenes in scene_batches(scenes, batch_tracks):
         ids = torch.cat([tracks.scene_first_track[i] + torch.arange(int(tracks.scene_num_tracks[i]))
                          for i in batch_scenes])
         lengths = tracks.length[ids].tolist()
@@ -121,7 +105,34 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
         bar.update(len(ids))
     bar.close()
     sim.rollout_counts = counts
-    dt = 1.0 / frame_rate
+    return predicted_scenes(scenes, positions, quaternions, 1.0 / frame_rate)
+
+
+def scene_batches(scenes: list[Scene], batch_tracks: int) -> list[list[int]]:
+    """Scene indices in batches of about `batch_tracks` objects, shortest scenes first.
+
+    Tracks of different lengths share a batch: each batch runs to its longest track and the
+    others are cut. Real tosses have nearly as many lengths as tosses (80-442 frames), and a
+    network call costs about the same for 1 or 100 small graphs, so one batch per length
+    would cost the sum of the lengths in calls instead of the longest.
+    All objects of a scene are rolled out together (one batch), so collision edges between
+    them are rebuilt from the predicted positions at every step: batches hold whole scenes."""
+    scene_length = torch.tensor([sc.num_frames for sc in scenes])
+    order = torch.argsort(scene_length, stable=True).tolist()
+    batches, current = [], []
+    for i in order:
+        current.append(i)
+        if sum(scenes[j].num_objects for j in current) >= batch_tracks:
+            batches.append(current)
+            current = []
+    if current:
+        batches.append(current)
+    return batches
+
+
+def predicted_scenes(scenes: list[Scene], positions: np.ndarray, quaternions: np.ndarray, dt: float) -> list[Scene]:
+    """Copies of `scenes` holding the predicted poses (T_max, all tracks, 3 or 4), velocities by
+    finite differences (the given frames' own), and `diverged_at_frame` where a pose is not finite."""
     out, first = [], 0
     for sc in scenes:
         T, N = sc.num_frames, sc.num_objects
