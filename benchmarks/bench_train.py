@@ -37,6 +37,7 @@ from gns.train import build_simulator, learning_rate, train_step
 
 CONFIGS = config_dir()
 SHAPES = ("beveled_cube", "cylinder", "sphere")  # MOVi-A's shapes: 51-64 vertices each
+SYNTHETIC_SPEC = {"floor": {"z": 0.0}, "materials_vary": True}
 
 
 def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0, mesh_vertices: int = 0) -> tuple[ObjectTracks, dict]:
@@ -53,8 +54,7 @@ def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0, mesh_ver
                          shape=[SHAPES[i % 3]], material=["metal"], scale=np.array([rng.choice([0.7, 1.4])]),
                          mass=np.ones(1), friction=np.array([rng.choice([0.4, 0.8])]),
                          restitution=np.array([rng.choice([0.3, 0.7])])))
-    spec = {"floor": {"z": 0.0}, "materials_vary": True}
-    return ObjectTracks(out, MeshLibrary(meshes, mesh_vertices)), spec
+    return ObjectTracks(out, MeshLibrary(meshes, mesh_vertices)), SYNTHETIC_SPEC
 
 
 def matmul_gflops(size: int = 1024, seconds: float = 1.0, dtype=torch.float32) -> float:
@@ -139,7 +139,7 @@ def main(argv=None) -> None:
         source = f"{args.data} ({len(scenes)} train scenes)"
     else:
         tracks = {n: synthetic_tracks(mesh_vertices=n)[0] for n in set(coarse.values())}
-        spec = synthetic_tracks(scenes=1)[1]
+        spec = SYNTHETIC_SPEC
         source = "synthetic tosses of " + ", ".join(SHAPES)
     print(f"data: {source}; load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
     header = (f"{'preset':<26}{'threads':>8}{'LxK':>6}{'latent':>7}{'batch':>6}{'nodes':>7}{'edges':>7}{'steps/s':>9}"

@@ -33,7 +33,8 @@ from datagen.atomic import atomic_file
 from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns import parallel
-from gns.config import Config, ConfigError, architecture_differences, build_config, config_to_dict
+from gns.config import (ARCHITECTURE_SECTIONS, Config, ConfigError, build_config, config_differences,
+                        config_to_dict)
 from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import GraphBatch, MeshLibrary, graph_sizes
 from gns.features import HISTORY
@@ -262,9 +263,7 @@ def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelS
                      fine_tune: bool = False) -> str | None:
     """How a checkpoint (its config and spec) cannot carry on as the model of cfg on data of spec.
     fine_tune: as the start of a new run, which may change FINE_TUNE_FREE (a resumed run may not)."""
-    diffs = architecture_differences(config, cfg)
-    if fine_tune:
-        diffs = [d for d in diffs if not d.startswith(FINE_TUNE_FREE)]
+    diffs = config_differences(config, cfg, ARCHITECTURE_SECTIONS, ignore=FINE_TUNE_FREE if fine_tune else ())
     for key in ("node_features", "edge_features", "collision_features"):
         if (getattr(trained, key) or ()) != getattr(spec, key):
             diffs.append(f"{key} are {list(getattr(trained, key) or ())} in the checkpoint, "

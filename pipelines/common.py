@@ -13,7 +13,7 @@ from datagen.generate import generate
 from datagen.shards import Dataset, DataError
 from gns.config import build_config, config_differences
 from gns.evaluate import write_json
-from gns.train import LATEST, CheckpointError, checkpoint_paths, read_checkpoint, resume_point, train
+from gns.train import LATEST, CheckpointError, checkpoint_paths, resume_point, train
 
 CONFIGS = config_dir()
 
@@ -116,10 +116,15 @@ def trained_step(run: Path) -> int:
 def resumable(run: Path) -> tuple[Path | None, int, str | None]:
     """(newest usable checkpoint, its step, a warning if it is not latest.pt), or (None, -1,
     None) for a run with no checkpoint file."""
+    path, ckpt, note = _resume_point(run)
+    return path, (-1 if ckpt is None else int(ckpt["step"])), note
+
+
+def _resume_point(run: Path) -> tuple[Path | None, dict | None, str | None]:
+    """`resume_point`, or (None, None, None) for a run with no checkpoint file."""
     if not (run / LATEST).exists() and not checkpoint_paths(run):
-        return None, -1, None
-    path, ckpt, note = resume_point(run)
-    return path, int(ckpt["step"]), note
+        return None, None, None
+    return resume_point(run)
 
 
 # settings that do not change what a run learns: a finished run is a result with any of them
@@ -131,11 +136,12 @@ def train_stage(data: Path, run: Path, preset: str, overrides: list[str]) -> Pat
     """Train (or finish training) a run; skip when its checkpoint has reached the step count.
     Returns the checkpoint to evaluate: latest.pt, or the newest readable one if it is torn."""
     cfg = build_config(path=CONFIGS / f"gns_{preset}.toml", overrides=overrides)
-    path, step, note = resumable(run)
-    if path is not None:
+    path, ckpt, note = _resume_point(run)
+    step = -1 if ckpt is None else int(ckpt["step"])
+    if ckpt is not None:
         # a run left by an earlier call with other settings is neither a result of these
         # settings (skipped) nor their start (resumed)
-        changed = config_differences(read_checkpoint(path)["config"], cfg, ignore=SETTINGS_FREE)
+        changed = config_differences(ckpt["config"], cfg, ignore=SETTINGS_FREE)
         if changed:
             raise CheckpointError(f"{run} was trained with other settings ({'; '.join(changed[:3])}"
                                   f"{'; ...' if len(changed) > 3 else ''}): rerun with --fresh, or give another --out")
