@@ -34,17 +34,20 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path):
     """gns_movi_a_long (MOVi-A, 120k steps: 29.1% / 38.4 deg on its 100 test scenes, README),
     gns_movi_a_long2 (bf16 + compile, signed floor clipped at 1.5, 96k + 60k steps: 26.3% / 36.0 deg),
     gns_movi_a_pf (long2 + 35k pushforward steps: 22.6% / 34.1 deg plain, 19.8% / 32.4 deg free flight +
-    symmetrized) and
-    gns_diagnostic_45 (cube drops, 8 of 8 with body-frame rollouts) load by name and roll out
+    symmetrized), gns_movi_a_coarse (the network on 16 vertices a mesh, shape matching on all:
+    25.8% / 35.6 deg free flight) and gns_diagnostic_45 (cube drops, 8 of 8 with body-frame rollouts) load by name and roll out
     fresh scenes of what they were trained on, far better than a broken model would."""
     from datagen.cli import main as datagen
-    assert {"gns_movi_a_long", "gns_movi_a_long2", "gns_movi_a_pf", "gns_diagnostic_45"} <= set(shipped_models())
+    movi_a = ("gns_movi_a_long", "gns_movi_a_long2", "gns_movi_a_pf", "gns_movi_a_coarse")
+    assert {*movi_a, "gns_diagnostic_45"} <= set(shipped_models())
     data = tmp_path / "movi"
     assert datagen(["toss", "--shapes", "beveled_cube,cylinder,sphere", "--scenes", "1", "--test", "6",
                     "--seed", "7", "--quiet", "--out", str(data)]) in (0, None)
-    for name in ("gns_movi_a_long", "gns_movi_a_long2", "gns_movi_a_pf"):
+    for name in movi_a:
         results, *_ = evaluate_run(name, data, "test", progress=False, free_flight=True)
         assert results["num_scenes"] == 6 and not results["outside_training"]
         assert results["position_error_pct"] < 80 and results["penetration_pct"] < 5
+    sim, cfg = load_model(checkpoint_of("gns_movi_a_coarse"))
+    assert cfg.features.mesh_vertices == 16
     sim, cfg = load_model(checkpoint_of("gns_diagnostic_45"))
     assert cfg.augment.body_symmetry and cfg.augment.mirror and sim.layout.floor_z is not None
