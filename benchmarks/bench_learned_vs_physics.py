@@ -158,12 +158,15 @@ def main(argv=None) -> int:
     variants = parse_variants(a.variants)
     torch.set_num_threads(1)
 
-    runs = []
+    runs, splits = [], {}  # the split read once per frame rate, not once per model
     for run in a.run:
         saved = read_checkpoint(checkpoint_of(run))
         sim, _ = load_model(saved, "cpu")
         sim.eval()
-        ds, scenes = load_split(a.data, a.split, a.limit, saved["spec"]["frame_rate"])
+        rate = saved["spec"]["frame_rate"]
+        if rate not in splits:
+            splits[rate] = load_split(a.data, a.split, a.limit, rate)
+        ds, scenes = splits[rate]
         if ds.stride != 1:
             raise SystemExit(f"error: {run} steps at a stride of the data's frames; this benchmark compares "
                              "at the data's own rate")
