@@ -75,22 +75,19 @@ def _threads(n: int) -> None:
 def cmd_rollout(args: argparse.Namespace) -> None:
     import time
 
-    from gns.evaluate import check_ranges, checkpoint_of, load_split, provenance_of
+    from gns.evaluate import check_ranges, checkpoint_of, load_simulator, load_split, provenance_of
     from gns.rollout import (DivergedError, check_output, diverged_line, rollout_scenes, scene_label,
                              write_rollouts)
     from gns.spec import ModelSpec
-    from gns.train import load_model, parse_device, read_checkpoint
+    from gns.train import parse_device
 
     _threads(args.threads)
 
     device = parse_device(args.device, "--device")
     check_output(args.out, args.overwrite, args.data)
     ckpt = checkpoint_of(args.run_dir)
-    saved = read_checkpoint(ckpt)
-    sim, _ = load_model(saved, device)
-    sim.symmetrize = args.symmetrize
-    sim.body_frames = args.body_frames
-    sim.set_speed(args.autocast, args.compile)
+    sim, saved = load_simulator(ckpt, device, args.symmetrize, args.body_frames, args.autocast, args.compile,
+                                args.ensemble)
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(args.data, args.split, args.limit, spec.frame_rate)
     check_ranges(spec, ds, scenes)
@@ -108,7 +105,8 @@ def cmd_rollout(args: argparse.Namespace) -> None:
             "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
             "given_frames": 3, "seconds": seconds,
             "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize, "body_frames": args.body_frames,
-            "free_flight": args.free_flight, "autocast": args.autocast, "compile": args.compile, "object_steps": sim.rollout_counts, **provenance_of(saved, ds)}
+            "free_flight": args.free_flight, "autocast": args.autocast, "compile": args.compile,
+            "ensemble": list(args.ensemble), "object_steps": sim.rollout_counts, **provenance_of(saved, ds)}
     write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
     print(f"rolled out {len(pred)} scenes in {seconds:.2f} s; wrote {len(pred) - len(diverged)} to {args.out}")
 
@@ -125,7 +123,8 @@ def cmd_eval(args: argparse.Namespace) -> None:
                                shape_matching=not args.no_shape_matching, plots_dir=args.plots,
                                batch_tracks=args.batch, sleep=_sleep(args), symmetrize=args.symmetrize,
                                at_data_rate=args.at_data_rate, body_frames=args.body_frames, device=args.device,
-                               free_flight=args.free_flight, autocast=args.autocast, compile=args.compile)
+                               free_flight=args.free_flight, autocast=args.autocast, compile=args.compile,
+                               ensemble=args.ensemble)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched")
@@ -183,6 +182,10 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--free-flight", action="store_true",
                    help="objects out of reach of the floor and of other objects follow the exact inertial update "
                         "(gravity, constant spin) instead of the network, which then runs only on the others")
+    p.add_argument("--ensemble", action="append", default=[], metavar="RUN",
+                   help="another trained run (same features and time step, e.g. another seed) whose prediction "
+                        "each step averages with the model's; repeat for more members, each costs one more "
+                        "network call")
     p.add_argument("--sleep-fraction", type=float, default=0.1, metavar="F",
                    help="--sleep: an object is at rest when no vertex moved F x |g| dt^2 in either input step "
                         "(default 0.1)")

@@ -5,9 +5,11 @@ import dataclasses
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from datagen.atomic import atomic_file
 from datagen.outputs import check_writable
@@ -18,7 +20,7 @@ from gns.data import feature_spec
 from gns.features import HISTORY
 from gns.ranges import outside_training
 from gns.spec import ModelSpec
-from gns.train import LATEST, load_model, parse_device, read_checkpoint
+from gns.train import LATEST, CheckpointError, load_model, parse_device, read_checkpoint
 
 
 SHIPPED_MODELS = Path(__file__).resolve().parent / "models"
@@ -51,13 +53,38 @@ def write_json(path: str | Path, obj) -> None:
         tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=float) + "\n")
 
 
+def load_simulator(run: str | Path, device: str | torch.device = "cpu", symmetrize: bool = False,
+                   body_frames: bool = False, autocast: str = "none", compile: bool = False,
+                   ensemble: Sequence[str | Path] = ()) -> tuple:
+    """The model of `run` (folder, checkpoint or shipped name) set up for rollouts, with the runs
+    of `ensemble` as members whose predictions each step averages (LearnedSimulator.set_ensemble).
+    Returns (simulator, its saved checkpoint)."""
+    saved = read_checkpoint(checkpoint_of(run))
+    sim, _ = load_model(saved, device)
+    sim.symmetrize = symmetrize
+    sim.body_frames = body_frames
+    sim.set_speed(autocast, compile)
+    members = []
+    for other in ensemble:
+        member, _ = load_model(read_checkpoint(checkpoint_of(other)), device)
+        member.set_speed(autocast, compile)
+        members.append(member)
+    if members:
+        try:
+            sim.set_ensemble(members)
+        except ValueError as e:
+            raise CheckpointError(f"--ensemble: {e}") from None
+    return sim, saved
+
+
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
                  shape_matching: bool = True, plots_dir: str | Path | None = None, progress: bool = True,
                  batch_tracks: int = 256, sleep=None, symmetrize: bool = False,
                  at_data_rate: bool = False, body_frames: bool = False,
                  device: str = "cpu", free_flight: bool = False, autocast: str = "none",
-                 compile: bool = False) -> tuple[dict, list, list, Dataset]:
-    """Roll out every scene of a split from its first 3 frames and score it.
+                 compile: bool = False, ensemble: Sequence[str | Path] = ()) -> tuple[dict, list, list, Dataset]:
+    """Roll out every scene of a split from its first 3 frames and score it (with `ensemble`, the
+    predictions averaged with those runs' at every step: load_simulator).
 
     A model trained at every k-th frame rolls out at its own rate from frames 0, k, 2k; it is
     scored at those frames, or with `at_data_rate` at every frame of the data (its poses
@@ -68,11 +95,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     """
     device = parse_device(device, "--device")
     ckpt = checkpoint_of(run)
-    saved = read_checkpoint(ckpt)
-    sim, _ = load_model(saved, device)
-    sim.symmetrize = symmetrize
-    sim.body_frames = body_frames
-    sim.set_speed(autocast, compile)
+    sim, saved = load_simulator(ckpt, device, symmetrize, body_frames, autocast, compile, ensemble)
     if plots_dir is not None:
         check_writable(plots_dir, "plots folder")
     spec = ModelSpec.from_dict(saved["spec"])
@@ -99,7 +122,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                    diverged_scenes=diverged, num_diverged=len(diverged), symmetrize=symmetrize,
                    body_frames=body_frames, at_data_rate=at_data_rate, model_stride=model_stride,
                    free_flight=free_flight, object_steps=counts, autocast=autocast, compile=compile,
-                   device=str(device), **provenance_of(saved, ds))
+                   ensemble=[str(r) for r in ensemble], device=str(device), **provenance_of(saved, ds))
     return results, pred, scenes, ds
 
 

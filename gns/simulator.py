@@ -7,7 +7,7 @@ throughout; the network runs in float32 on normalised features.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import torch
@@ -163,6 +163,11 @@ FLOOR_SYMMETRIES = ((1.0, 1.0, 1.0), (-1.0, 1.0, 1.0), (1.0, -1.0, 1.0), (-1.0, 
 IMAGE_NODES = 32768  # most nodes in one network call of symmetrized images (predict_acceleration)
 
 
+def _listed(t: torch.Tensor | None) -> list | None:
+    """A small tensor as a list, for comparisons and messages."""
+    return None if t is None else [round(float(v), 12) for v in t.reshape(-1)]
+
+
 class LearnedSimulator(nn.Module):
     """GNS for rigid meshes. `spec` is what it is trained on (gns.spec.ModelSpec; gns.data.feature_spec)."""
 
@@ -262,23 +267,48 @@ class LearnedSimulator(nn.Module):
         nodes, edge_sets = self._inputs(history, graph)
         return self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
 
-    def predict_acceleration(self, history: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
-        """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2.
+    def set_ensemble(self, members: Sequence["LearnedSimulator"]) -> None:
+        """Average every step's predicted acceleration with these models' (an ensemble: runs
+        trained apart, e.g. other seeds; each carries its own normalisers and speed settings).
+        They must read the same graphs and inputs: the same features, floor, collision edges,
+        network mesh and time step; ValueError names the first difference."""
+        for k, m in enumerate(members, 1):
+            for what, mine, theirs in (("features", self.layout, m.layout),
+                                       ("network mesh (features.mesh_vertices)", self.mesh_vertices, m.mesh_vertices),
+                                       ("time step and gravity", _listed(self.gravity_per_frame),
+                                        _listed(m.gravity_per_frame))):
+                if mine != theirs:
+                    raise ValueError(f"ensemble member {k} differs from the model in its {what}: "
+                                     f"{theirs} there, {mine} in the model")
+        self.__dict__["_members"] = list(members)
 
-        With `self.symmetrize` (a rollout option, off by default), the prediction is averaged over
+    def predict_acceleration(self, history: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
+        """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2: this model's
+        prediction, averaged with its ensemble members' (set_ensemble) if any, each symmetrized
+        as this model is asked to be."""
+        members = self.__dict__.get("_members") or ()
+        acc = self._predict_one(history, graph, self.symmetrize, self.body_frames)
+        for m in members:
+            acc = acc + m._predict_one(history, graph, self.symmetrize, self.body_frames)
+        return acc / (1 + len(members))
+
+    def _predict_one(self, history: torch.Tensor, graph: GraphBatch, symmetrize: bool, body_frames: bool) -> torch.Tensor:
+        """This model's acceleration (N, 3) float64.
+
+        With `symmetrize` (`self.symmetrize`, a rollout option, off by default), it is averaged over
         the world's floor symmetries {identity, mirror x, mirror y, half turn about z}: each maps
         the input, the network predicts, the map is undone. The result is exactly equivariant
         to those four maps applied to the scene, body frames included (a cube tilted 45 + d is the mirror
         of one tilted 45 - d only up to its body frame: docs/diagnostic_45.md), where
         the network alone is only approximately so (trained with random z rotations).
-        With `self.body_frames` too, each object's rest shape is also described in every one of
+        With `body_frames` too, each object's rest shape is also described in every one of
         its equivalent body frames (graph.symmetries, the rotations mapping its mesh onto itself,
         e.g. a cube's 24) and the predictions averaged: exactly invariant to which frame describes
         an object, at that many times the cost."""
-        syms = graph.symmetries if self.body_frames else None
-        if not self.symmetrize and syms is None:
+        syms = graph.symmetries if body_frames else None
+        if not symmetrize and syms is None:
             return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
-        floors = FLOOR_SYMMETRIES if self.symmetrize else FLOOR_SYMMETRIES[:1]
+        floors = FLOOR_SYMMETRIES if symmetrize else FLOOR_SYMMETRIES[:1]
         frames = 1 if syms is None else syms.shape[1]
         inputs, graphs, maps = [], [], []
         for k in range(frames):

@@ -1,4 +1,6 @@
 """Contact-weighted window sampling and pushforward (unrolled) training."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -182,6 +184,26 @@ def test_symmetrized_predictions_are_exactly_mirror_and_half_turn_equivariant(tm
     g = torch.tensor((-1.0, 1.0, 1.0), dtype=torch.float64)
     mirrored = sim.predict_acceleration(b.history * g, replace(b.graph, rest=b.graph.rest * g))
     assert not torch.allclose(mirrored, plain * g, atol=1e-6)
+
+
+def test_an_ensemble_averages_its_members_predictions_and_refuses_a_member_reading_other_inputs(tmp_path):
+    sim, b = sim_and_batch(tmp_path)
+    other, _ = sim_and_batch(tmp_path / "other")   # a second build draws other initial weights
+    a, o = sim.predict_acceleration(b.history, b.graph), other.predict_acceleration(b.history, b.graph)
+    assert not torch.allclose(a, o, atol=1e-6)
+    sim.set_ensemble([other])
+    torch.testing.assert_close(sim.predict_acceleration(b.history, b.graph), (a + o) / 2, rtol=0, atol=1e-9)
+    sim.symmetrize = True    # each member symmetrized as the model is asked to be: still exactly equivariant
+    both = sim.predict_acceleration(b.history, b.graph)
+    g = torch.tensor((-1.0, 1.0, 1.0), dtype=torch.float64)
+    mirrored = sim.predict_acceleration(b.history * g, replace(b.graph, rest=b.graph.rest * g))
+    torch.testing.assert_close(mirrored, both * g, rtol=0, atol=1e-6)
+    coarse, _ = sim_and_batch(tmp_path / "coarse", "features.mesh_vertices=4")
+    with pytest.raises(ValueError, match="member 1 differs .* network mesh"):
+        sim.set_ensemble([coarse])
+    no_floor, _ = sim_and_batch(tmp_path / "nofloor", "features.floor_distance=false")
+    with pytest.raises(ValueError, match="member 1 differs .* features"):
+        sim.set_ensemble([no_floor])
 
 
 def test_upsampling_a_strided_rollout_recovers_a_smooth_trajectory_at_every_frame():

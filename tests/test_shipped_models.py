@@ -30,7 +30,7 @@ def test_the_256_toss_model_rolls_out_real_tosses_within_its_measured_error(tmp_
     assert results["penetration_pct"] < 5
 
 
-def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path):
+def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, capsys):
     """gns_movi_a_long (MOVi-A, 120k steps: 29.1% / 38.4 deg on its 100 test scenes, README),
     gns_movi_a_long2 (bf16 + compile, signed floor clipped at 1.5, 96k + 60k steps: 26.3% / 36.0 deg),
     gns_movi_a_pf (long2 + 35k pushforward steps: 22.6% / 34.1 deg plain, 19.8% / 32.4 deg free flight +
@@ -47,6 +47,15 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path):
         results, *_ = evaluate_run(name, data, "test", progress=False, free_flight=True)
         assert results["num_scenes"] == 6 and not results["outside_training"]
         assert results["position_error_pct"] < 80 and results["penetration_pct"] < 5
+    # an ensemble of two MOVi-A models rolls out; one of another network mesh is refused in one line
+    results, *_ = evaluate_run("gns_movi_a_pf", data, "test", progress=False, ensemble=["gns_movi_a_long2"])
+    assert results["ensemble"] == ["gns_movi_a_long2"] and results["position_error_pct"] < 80
+    from gns.cli import main as gns_cli
+    with pytest.raises(SystemExit) as stop:
+        gns_cli(["eval", "--run", "gns_movi_a_pf", "--ensemble", "gns_movi_a_coarse", "--data", str(data)])
+    assert stop.value.code == 2
+    assert capsys.readouterr().err.strip().startswith("error: --ensemble: ensemble member 1 differs from the "
+                                                      "model in its network mesh")
     sim, cfg = load_model(checkpoint_of("gns_movi_a_coarse"))
     assert cfg.features.mesh_vertices == 16
     sim, cfg = load_model(checkpoint_of("gns_diagnostic_45"))
