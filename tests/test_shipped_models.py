@@ -30,6 +30,21 @@ def test_the_256_toss_model_rolls_out_real_tosses_within_its_measured_error(tmp_
     assert results["penetration_pct"] < 5
 
 
+def test_the_16_toss_ensemble_is_shipped_and_rolls_out_as_one_model(tmp_path):
+    """gns_real_cubes_n16_e_*: 4 seeds trained on the 16 real tosses and 4 on them plus 2000 tosses
+    of the MuJoCo identified on them; averaged every step, 12.1% / 13.4 deg on the 96 test tosses
+    (docs/accuracy.md)."""
+    from datagen.contactnets import import_contactnets
+    members = [f"gns_real_cubes_n16_e_{kind}{s}" for kind in ("mujoco", "real") for s in range(4)]
+    assert set(members) <= set(shipped_models())
+    data = tmp_path / "cubes"
+    import_contactnets(CUBES, data, progress=False)
+    results, *_ = evaluate_run(members[0], data, "test", symmetrize=True, at_data_rate=True, progress=False,
+                               ensemble=members[1:])
+    assert results["num_scenes"] == 3 and results["ensemble"] == members[1:]
+    assert results["position_error_pct"] < 30 and results["rotation_error_deg"] < 30
+
+
 def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, capsys):
     """gns_movi_a_long (MOVi-A, 120k steps: 29.1% / 38.4 deg on its 100 test scenes, README),
     gns_movi_a_long2 (bf16 + compile, signed floor clipped at 1.5, 96k + 60k steps: 26.3% / 36.0 deg),
