@@ -175,8 +175,9 @@ def _add_rollout_args(p) -> None:
                    help="also average over each object's equivalent body frames (a cube's 24 rotations onto "
                         "itself): exactly invariant to which one describes it, at that many times the cost")
     p.add_argument("--autocast", choices=["none", "bf16"], default="none",
-                   help="run the network (only) under bfloat16 autocast: 1.6-2.8x faster rollouts on CPUs with "
-                        "avx512_bf16, accuracy measured unchanged (benchmarks/bench_learned_vs_physics.py)")
+                   help="run the network (only) under bfloat16 autocast, accuracy measured unchanged: 1.6-2.8x "
+                        "faster rollouts on an AMD EPYC with avx512_bf16, but 1.8x slower matrix products on an "
+                        "Intel Xeon with avx512_bf16 and no AMX; measure yours (benchmarks/bench_learned_vs_physics.py)")
     p.add_argument("--compile", action="store_true",
                    help="run the network through torch.compile (the first steps compile, tens of seconds)")
     p.add_argument("--free-flight", action="store_true",
