@@ -294,6 +294,11 @@ def main(argv: list[str] | None = None) -> None:
     except (TrainingError, DivergedError) as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(EXIT_FAILED)
+    except BrokenPipeError:
+        # the reader of our output left (`gns eval ... | head`): end quietly, as other tools do;
+        # stdout goes to /dev/null so that Python's flush at exit does not complain again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        raise SystemExit(EXIT_FAILED)
     except OSError as e:  # an output that became unwritable, or a full disk, after the checks
         print(f"error: {e.strerror or e}: {e.filename}", file=sys.stderr)
         raise SystemExit(EXIT_FAILED)

@@ -161,3 +161,16 @@ def test_eval_and_rollout_threads(data, tmp_path, capsys):
     assert torch.get_num_threads() == 2
     main(["eval", "--run", str(tmp_path / "r"), "--data", data, "--split", "valid"])
     assert torch.get_num_threads() == 1
+
+
+def test_a_reader_that_leaves_ends_the_command_quietly(monkeypatch, capfd):
+    """`gns eval ... | head`: the closed pipe is no `error:` line, and the exit status says it failed."""
+    import gns.cli as cli
+
+    def leaves(args):
+        raise BrokenPipeError(32, "Broken pipe")
+    monkeypatch.setattr(cli, "cmd_eval", leaves)
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["eval", "--run", "x", "--data", "y"])
+    assert stop.value.code == cli.EXIT_FAILED
+    assert "error" not in capfd.readouterr().err
