@@ -59,22 +59,18 @@ def load_simulator(run: str | Path, device: str | torch.device = "cpu", symmetri
     """The model of `run` (folder, checkpoint or shipped name) set up for rollouts, with the runs
     of `ensemble` as members whose predictions each step averages (LearnedSimulator.set_ensemble).
     Returns (simulator, its saved checkpoint)."""
-    saved = read_checkpoint(checkpoint_of(run))
-    sim, _ = load_model(saved, device)
-    sim.symmetrize = symmetrize
+    checkpoints = [read_checkpoint(checkpoint_of(r)) for r in (run, *ensemble)]
+    sim, *members = [load_model(saved, device)[0] for saved in checkpoints]
+    for model in (sim, *members):
+        model.set_speed(autocast, compile)
+    sim.symmetrize = symmetrize   # members follow the model's symmetrization (set_ensemble)
     sim.body_frames = body_frames
-    sim.set_speed(autocast, compile)
-    members = []
-    for other in ensemble:
-        member, _ = load_model(read_checkpoint(checkpoint_of(other)), device)
-        member.set_speed(autocast, compile)
-        members.append(member)
     if members:
         try:
             sim.set_ensemble(members)
         except ValueError as e:
             raise CheckpointError(f"--ensemble: {e}") from None
-    return sim, saved
+    return sim, checkpoints[0]
 
 
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,

@@ -286,8 +286,10 @@ class LearnedSimulator(nn.Module):
         """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2: this model's
         prediction, averaged with its ensemble members' (set_ensemble) if any, each symmetrized
         as this model is asked to be."""
-        members = self.__dict__.get("_members") or ()
         acc = self._predict_one(history, graph, self.symmetrize, self.body_frames)
+        members = self.__dict__.get("_members")
+        if not members:  # the rollout's hot path: no extra tensor work without an ensemble
+            return acc
         for m in members:
             acc = acc + m._predict_one(history, graph, self.symmetrize, self.body_frames)
         return acc / (1 + len(members))

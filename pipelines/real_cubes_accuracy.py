@@ -30,7 +30,7 @@ from pipelines.common import Costs, done, guarded, say, train_stage
 from pipelines.engine_pretrain import synthetic_stage
 from pipelines.real_cubes_baselines import available_engines, baselines_stage
 from pipelines.real_cubes_data import duplicate_groups, import_stage, make_split, read_tosses, training_ids
-from pipelines.real_cubes_report import ENGINE_LABELS, summary
+from pipelines.real_cubes_report import ENGINE_LABELS, metric_cells, summary
 
 # The real-cube training settings of pipelines/real_cubes.py (batch 32, lr 1e-3, input noise 0.001
 # half-widths), plus the levers that measured best (docs/accuracy.md).
@@ -180,7 +180,6 @@ def plot(path: Path, results: dict) -> Path:
 
 
 def report(out: Path, results: dict) -> Path:
-    f = lambda r: f"{r['position_error_pct']:.2f} | {r['rotation_error_deg']:.2f} | {r['penetration_pct']:.2f}"  # noqa: E731
     lines = [f"# Real cube tosses: tuned GNS against tuned engines (preset `{results['preset']}`)", "",
              f"Made by `python -m pipelines.real_cubes_accuracy --src {results['src']} --preset {results['preset']}`.",
              "All scored on the same test tosses at every recorded frame (docs/metrics.md). Engines: the better "
@@ -188,14 +187,14 @@ def report(out: Path, results: dict) -> Path:
              "| training tosses | simulator | steps | position % | rotation deg | penetration % |",
              "|---|---|---|---|---|---|"]
     for n, row in results["sizes"].items():
-        lines.append(f"| {n} | GNS | {row['steps']} | {f(row['gns'])} |")
+        lines.append(f"| {n} | GNS | {row['steps']} | {metric_cells(row['gns'])} |")
         if "gns_engine_data" in row:
             e = row["engine_data"]
             lines.append(f"| {n} | GNS on the real tosses x{e['real_copies']} + {e['synthetic']} tuned-MuJoCo tosses "
-                         f"| {row['steps']} | {f(row['gns_engine_data'])} |")
+                         f"| {row['steps']} | {metric_cells(row['gns_engine_data'])} |")
         for e in results["engines"]:
-            lines.append(f"| {n} | {ENGINE_LABELS[e]} tuned (from {row[e]['given_frames']} frames) | - | {f(row[e])} |")
-    lines += ["", f"PyBullet with the published constants: {f(results['published'])}.", "",
+            lines.append(f"| {n} | {ENGINE_LABELS[e]} tuned (from {row[e]['given_frames']} frames) | - | {metric_cells(row[e])} |")
+    lines += ["", f"PyBullet with the published constants: {metric_cells(results['published'])}.", "",
               "![accuracy](plots/accuracy.png)"]
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")

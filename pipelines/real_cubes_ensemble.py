@@ -28,7 +28,7 @@ from pipelines.common import Costs, done, guarded, say, train_stage, trained_ste
 from pipelines.engine_pretrain import synthetic_stage
 from pipelines.real_cubes_baselines import available_engines, baselines_stage
 from pipelines.real_cubes_data import duplicate_groups, import_stage, make_split, read_tosses, training_ids
-from pipelines.real_cubes_report import summary
+from pipelines.real_cubes_report import metric_cells, summary
 
 # The 16-toss recipe of docs/accuracy.md (session 4's floor feature), as the shipped members were trained.
 RECIPE = ("train.threads=1", "train.batch_size=32", "train.lr_init=1e-3", "augment.noise_std=0.001",
@@ -122,8 +122,6 @@ def run(preset: str, src: Path, out: Path, export: Path | None = None) -> dict:
 
 
 def report(out: Path, results: dict) -> Path:
-    f = lambda r: "- | - | -" if r is None else \
-        f"{r['position_error_pct']:.2f} | {r['rotation_error_deg']:.2f} | {r['penetration_pct']:.2f}"  # noqa: E731
     lines = [f"# Real cube tosses: an ensemble GNS at {results['tosses']} tosses (preset `{results['preset']}`)", "",
              f"Made by `python -m pipelines.real_cubes_ensemble --src {results['src']} --preset {results['preset']}`. "
              f"{results['seeds']} seeds of each recipe, {results['steps']} steps; `mujoco`: {results['synthetic']} "
@@ -132,8 +130,8 @@ def report(out: Path, results: dict) -> Path:
              "| model | test position % | rotation deg | penetration % | valid position % | rotation deg | penetration % |",
              "|---|---|---|---|---|---|---|"]
     for name, row in results["rows"].items():
-        lines.append(f"| {name} | {f(row['test'])} | {f(row.get('valid'))} |")
-    lines.append(f"| MuJoCo identified on the same tosses | {f(results['mujoco']['test'])} | | | |")
+        lines.append(f"| {name} | {metric_cells(row['test'])} | {metric_cells(row.get('valid'))} |")
+    lines.append(f"| MuJoCo identified on the same tosses | {metric_cells(results['mujoco']['test'])} | | | |")
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path

@@ -94,6 +94,13 @@ def make_plots(out: Path, results: dict) -> list[Path]:
     return paths
 
 
+def metric_cells(r: dict | None) -> str:
+    """Position %, rotation deg and penetration % of a summary as table cells (2 decimals), "-" for none."""
+    if r is None:
+        return "- | - | -"
+    return f"{r['position_error_pct']:.2f} | {r['rotation_error_deg']:.2f} | {r['penetration_pct']:.2f}"
+
+
 def _row(name: str, r: dict) -> str:
     return f"| {name} | " + " | ".join(number(r[k]) for k in METRICS) + " |"
 
