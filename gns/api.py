@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 from datagen.shards import DataError
 from gns.config import Config, ConfigError
 from gns.features import HISTORY
-from gns.graph import GraphBatch, MeshLibrary
+from gns.graph import GraphBatch
 from gns.ranges import outside_training
 from gns.simulator import LearnedSimulator, shape_match_packed
 from gns.spec import ModelSpec
@@ -142,7 +142,7 @@ class Model:
         self.quaternion_order, self.source = quaternion_order, source
         self.meshes = meshes
         # the graphs the network was trained on: the coarse meshes of features.mesh_vertices, if any
-        self._library = MeshLibrary(meshes, simulator.mesh_vertices)
+        self._library = simulator.mesh_library(meshes)
 
     frame_rate = property(lambda self: float(self.spec.frame_rate), doc="model steps per second")
     dt = property(lambda self: 1.0 / self.frame_rate, doc="seconds per step (the data's frame time x frame_stride)")

@@ -47,6 +47,9 @@ class FeatureConfig:
     # > 0: the network sees this many vertices of each mesh (farthest-point subset joined by its
     # hull's edges, gns.coarse_mesh); shape matching and the scores keep the full mesh. 0 = all
     mesh_vertices: int = 0
+    # a node at each object's centre of mass joined to all its vertices (gns.graph.centre_spokes):
+    # every vertex two message-passing steps from every other, whatever the mesh
+    centre_node: bool = False
 
 
 @dataclass

@@ -30,6 +30,22 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(pairs, axis=0)
 
 
+def centre_spokes(num_vertices: int) -> np.ndarray:
+    """Edges both ways between vertices 0 .. n-1 and a centre node n: (2n, 2) int64.
+
+    On a mesh graph a contact reaches a vertex only after as many message-passing steps as
+    there are edges between them; the MOVi-A sphere and beveled cube are 6 edges across, more
+    than the `gns_cpu` preset's 5 steps, so the far side of an object never heard of a
+    contact, and shape matching averaged its silence into too little spin. Through a centre
+    node every vertex is 2 steps from every other. The centre is an ordinary node (rest
+    position 0, the centre of mass) and the spokes ordinary mesh edges, so the network keeps
+    its parameters: a model without it can be fine-tuned with it.
+    """
+    ring = np.arange(num_vertices, dtype=np.int64)
+    centre = np.full(num_vertices, num_vertices, np.int64)
+    return np.concatenate([np.stack([ring, centre], 1), np.stack([centre, ring], 1)])
+
+
 @dataclass
 class EdgeSet:
     senders: torch.Tensor    # (E,) int64 node index
@@ -139,14 +155,20 @@ def ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 class MeshLibrary:
     """The dataset's rest meshes, stored once, from which batches of graphs are packed."""
 
-    def __init__(self, meshes: dict[str, tuple[np.ndarray, np.ndarray]], max_vertices: int = 0):
+    def __init__(self, meshes: dict[str, tuple[np.ndarray, np.ndarray]], max_vertices: int = 0,
+                 centre_node: bool = False):
         """max_vertices > 0: graphs of each mesh's coarse version (gns.coarse_mesh), as the
-        network of a model trained with features.mesh_vertices sees them."""
+        network of a model trained with features.mesh_vertices sees them. centre_node: each
+        graph also has a node at its centre of mass joined to every vertex (centre_spokes)."""
         meshes = network_meshes(meshes, max_vertices)
         self.names = sorted(meshes)
         self.index = {name: i for i, name in enumerate(self.names)}
         verts = [np.asarray(meshes[n][0], np.float64) for n in self.names]
         edges = [mesh_edges(meshes[n][1]) for n in self.names]
+        self.centre_node = centre_node
+        if centre_node:
+            edges = [np.concatenate([e, centre_spokes(len(v))]) for v, e in zip(verts, edges)]
+            verts = [np.concatenate([v, np.zeros((1, 3))]) for v in verts]
         for name, v, e in zip(self.names, verts, edges):
             if len(e) and e.max() >= len(v):
                 raise ValueError(f"mesh {name!r}: a face names vertex {e.max()}, it has {len(v)}")

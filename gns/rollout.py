@@ -25,7 +25,6 @@ from datagen.shards import Dataset, DataError, Scene, shard_name, write_metadata
 from gns.data import ObjectTracks
 from gns.features import HISTORY
 from gns.geometry import matrix_to_quat
-from gns.graph import MeshLibrary
 from gns.simulator import LearnedSimulator, Sleep
 
 
@@ -84,7 +83,7 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
     `sleep` and `free_flight`: see LearnedSimulator.rollout; the share of object-steps that
     entered the network is left in `sim.rollout_counts` (summed over batches)."""
     sim.eval()
-    tracks = ObjectTracks(scenes, MeshLibrary(meshes, sim.mesh_vertices), name="rollout scenes")
+    tracks = ObjectTracks(scenes, sim.mesh_library(meshes), name="rollout scenes")
     if int(tracks.length.min()) <= HISTORY:
         raise DataError(f"every scene needs more than {HISTORY} frames to roll out")
     T_max, B = int(tracks.length.max()), tracks.num_tracks

@@ -16,7 +16,7 @@ from torch import nn
 from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_collision_features,
                           raw_edge_features, raw_node_features)
 from gns.contacts import surface_edges
-from gns.graph import (EdgeSet, GraphBatch, candidate_pairs, collision_edges, per_graph, select_graphs, stack_graphs,
+from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collision_edges, per_graph, select_graphs, stack_graphs,
                        with_symmetries)
 from gns.network import EncodeProcessDecode
 from gns.spec import ModelSpec
@@ -184,8 +184,9 @@ class LearnedSimulator(nn.Module):
         # the same as a vector: the centre's second difference in free flight (units per frame^2)
         self.gravity_per_frame = spec.gravity_per_frame
         self.collision_mode = features_cfg.collision_mode  # "vertex" or "surface", checked by gns.config
-        # graphs for this model: MeshLibrary(meshes, sim.mesh_vertices) (gns.coarse_mesh)
+        # the graphs this model reads: self.mesh_library(meshes)
         self.mesh_vertices = int(getattr(features_cfg, "mesh_vertices", 0))
+        self.centre_node = bool(getattr(features_cfg, "centre_node", False))
         self.layout: FeatureLayout = make_layout(features_cfg, spec.floor_z, spec.materials_vary,
                                                  collisions=spec.collision_edges, gravity_step=self.gravity_step)
         steps = features_cfg.normalizer_steps
@@ -200,6 +201,11 @@ class LearnedSimulator(nn.Module):
             hidden=model_cfg.hidden_size, hidden_layers=model_cfg.hidden_layers,
             message_passing_steps=model_cfg.message_passing_steps,
             processor_repeats=model_cfg.processor_repeats, collision_edge_in=self.layout.collision_size)
+
+    def mesh_library(self, meshes: dict) -> MeshLibrary:
+        """The graphs of `meshes` as this model's network reads them: coarse meshes
+        (features.mesh_vertices) and centre nodes (features.centre_node) as trained."""
+        return MeshLibrary(meshes, self.mesh_vertices, self.centre_node)
 
     def distribute(self, wrapper: nn.Module | None) -> None:
         """Train the network through `wrapper` (a DistributedDataParallel of self.network, which
@@ -274,7 +280,8 @@ class LearnedSimulator(nn.Module):
         network mesh and time step; ValueError names the first difference."""
         for k, m in enumerate(members, 1):
             for what, mine, theirs in (("features", self.layout, m.layout),
-                                       ("network mesh (features.mesh_vertices)", self.mesh_vertices, m.mesh_vertices),
+                                       ("network mesh (features.mesh_vertices, features.centre_node)",
+                                        (self.mesh_vertices, self.centre_node), (m.mesh_vertices, m.centre_node)),
                                        ("time step and gravity", _listed(self.gravity_per_frame),
                                         _listed(m.gravity_per_frame))):
                 if mine != theirs:

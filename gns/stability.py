@@ -52,7 +52,7 @@ def long_rollouts(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, floo
     """Roll the scenes out `factor` times their length. Distortion is the largest change of a
     mesh edge's length (% of the object's size); penetration the deepest vertex below the floor."""
     steps = factor * max(sc.num_frames for sc in scenes)
-    graph, _, pred, size = _roll(sim, scenes, MeshLibrary(meshes, sim.mesh_vertices), steps)
+    graph, _, pred, size = _roll(sim, scenes, sim.mesh_library(meshes), steps)
     s, r = graph.mesh_edges.senders, graph.mesh_edges.receivers
     rest_len = (graph.rest[s] - graph.rest[r]).norm(dim=-1)
     distortion = ((pred[:, s] - pred[:, r]).norm(dim=-1) - rest_len).abs()
@@ -81,7 +81,7 @@ def resting_scene(shape: str, scale: float, meshes: dict, floor_z: float, frames
 def at_rest(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, steps: int = 1000,
             sleep: Sleep | None = None) -> list[dict]:
     """Drift of each resting scene's object centre after `steps` (% of its size)."""
-    graph, given, pred, size = _roll(sim, scenes, MeshLibrary(meshes, sim.mesh_vertices), steps, sleep)
+    graph, given, pred, size = _roll(sim, scenes, sim.mesh_library(meshes), steps, sleep)
     centre = torch.stack([graph_centres(pred[k], graph) for k in (0, steps // 10 - 1, steps - 1)])
     start = graph_centres(given[:, -1], graph)
     drift = (centre - start).norm(dim=-1) / size * 100
@@ -137,7 +137,7 @@ def extremes(sim: LearnedSimulator, trained_spec: ModelSpec, scenes: list[Scene]
     finite and (for a shift or a float32 copy, whose exact answer is the original rollout
     shifted or unchanged) equal to the original within SAME_PCT of the object size."""
     steps = steps or max(sc.num_frames for sc in scenes) - HISTORY
-    library = MeshLibrary(ds.meshes, sim.mesh_vertices)
+    library = sim.mesh_library(ds.meshes)
     _, _, base, size = _roll(sim, scenes, library, steps)
     rows = []
     for name, change in extreme_variants().items():

@@ -256,7 +256,7 @@ def _init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec)
 
 
 # keys a fine-tuning run (train.init_from) may change: the weights do not depend on them
-FINE_TUNE_FREE = ("features.mesh_vertices",)
+FINE_TUNE_FREE = ("features.mesh_vertices", "features.centre_node")
 
 
 def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec,
@@ -527,7 +527,7 @@ def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTrack
         full = Dataset(data_dir).load("train")
         scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
     try:
-        library = MeshLibrary(dataset.meshes, cfg.features.mesh_vertices)
+        library = MeshLibrary(dataset.meshes, cfg.features.mesh_vertices, cfg.features.centre_node)
     except ValueError as e:
         raise DataError(f"{data_dir}: {e}") from None
     tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)

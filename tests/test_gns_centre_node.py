@@ -1,0 +1,82 @@
+"""A node at each object's centre of mass joined to all its vertices (features.centre_node)."""
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import torch
+from scipy.sparse.csgraph import shortest_path
+from gns_fixtures import write_toss_dataset
+
+import gns
+from datagen.shapes import get_shape
+from gns.graph import MeshLibrary, centre_spokes
+from gns.simulator import shape_match_packed
+from gns.train import CheckpointError, read_checkpoint, train
+from test_gns_train import quiet, tiny
+
+
+def _hops(graph) -> np.ndarray:
+    n = graph.num_nodes
+    s, r = graph.mesh_edges.senders.numpy(), graph.mesh_edges.receivers.numpy()
+    return shortest_path(sp.csr_matrix((np.ones(len(s)), (s, r)), shape=(n, n)), unweighted=True)
+
+
+@pytest.mark.parametrize("shape", ["sphere", "beveled_cube"])
+def test_every_vertex_is_two_steps_from_every_other_through_the_centre(shape):
+    mesh = get_shape(shape)
+    plain = MeshLibrary({"m": (mesh.vertices, mesh.faces)})
+    centred = MeshLibrary({"m": (mesh.vertices, mesh.faces)}, centre_node=True)
+    args = (torch.tensor([1.4]), torch.tensor([0.4]), torch.tensor([0.3]))
+    g0, g1 = plain.pack(plain.shape_ids(["m"]), *args), centred.pack(centred.shape_ids(["m"]), *args)
+    n = len(mesh.vertices)
+    # the mesh alone is 6 edges across, more than the gns_cpu preset's 5 message-passing steps
+    assert _hops(g0).max() == 6
+    assert g1.num_nodes == n + 1 and _hops(g1).max() == 2
+    # the centre is the centre of mass (rest position 0), the vertices are unchanged
+    assert torch.equal(g1.rest[n], torch.zeros(3, dtype=torch.float64))
+    assert torch.equal(g1.rest[:n], g0.rest)
+    # spokes both ways, once each; mesh edges as before; the faces (surface contacts) untouched
+    assert g1.mesh_edges.senders.numel() == g0.mesh_edges.senders.numel() + 2 * n
+    assert torch.equal(g1.faces, g0.faces)
+    spokes = centre_spokes(n)
+    assert len(np.unique(spokes, axis=0)) == 2 * n and set(spokes[spokes[:, 0] == n][:, 1]) == set(range(n))
+
+
+def test_shape_matching_with_the_centre_node_recovers_the_pose():
+    mesh = get_shape("cylinder")
+    lib = MeshLibrary({"c": (mesh.vertices, mesh.faces)}, centre_node=True)
+    graph = lib.pack(lib.shape_ids(["c", "c"]), torch.tensor([0.7, 1.4]), torch.tensor([0.4, 0.4]),
+                     torch.tensor([0.3, 0.3]))
+    angle = 1.1
+    rot = torch.tensor([[1.0, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]],
+                       dtype=torch.float64)
+    centre = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
+    x = graph.rest @ rot.T + centre
+    r, t, _ = shape_match_packed(x, graph.rest, graph.node_graph, 2)
+    torch.testing.assert_close(r, rot.expand(2, 3, 3))
+    torch.testing.assert_close(t, centre.expand(2, 3))
+
+
+@pytest.mark.filterwarnings("ignore:outside training")
+def test_a_model_is_fine_tuned_with_a_centre_node_and_rolls_out_with_it(tmp_path):
+    data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
+    small = ("train.steps=4", "valid.every=0", "features.normalizer_steps=2")
+    train(data, tmp_path / "plain", tiny(*small), log=quiet)
+    # the centre node adds nodes and edges, not parameters: a model without it starts one with it
+    train(data, tmp_path / "centre", tiny(*small, "features.centre_node=true",
+                                          f"train.init_from={tmp_path / 'plain'}"), log=quiet)
+    plain, centre = read_checkpoint(tmp_path / "plain" / "latest.pt"), read_checkpoint(tmp_path / "centre" / "latest.pt")
+    assert centre["config"]["features"]["centre_node"] is True
+    assert {k: v.shape for k, v in plain["model"].items()} == {k: v.shape for k, v in centre["model"].items()}
+    model = gns.load(tmp_path / "centre")
+    assert model.simulator.centre_node
+    out = model.rollout(["cube"], [[0.0, 0.0, 2.0]], [[1.0, 0.0, 0.0, 0.0]], velocities=[[1.0, 0.0, 0.0]], steps=3)
+    # the network's graph: 8 cube vertices and the centre, which follows the centre of mass
+    assert out.vertices.shape[1] == 9 and torch.isfinite(out.positions).all()
+    torch.testing.assert_close(out.vertices[:, 8], out.positions[:, 0].to(out.vertices.dtype))
+    # a resumed run must keep the graphs it trained on
+    with pytest.raises(CheckpointError, match="centre_node"):
+        train(data, tmp_path / "centre", tiny("train.steps=8", "valid.every=0", "features.normalizer_steps=2"),
+              resume=True, log=quiet)
+    # and an ensemble reads one kind of graph
+    with pytest.raises(ValueError, match="centre_node"):
+        model.simulator.set_ensemble([gns.load(tmp_path / "plain").simulator])
