@@ -4,6 +4,9 @@ For a predicted and a true trajectory of object poses:
 - position error: |p_pred - p_true| of the object centre, % of the object's width;
 - rotation error: angle of q_pred * conj(q_true), degrees;
 - penetration: max(0, floor_z - lowest world vertex z), % of the object's width;
+- spin: the angle an object turns between successive frames, degrees, predicted and true (both
+  from the orientations alike); the ratio of their means shows a model that turns objects too
+  little or too much, which a rotation error alone does not tell apart;
 - interpenetration (scenes of several objects): for each pair of objects, the deepest vertex of
   either inside the other's convex hull (depth = min over the hull's faces of offset - n.x),
   % of the smaller object's width. A proxy of the convex-convex penetration depth: vertex-face
@@ -34,6 +37,8 @@ from gns.geometry import pose_to_vertices, quat_to_matrix, rotation_angle
 
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 DEFAULT_HORIZONS = (1, 5, 10, 20, 50, 100, 200)
+# per frame besides METRICS: the truth's penetration, and the turn between frames of both
+EXTRA = ("true_penetration_pct", "spin_deg", "true_spin_deg")
 
 
 def object_width(scale, rest_vertices: np.ndarray) -> np.ndarray:
@@ -121,12 +126,12 @@ def per_frame_errors(pred, true, meshes: Mapping[str, tuple], floor_z: float = 0
 
     pred, true: datagen.shards.Scene with the same (T, N); the object properties (shape, scale)
     are read from `true`. meshes: shape name -> (rest vertices (V, 3), faces).
-    Returns METRICS plus "true_penetration_pct", each (T, N).
+    Returns METRICS plus "true_penetration_pct", "spin_deg" and "true_spin_deg" (frame 0: 0), each (T, N).
     """
     _check_pair(pred, true)
     T, N = true.positions.shape[:2]
     scale = np.asarray(true.scale, np.float64)
-    out = {k: np.empty((T, N)) for k in METRICS + ("true_penetration_pct",)}
+    out = {k: np.empty((T, N)) for k in METRICS + EXTRA}
     for n in range(N):  # objects can have different meshes; each call is vectorised over T
         rest = np.asarray(meshes[true.shape[n]][0], np.float64)
         width = object_width(scale[n], rest)
@@ -136,6 +141,9 @@ def per_frame_errors(pred, true, meshes: Mapping[str, tuple], floor_z: float = 0
                                                        rest, floor_z, width)
         out["true_penetration_pct"][:, n] = penetration_pct(true.positions[:, n], true.quaternions[:, n],
                                                             scale[n], rest, floor_z, width)
+        for key, sc in (("spin_deg", pred), ("true_spin_deg", true)):
+            out[key][0, n] = 0.0
+            out[key][1:, n] = rotation_error_deg(sc.quaternions[1:, n], sc.quaternions[:-1, n])
     return out
 
 
@@ -206,7 +214,10 @@ def _mean(values: list[float]) -> float | None:
 
 def _summary(rows: list[dict]) -> dict:
     """Mean of each metric over object rows (each row is one object trajectory's means)."""
-    out = {k: _mean([r[k] for r in rows]) for k in METRICS + ("true_penetration_pct",)}
+    out = {k: _mean([r[k] for r in rows]) for k in METRICS + EXTRA}
+    # predicted over true spin, summed over the group's objects (one object's ratio is noise when
+    # it hardly turns); None when nothing turns
+    out["spin_ratio"] = out["spin_deg"] / out["true_spin_deg"] if rows and out["true_spin_deg"] > 0 else None
     out["num_objects"] = len(rows)
     return out
 
@@ -279,8 +290,9 @@ def _fmt(v) -> str:
 
 def format_table(results: dict) -> str:
     """A plain-text table of evaluate_scenes' results for the terminal."""
-    cols = ("position_error_pct", "rotation_error_deg", "penetration_pct", "true_penetration_pct", "num_objects")
-    heads = ("pos %", "rot deg", "pen %", "true pen %", "objects")
+    cols = ("position_error_pct", "rotation_error_deg", "penetration_pct", "true_penetration_pct", "spin_ratio",
+            "num_objects")
+    heads = ("pos %", "rot deg", "pen %", "true pen %", "spin/true", "objects")
     lines = [(f"all ({results['num_scenes']} scenes, frames >= {results['start']})",
               *[_fmt(results[c]) if c != "num_objects" else str(results[c]) for c in cols])]
 

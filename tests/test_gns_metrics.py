@@ -148,3 +148,23 @@ def test_mismatched_scenes_raise():
         evaluate_scenes([make_scene(resting(4))], [make_scene(resting(5))], MESHES)
     with pytest.raises(ValueError, match="scenes"):
         evaluate_scenes([], [make_scene(resting(5))], MESHES)
+
+
+def test_spin_ratio_tells_a_model_that_turns_too_little():
+    # the truth turns 10 degrees a frame about a tilted axis; the prediction 6 (0.6 of it), then a
+    # second object that does not turn at all in either: the group ratio is 0.6, not undefined
+    axis = [0.3, -0.5, 0.8]
+    true_q = np.stack([quat_from_axis_angle(axis, np.radians(10.0 * t)) for t in range(9)])
+    pred_q = np.stack([quat_from_axis_angle(axis, np.radians(6.0 * t)) for t in range(9)])
+    still = np.broadcast_to(IDENTITY, (9, 4))
+    true = make_scene(resting(9, 2), np.stack([true_q, still], 1))
+    pred = make_scene(resting(9, 2), np.stack([pred_q, still], 1))
+    f = per_frame_errors(pred, true, MESHES)
+    assert f["spin_deg"][0].tolist() == [0.0, 0.0]
+    assert np.allclose(f["spin_deg"][1:, 0], 6.0) and np.allclose(f["true_spin_deg"][1:, 0], 10.0)
+    r = evaluate_scenes([pred], [true], MESHES)
+    assert r["spin_ratio"] == pytest.approx(0.6)
+    assert "spin/true" in format_table(r) and "0.60" in format_table(r)
+    # a prediction that turns exactly as the truth scores 1; nothing turning anywhere scores None
+    assert evaluate_scenes([true], [true], MESHES)["spin_ratio"] == pytest.approx(1.0)
+    assert evaluate_scenes([make_scene(resting(4))], [make_scene(resting(4))], MESHES)["spin_ratio"] is None
