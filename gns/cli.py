@@ -52,8 +52,9 @@ def add_train_parser(sub) -> None:
                         "needs the tensorboard extra)")
     p.add_argument("--device", metavar="DEV", help="cpu, cuda or cuda:N (same as --set train.device=DEV); "
                    "under torchrun each process takes cuda:LOCAL_RANK")
-    p.add_argument("--autocast", choices=["none", "bf16"],
-                   help="run the network (only) under bfloat16 autocast (same as --set train.autocast=...)")
+    p.add_argument("--autocast", choices=["none", "bf16", "auto"],
+                   help="run the network (only) under bfloat16 autocast (same as --set train.autocast=...); auto: "
+                        "where a matrix product of the network's shape measures faster in bf16 on this machine")
     p.add_argument("--compile", action="store_true",
                    help="run the network through torch.compile (same as --set train.compile=true; needs a C++ "
                         "compiler; the first steps compile, tens of seconds)")
@@ -127,7 +128,9 @@ def cmd_eval(args: argparse.Namespace) -> None:
                                ensemble=args.ensemble)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
-          f"per scene, {results['num_scenes']} scenes batched")
+          f"per scene, {results['num_scenes']} scenes batched"
+          + (f"; --autocast auto measured and took {'bf16' if results['autocast_used'] == 'bf16' else 'float32'}"
+             if args.autocast == "auto" else ""))
     c = results.get("object_steps") or {}
     if c.get("object_steps"):
         print(f"object-steps through the network: {c['network']} of {c['object_steps']} "
@@ -174,10 +177,11 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--body-frames", action="store_true",
                    help="also average over each object's equivalent body frames (a cube's 24 rotations onto "
                         "itself): exactly invariant to which one describes it, at that many times the cost")
-    p.add_argument("--autocast", choices=["none", "bf16"], default="none",
+    p.add_argument("--autocast", choices=["none", "bf16", "auto"], default="none",
                    help="run the network (only) under bfloat16 autocast, accuracy measured unchanged: 1.6-2.8x "
                         "faster rollouts on an AMD EPYC with avx512_bf16, but 1.8x slower matrix products on an "
-                        "Intel Xeon with avx512_bf16 and no AMX; measure yours (benchmarks/bench_learned_vs_physics.py)")
+                        "Intel Xeon with avx512_bf16 and no AMX; auto: bf16 where a matrix product of the network's "
+                        "shape measures faster on this machine (benchmarks/bench_learned_vs_physics.py measures rollouts)")
     p.add_argument("--compile", action="store_true",
                    help="run the network through torch.compile (the first steps compile, tens of seconds)")
     p.add_argument("--free-flight", action="store_true",

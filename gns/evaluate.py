@@ -117,7 +117,8 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                    outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
                    diverged_scenes=diverged, num_diverged=len(diverged), symmetrize=symmetrize,
                    body_frames=body_frames, at_data_rate=at_data_rate, model_stride=model_stride,
-                   free_flight=free_flight, object_steps=counts, autocast=autocast, compile=compile,
+                   free_flight=free_flight, object_steps=counts, autocast=autocast,
+                   autocast_used=sim.autocast_used, compile=compile,
                    ensemble=[str(r) for r in ensemble], device=str(device), **provenance_of(saved, ds))
     return results, pred, scenes, ds
 

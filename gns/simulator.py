@@ -19,6 +19,7 @@ from gns.contacts import surface_edges
 from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collision_edges, per_graph, select_graphs, stack_graphs,
                        with_symmetries)
 from gns.network import EncodeProcessDecode
+from gns.precision import resolve_autocast
 from gns.spec import ModelSpec
 
 
@@ -174,6 +175,7 @@ class LearnedSimulator(nn.Module):
     symmetrize: bool = False  # average predictions over FLOOR_SYMMETRIES (rollouts; not saved)
     body_frames: bool = False  # and over each object's equivalent body frames (graph.symmetries)
     autocast: torch.dtype | None = None  # the network (only) runs in this dtype under autocast (train.autocast)
+    autocast_used: str = "none"  # what set_speed took: "none" or "bf16" ("auto" resolved)
 
     def __init__(self, model_cfg, features_cfg, spec: ModelSpec | Mapping):
         super().__init__()
@@ -218,7 +220,12 @@ class LearnedSimulator(nn.Module):
         "none"; `compile` through torch.compile (dynamic shapes: every batch has its own node and
         edge counts), compiled once and reused when switched on again. The compiled module is
         kept out of the module tree like `distribute`, so state_dict keys and checkpoints are
-        unchanged. The first calls compile (tens of seconds on a CPU)."""
+        unchanged. The first calls compile (tens of seconds on a CPU). autocast "auto": bf16 if it
+        measures faster here (gns.precision); `self.autocast_used` says which was taken."""
+        if autocast == "auto":
+            device = next(self.network.parameters()).device
+            autocast = resolve_autocast(autocast, self.network.decoder[0].in_features, device)
+        self.autocast_used = autocast
         self.autocast = torch.bfloat16 if autocast == "bf16" else None
         if compile and "_compiled_cache" not in self.__dict__:
             self.__dict__["_compiled_cache"] = torch.compile(self.network, dynamic=True)

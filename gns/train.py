@@ -761,9 +761,11 @@ def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: 
     contact = (f" ({float(tracks.contact.double().mean()):.0%} in contact, drawn as {cfg.train.contact_fraction:.0%})"
                if tracks.contact is not None else "")
     processes = f" on {world.size} processes" if world.size > 1 else ""
+    precision = f", network in {'bf16' if sim.autocast_used == 'bf16' else 'float32'} (autocast auto, measured)" \
+        if cfg.train.autocast == "auto" else ""
     return (f"{'resuming' if resumed_from else 'training'} at step {step} of {cfg.train.steps}{processes}: "
             f"{tracks.num_windows} windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
-            f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}")
+            f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}{precision}")
 
 
 def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, world: parallel.World,

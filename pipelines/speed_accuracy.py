@@ -147,8 +147,9 @@ def sweep_runs(p: dict, out: Path) -> list[tuple[str, Path]]:
     return [(knob, run) for knob, run, _ in runs]
 
 
-# the rollout options of issue 12: gns eval --free-flight --autocast bf16 --compile (and --symmetrize)
-FAST = "free flight + bf16 + compile"
+# the rollout options of issue 12: gns eval --free-flight --autocast auto --compile (and --symmetrize);
+# auto: bf16 where it measures faster on this machine (gns.precision), else float32; each row says which
+FAST = "free flight + auto precision + compile"
 FAST_SYM = FAST + " + symmetrized"
 MODES = {None: "gns batched", "fast": "gns fast", "fast sym": "gns fast sym"}
 
@@ -156,10 +157,11 @@ MODES = {None: "gns batched", "fast": "gns fast", "fast sym": "gns fast sym"}
 def _rollout_all(sim, scenes, ds, batch: int, count: int, mode: str | None = None,
                  compile: bool = True) -> tuple[list, float]:
     """Roll out the first `count` scenes `batch` at a time; (predictions, seconds per simulated
-    second per trajectory). mode "fast": free flight, the network under bf16 autocast and
-    compiled (FAST); "fast sym": also symmetrized (FAST_SYM), the most accurate and 4x the network."""
+    second per trajectory). mode "fast": free flight, the network compiled and under bf16 autocast
+    where bf16 measures faster here (FAST); "fast sym": also symmetrized (FAST_SYM), the most
+    accurate and 4x the network."""
     fast = mode is not None
-    sim.set_speed("bf16" if fast else "none", compile=fast and compile)
+    sim.set_speed("auto" if fast else "none", compile=fast and compile)
     sim.symmetrize = mode == "fast sym"
     t0 = time.perf_counter()
     pred = []
@@ -200,15 +202,20 @@ def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[di
                 kept, kept_true, diverged = split_diverged([sc.every(keep) for sc in pred], true)
                 res = {**evaluate_scenes(kept, kept_true, ref.meshes, floor_z=0.0), "diverged": len(diverged)}
             counts = sim.rollout_counts
+            sim.set_speed("auto" if mode else "none")  # which precision the row ran in (measured once)
+            precision = "bf16" if sim.autocast_used == "bf16" else "float32"
+            sim.set_speed()
             rows.append({"family": "gns" if batch == 1 else MODES[mode], "knob": knob,
                          "label": f"{run_name(run)}: L{m.message_passing_steps}xK{m.processor_repeats}, "
                                   f"latent {m.latent_size}"
                                   + (f", {cfg.features.mesh_vertices} vertices a mesh" if cfg.features.mesh_vertices else "")
                                   + f", dt {1e3 / ds.frame_rate:.1f} ms, batch {batch}"
-                                  + {None: "", "fast": f", {FAST}", "fast sym": f", {FAST_SYM}"}[mode],
+                                  + {None: "", "fast": f", free flight + {precision} + compile",
+                                     "fast sym": f", free flight + {precision} + compile + symmetrized"}[mode],
                          "run": str(run), "batch": batch, "L": m.message_passing_steps, "K": m.processor_repeats,
                          "latent": m.latent_size, "frame_rate": ds.frame_rate, "steps": int(saved["step"]),
                          "seconds_per_simulated_second": cost, "fast": mode is not None, "mode": mode,
+                         "precision": precision,
                          "network_share_pct": 100.0 * counts["network"] / max(counts["object_steps"], 1), **res})
         single = next(r for r in rows[-len(modes):] if r["batch"] == 1)
         batched = next(r for r in rows[-len(modes):] if r["family"] == "gns batched")
@@ -285,18 +292,22 @@ def throughput_ratio(rows: list[dict]) -> str:
     if not bullet or not gns:
         return ""
     b = bullet[0]["seconds_per_simulated_second"]
-    options = {"gns fast": f", {FAST}", "gns fast sym": f", {FAST_SYM}"}
+    def option(r) -> str:
+        """The rollout options of a row, with the precision its fast mode measured and took."""
+        fast = {"gns fast": FAST, "gns fast sym": FAST_SYM}.get(r["family"])
+        return "" if fast is None else ", " + fast.replace("auto precision", r.get("precision", "auto precision"))
 
     def line(r, what=""):
         g = r["seconds_per_simulated_second"]
-        return (f"{what}{run_name(r['run'])} at 12 fps{options.get(r['family'], '')}: {b / g:.2f}x "
+        return (f"{what}{run_name(r['run'])} at 12 fps{option(r)}: {b / g:.2f}x "
                 f"({g * 1e3:.3g} vs {b * 1e3:.3g} ms per simulated second per trajectory, "
                 f"{r['position_error_pct']:.3g}% position)")
     lines = ["GNS batched rollout throughput / PyBullet (240 Hz, 50 iterations, one scene a process):", line(gns[0])]
     best = min(gns, key=lambda r: r["position_error_pct"])
     lines.append(line(best))
-    lines += [line(r) for r in at12 if r["family"] in options and (r["run"] == best["run"] or r.get("knob") == "given")]
-    scored = [r for r in at12 if r["family"] in ("gns batched", *options) and "position_error_pct" in r]
+    fast_families = ("gns fast", "gns fast sym")
+    lines += [line(r) for r in at12 if r["family"] in fast_families and (r["run"] == best["run"] or r.get("knob") == "given")]
+    scored = [r for r in at12 if r["family"] in ("gns batched", *fast_families) and "position_error_pct" in r]
     lines.append(line(min(scored, key=lambda r: r["position_error_pct"]), "at the best accuracy of any GNS rollout: "))
     return "\n".join(dict.fromkeys(lines))
 

@@ -36,14 +36,15 @@ def test_throughput_ratio_names_the_base_the_most_accurate_and_its_fast_rollout(
             {"family": "gns batched", "knob": "given", "run": "long", "frame_rate": 12.0,
              "seconds_per_simulated_second": 0.01, "position_error_pct": 30.0},
             {"family": "gns fast", "knob": "given", "run": "long", "frame_rate": 12.0, "fast": True,
-             "seconds_per_simulated_second": 0.004, "position_error_pct": 28.0},
+             "precision": "bf16", "seconds_per_simulated_second": 0.004, "position_error_pct": 28.0},
             {"family": "gns fast sym", "knob": "given", "run": "long", "frame_rate": 12.0, "fast": True,
-             "seconds_per_simulated_second": 0.01, "position_error_pct": 26.0}]
+             "precision": "float32", "seconds_per_simulated_second": 0.01, "position_error_pct": 26.0}]
     lines = speed_accuracy.throughput_ratio(rows).splitlines()
     assert lines[1].startswith("stride4 at 12 fps: 0.25x")
     assert lines[2].startswith("long at 12 fps: 0.50x")
     assert lines[3].startswith("long at 12 fps, free flight + bf16 + compile: 1.25x") and "28% position" in lines[3]
-    assert lines[4].startswith("long at 12 fps, free flight + bf16 + compile + symmetrized: 0.50x")
+    # each fast row names the precision its machine measured faster
+    assert lines[4].startswith("long at 12 fps, free flight + float32 + compile + symmetrized: 0.50x")
     assert lines[5].startswith("at the best accuracy of any GNS rollout: long") and "26% position" in lines[5]
 
 

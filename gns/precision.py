@@ -1,0 +1,58 @@
+"""Whether the network runs faster under bfloat16 autocast on this machine (`--autocast auto`).
+
+bfloat16 pays on some CPUs and costs on others with the same instruction-set flags: on the AMD
+EPYC of sessions 2-5 (avx512_bf16) bf16 + compile trained `gns_cpu` 1.76x as fast as float32;
+on session 6's Intel Xeon (avx512_bf16, no AMX) a bf16 matrix product of the network's shapes
+ran 1.8x slower than float32 (docs/speed.md). No flag tells them apart, so `auto` times one
+such product in both types, once per process and shape, and picks bf16 only when it is clearly
+faster. Off a CPU (CUDA) `auto` takes bf16 where the device supports it.
+"""
+from __future__ import annotations
+
+import time
+
+import torch
+
+CHOICES = ("none", "bf16", "auto")
+# bf16 must be this much faster: autocast adds casts that the product alone does not show
+MARGIN = 1.15
+_cache: dict[tuple, float] = {}
+
+
+def bf16_speedup(width: int, rows: int = 4096, repeats: int = 5, device: str | torch.device = "cpu") -> float:
+    """float32 time / bfloat16 time of a (rows, 3 width) x (3 width, width) matrix product, the
+    shape of the network's first edge layer (best of `repeats`, each several products);
+    cached per (width, rows, device, threads)."""
+    device = torch.device(device)
+    key = (width, rows, str(device), torch.get_num_threads())
+    if key not in _cache:
+        a = torch.randn(rows, 3 * width, device=device)
+        w = torch.randn(3 * width, width, device=device)
+        times = {}
+        for dtype in (torch.float32, torch.bfloat16):
+            x, y = a.to(dtype), w.to(dtype)
+            x @ y  # warm-up: first-call costs are not the product's
+            best = float("inf")
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                for _ in range(4):
+                    x @ y
+                if device.type == "cuda":
+                    torch.cuda.synchronize(device)
+                best = min(best, time.perf_counter() - t0)
+            times[dtype] = best
+        _cache[key] = times[torch.float32] / times[torch.bfloat16]
+    return _cache[key]
+
+
+def resolve_autocast(name: str, width: int, device: str | torch.device = "cpu", measure=bf16_speedup) -> str:
+    """'none' or 'bf16' for `name` ('none', 'bf16' or 'auto'); 'auto' measures (measure(width,
+    device=...) -> float32 / bf16 time) and takes bf16 when it is at least MARGIN times faster."""
+    if name not in CHOICES:
+        raise ValueError(f"autocast must be one of {', '.join(CHOICES)}, got {name!r}")
+    if name != "auto":
+        return name
+    device = torch.device(device)
+    if device.type == "cuda":
+        return "bf16" if torch.cuda.is_bf16_supported() else "none"
+    return "bf16" if measure(width, device=device) >= MARGIN else "none"

@@ -1,0 +1,42 @@
+"""--autocast auto: bf16 only where it measures faster (gns.precision)."""
+import pytest
+import torch
+
+from gns.config import ConfigError
+from gns.precision import MARGIN, bf16_speedup, resolve_autocast
+from gns.simulator import LearnedSimulator
+from gns.spec import ModelSpec
+from test_gns_train import tiny
+
+
+def test_named_choices_pass_through_and_auto_follows_the_measurement():
+    assert resolve_autocast("none", 64) == "none" and resolve_autocast("bf16", 64) == "bf16"
+    assert resolve_autocast("auto", 64, measure=lambda w, device: 1.8) == "bf16"
+    # a CPU where bf16 products are slower (session 6's Xeon: 0.55x), or barely faster, keeps float32
+    assert resolve_autocast("auto", 64, measure=lambda w, device: 0.55) == "none"
+    assert resolve_autocast("auto", 64, measure=lambda w, device: MARGIN * 0.99) == "none"
+    with pytest.raises(ValueError, match="autocast"):
+        resolve_autocast("fp16", 64)
+
+
+def test_the_measurement_is_a_positive_ratio_taken_once():
+    first = bf16_speedup(16, rows=256, repeats=2)
+    assert first > 0 and bf16_speedup(16, rows=256, repeats=2) == first
+
+
+def test_a_simulator_set_to_auto_measures_at_its_latent_width_and_says_what_it_took(monkeypatch):
+    from gns import simulator
+    cfg = tiny()
+    sim = LearnedSimulator(cfg.model, cfg.features, ModelSpec(floor=None, materials_vary=False))
+    asked = []
+    monkeypatch.setattr(simulator, "resolve_autocast", lambda name, width, device: asked.append(width) or "bf16")
+    sim.set_speed("auto")
+    assert asked == [cfg.model.latent_size] and sim.autocast == torch.bfloat16 and sim.autocast_used == "bf16"
+    sim.set_speed("none")
+    assert sim.autocast is None and sim.autocast_used == "none"
+
+
+def test_train_autocast_accepts_auto_and_names_the_choices_on_a_typo():
+    assert tiny("train.autocast=auto").train.autocast == "auto"
+    with pytest.raises(ConfigError, match="'none', 'bf16' or 'auto'"):
+        tiny("train.autocast=bf32")
