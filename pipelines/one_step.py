@@ -1,0 +1,100 @@
+"""One-step errors: each step predicted from the true history, split by contact.
+
+A rollout's error compounds; this asks what a single step gets wrong before anything compounds.
+Every frame t of every track is predicted from the true frames t-2, t-1, t (teacher forcing),
+shape-matched, and compared with the true frame t+1: the centre's error in % of the object's
+size and the rotation error in degrees. A step is "in contact" when the true centre
+acceleration differs from gravity by more than half of it (the threshold of
+`train.contact_threshold`), else "airborne". The share of the error in contact steps says where
+a model's rollout error is made; an airborne step is what free flight (`--free-flight`) makes
+exact far from the floor.
+
+    python -m pipelines.one_step --run gns_movi_a_centre --data data/movi_a_4000 --limit 100 --symmetrize
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import numpy as np
+import torch
+
+from gns.data import ObjectTracks
+from gns.evaluate import load_simulator, load_split
+from gns.metrics import object_width
+from gns.simulator import shape_match_packed
+from gns.spec import ModelSpec
+
+CONTACT = 0.5  # |a - g| > CONTACT |g|: the step is in contact
+
+
+def one_step_errors(run, data, split: str = "test", limit: int | None = None, symmetrize: bool = False,
+                    autocast: str = "none") -> dict:
+    """{"contact": {...}, "airborne": {...}, "contact_share_of_rotation_error": float} where each
+    part holds the mean position error (% of size) and rotation error (degrees) of one step,
+    the 50/90/99th percentiles of the rotation error and the number of steps."""
+    sim, saved = load_simulator(run, symmetrize=symmetrize, autocast=autocast)
+    sim.eval()
+    spec = ModelSpec.from_dict(saved["spec"])
+    ds, scenes = load_split(data, split, limit, spec.frame_rate)
+    tracks = ObjectTracks(scenes, sim.mesh_library(ds.meshes), name=f"{split} split")
+    frames = int(tracks.length.min())
+    graph, verts, centres = tracks.track_vertices(torch.arange(tracks.num_tracks), frames)
+    g = torch.as_tensor(ds.gravity, dtype=torch.float64) / ds.frame_rate ** 2
+    rot, pos, contact = [], [], []
+    with torch.no_grad():
+        for t in range(2, frames - 1):
+            x = sim.predict_next(verts[:, t - 2], verts[:, t - 1], verts[:, t], graph)
+            r_pred, c_pred, _ = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
+            r_true, c_true, _ = shape_match_packed(verts[:, t + 1], graph.rest, graph.node_graph, graph.num_graphs)
+            cos = ((r_pred @ r_true.transpose(1, 2)).diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2
+            rot.append(torch.rad2deg(torch.arccos(cos.clamp(-1, 1))).numpy())
+            pos.append((c_pred - c_true).norm(dim=-1).numpy())
+            accel = centres[:, t + 1] - 2 * centres[:, t] + centres[:, t - 1]
+            contact.append(((accel - g).norm(dim=-1) > CONTACT * g.norm()).numpy())
+    rot, pos, contact = np.array(rot), np.array(pos), np.array(contact)
+    width = np.asarray([object_width(float(sc.scale[n]), np.asarray(ds.meshes[sc.shape[n]][0]))
+                        for sc in scenes for n in range(sc.num_objects)])  # tracks are numbered scene by scene
+    pos = 100.0 * pos / width[None, :]
+    out = {}
+    for name, mask in (("contact", contact), ("airborne", ~contact)):
+        out[name] = {"steps": int(mask.sum()),
+                     "position_error_pct": float(pos[mask].mean()) if mask.any() else None,
+                     "rotation_error_deg": float(rot[mask].mean()) if mask.any() else None,
+                     "rotation_percentiles_50_90_99": np.percentile(rot[mask], [50, 90, 99]).tolist()
+                     if mask.any() else None}
+    out["contact_share_of_rotation_error"] = float(rot[contact].sum() / max(rot.sum(), 1e-300))
+    out.update(run=str(run), data=str(data), split=split, num_tracks=int(tracks.num_tracks),
+               frames_per_track=frames, symmetrize=symmetrize, autocast=autocast)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m pipelines.one_step", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", required=True, help="run folder, checkpoint or shipped model name")
+    ap.add_argument("--data", required=True, help="dataset folder")
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--limit", type=int, help="first N scenes only")
+    ap.add_argument("--symmetrize", action="store_true", help="average each step over the floor's mirror images")
+    ap.add_argument("--autocast", choices=["none", "bf16", "auto"], default="none")
+    ap.add_argument("--json", help="also write the result here")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    res = one_step_errors(args.run, args.data, args.split, args.limit, args.symmetrize, args.autocast)
+    for name in ("contact", "airborne"):
+        r = res[name]
+        if r["steps"]:
+            p50, p90, p99 = r["rotation_percentiles_50_90_99"]
+            print(f"{name:8s} {r['steps']:6d} steps: position {r['position_error_pct']:.3g}% of size, rotation "
+                  f"{r['rotation_error_deg']:.3g} deg (50/90/99%: {p50:.3g} / {p90:.3g} / {p99:.3g})")
+    print(f"contact steps hold {100 * res['contact_share_of_rotation_error']:.0f}% of the one-step rotation error")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(res, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
