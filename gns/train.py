@@ -256,7 +256,7 @@ def _init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec)
 
 
 # keys a fine-tuning run (train.init_from) may change: the weights do not depend on them
-FINE_TUNE_FREE = ("features.mesh_vertices", "features.centre_node")
+FINE_TUNE_FREE = ("features.mesh_vertices", "features.centre_node", "model.processor_repeats")
 
 
 def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec,

@@ -80,3 +80,23 @@ def test_a_model_is_fine_tuned_with_a_centre_node_and_rolls_out_with_it(tmp_path
     # and an ensemble reads one kind of graph
     with pytest.raises(ValueError, match="centre_node"):
         model.simulator.set_ensemble([gns.load(tmp_path / "plain").simulator])
+
+
+def test_fine_tuning_may_repeat_the_processor_more_often_resuming_may_not(tmp_path):
+    # K (model.processor_repeats) applies the same L blocks again: the weights keep their shapes
+    data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
+    small = ("train.steps=4", "valid.every=0", "features.normalizer_steps=2")
+    train(data, tmp_path / "k1", tiny(*small), log=quiet)
+    train(data, tmp_path / "k2", tiny(*small, "model.processor_repeats=2", f"train.init_from={tmp_path / 'k1'}"),
+          log=quiet)
+    k1, k2 = read_checkpoint(tmp_path / "k1" / "latest.pt"), read_checkpoint(tmp_path / "k2" / "latest.pt")
+    assert k2["config"]["model"]["processor_repeats"] == 2
+    assert {k: v.shape for k, v in k1["model"].items()} == {k: v.shape for k, v in k2["model"].items()}
+    assert gns.load(tmp_path / "k2").simulator.network.processor_repeats == 2
+    with pytest.raises(CheckpointError, match="processor_repeats"):
+        train(data, tmp_path / "k2", tiny("train.steps=8", "valid.every=0", "features.normalizer_steps=2"),
+              resume=True, log=quiet)
+    # the message passing steps L are weights: changing them is refused even when fine-tuning
+    with pytest.raises(CheckpointError, match="message_passing_steps"):
+        train(data, tmp_path / "l3", tiny(*small, "model.message_passing_steps=3", f"train.init_from={tmp_path / 'k1'}"),
+              log=quiet)
