@@ -237,11 +237,7 @@ class ObjectTracks:
         Tracking noise of real data adds a few tens of % of |g| dt^2 to free flight, so
         threshold ~0.5 still separates the two.
         """
-        g = gravity_step.to(torch.float64)
-        centres = self.positions                                  # (F, 3) all frames of all tracks
-        accel = torch.zeros(len(centres))
-        accel[1:-1] = (centres[2:] - 2 * centres[1:-1] + centres[:-2] - g).norm(dim=-1)
-        hit = accel > threshold * float(g.norm())                 # (F,) valid inside tracks only
+        hit = in_contact(self.positions, gravity_step, threshold)  # (F,) all frames of all tracks; valid inside tracks only
         # a window of scene s, first frame f: its targets are frames f+HISTORY .. f+window-1;
         # the second difference at frame k needs k-1 .. k+1, so look at k = f+HISTORY-1 .. f+window-2
         tracks, window_of = self.window_tracks(torch.arange(self.num_windows))
@@ -270,6 +266,18 @@ class ObjectTracks:
         pos, rot = self.poses(tracks, torch.zeros_like(tracks), frames)
         graph = self.graph(tracks)
         return graph, vertices_from_poses(graph, pos, rot), pos
+
+
+def in_contact(centres: torch.Tensor, gravity_step: torch.Tensor, threshold: float) -> torch.Tensor:
+    """centres (..., F, 3) -> (..., F) bool: the centre's acceleration at each frame (second
+    difference over the frames before and after) differs from free fall's gravity_step = g dt^2
+    by more than threshold x |g| dt^2. The first and last frame have no second difference: False."""
+    g = gravity_step.to(torch.float64)
+    hit = torch.zeros(centres.shape[:-1], dtype=torch.bool)
+    accel = centres[..., 2:, :] - 2 * centres[..., 1:-1, :] + centres[..., :-2, :] - g
+    # compared in float32, as the training's contact windows always were
+    hit[..., 1:-1] = accel.norm(dim=-1).float() > threshold * float(g.norm())
+    return hit
 
 
 def _range(values: list[np.ndarray]) -> tuple[float, float]:

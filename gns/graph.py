@@ -165,7 +165,6 @@ class MeshLibrary:
         self.index = {name: i for i, name in enumerate(self.names)}
         verts = [np.asarray(meshes[n][0], np.float64) for n in self.names]
         edges = [mesh_edges(meshes[n][1]) for n in self.names]
-        self.centre_node = centre_node
         if centre_node:
             edges = [np.concatenate([e, centre_spokes(len(v))]) for v, e in zip(verts, edges)]
             verts = [np.concatenate([v, np.zeros((1, 3))]) for v in verts]

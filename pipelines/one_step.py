@@ -20,13 +20,15 @@ import sys
 import numpy as np
 import torch
 
-from gns.data import ObjectTracks
+from gns.config import TrainConfig
+from gns.data import ObjectTracks, in_contact
 from gns.evaluate import load_simulator, load_split
-from gns.metrics import object_width
+from gns.geometry import matrix_to_quat
+from gns.metrics import object_width, rotation_error_deg
 from gns.simulator import shape_match_packed
 from gns.spec import ModelSpec
 
-CONTACT = 0.5  # |a - g| > CONTACT |g|: the step is in contact
+CONTACT = TrainConfig.contact_threshold  # |a - g| > CONTACT |g|: the step is in contact (gns.data.in_contact)
 
 
 def one_step_errors(run, data, split: str = "test", limit: int | None = None, symmetrize: bool = False,
@@ -40,20 +42,19 @@ def one_step_errors(run, data, split: str = "test", limit: int | None = None, sy
     ds, scenes = load_split(data, split, limit, spec.frame_rate)
     tracks = ObjectTracks(scenes, sim.mesh_library(ds.meshes), name=f"{split} split")
     frames = int(tracks.length.min())
-    graph, verts, centres = tracks.track_vertices(torch.arange(tracks.num_tracks), frames)
+    which = torch.arange(tracks.num_tracks)
+    graph, verts, centres = tracks.track_vertices(which, frames)
+    _, true_rot = tracks.poses(which, torch.zeros_like(which), frames)
     g = torch.as_tensor(ds.gravity, dtype=torch.float64) / ds.frame_rate ** 2
-    rot, pos, contact = [], [], []
+    contact = in_contact(centres, g, CONTACT)[:, 2:frames - 1].T.numpy()   # (steps, tracks): frame t -> t+1
+    rot, pos = [], []
     with torch.no_grad():
         for t in range(2, frames - 1):
             x = sim.predict_next(verts[:, t - 2], verts[:, t - 1], verts[:, t], graph)
             r_pred, c_pred, _ = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
-            r_true, c_true, _ = shape_match_packed(verts[:, t + 1], graph.rest, graph.node_graph, graph.num_graphs)
-            cos = ((r_pred @ r_true.transpose(1, 2)).diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2
-            rot.append(torch.rad2deg(torch.arccos(cos.clamp(-1, 1))).numpy())
-            pos.append((c_pred - c_true).norm(dim=-1).numpy())
-            accel = centres[:, t + 1] - 2 * centres[:, t] + centres[:, t - 1]
-            contact.append(((accel - g).norm(dim=-1) > CONTACT * g.norm()).numpy())
-    rot, pos, contact = np.array(rot), np.array(pos), np.array(contact)
+            rot.append(rotation_error_deg(matrix_to_quat(r_pred.numpy()), matrix_to_quat(true_rot[:, t + 1].numpy())))
+            pos.append((c_pred - centres[:, t + 1]).norm(dim=-1).numpy())
+    rot, pos = np.array(rot), np.array(pos)
     width = np.asarray([object_width(float(sc.scale[n]), np.asarray(ds.meshes[sc.shape[n]][0]))
                         for sc in scenes for n in range(sc.num_objects)])  # tracks are numbered scene by scene
     pos = 100.0 * pos / width[None, :]

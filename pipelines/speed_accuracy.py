@@ -155,9 +155,9 @@ MODES = {None: "gns batched", "fast": "gns fast", "fast sym": "gns fast sym"}
 
 
 def _rollout_all(sim, scenes, ds, batch: int, count: int, mode: str | None = None,
-                 compile: bool = True) -> tuple[list, float]:
+                 compile: bool = True) -> tuple[list, float, str]:
     """Roll out the first `count` scenes `batch` at a time; (predictions, seconds per simulated
-    second per trajectory). mode "fast": free flight, the network compiled and under bf16 autocast
+    second per trajectory, the network's precision: "float32" or "bf16"). mode "fast": free flight, the network compiled and under bf16 autocast
     where bf16 measures faster here (FAST); "fast sym": also symmetrized (FAST_SYM), the most
     accurate and 4x the network."""
     fast = mode is not None
@@ -168,9 +168,11 @@ def _rollout_all(sim, scenes, ds, batch: int, count: int, mode: str | None = Non
     for k in range(0, count, batch):
         pred += rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, batch_tracks=batch,
                                progress=False, free_flight=fast)
+    cost = (time.perf_counter() - t0) / sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes[:len(pred)])
+    precision = "bf16" if sim.autocast_used == "bf16" else "float32"
     sim.set_speed()
     sim.symmetrize = False
-    return pred, (time.perf_counter() - t0) / sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes[:len(pred)])
+    return pred, cost, precision
 
 
 def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[dict]:
@@ -195,16 +197,13 @@ def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[di
         for batch, mode in modes:
             # warm-up (compiling, at the batch's size): first-call costs are not the rollout's
             _rollout_all(sim, scenes, ds, batch, batch, mode, p.get("compile", True))
-            pred, cost = _rollout_all(sim, scenes, ds, batch, len(scenes) if batch > 1 else p["single_scenes"], mode,
+            pred, cost, precision = _rollout_all(sim, scenes, ds, batch, len(scenes) if batch > 1 else p["single_scenes"], mode,
                                       p.get("compile", True))
             res = {}
             if batch > 1:  # diverged rollouts are counted, not averaged in
                 kept, kept_true, diverged = split_diverged([sc.every(keep) for sc in pred], true)
                 res = {**evaluate_scenes(kept, kept_true, ref.meshes, floor_z=0.0), "diverged": len(diverged)}
             counts = sim.rollout_counts
-            sim.set_speed("auto" if mode else "none")  # which precision the row ran in (measured once)
-            precision = "bf16" if sim.autocast_used == "bf16" else "float32"
-            sim.set_speed()
             rows.append({"family": "gns" if batch == 1 else MODES[mode], "knob": knob,
                          "label": f"{run_name(run)}: L{m.message_passing_steps}xK{m.processor_repeats}, "
                                   f"latent {m.latent_size}"
