@@ -50,6 +50,10 @@ class FeatureConfig:
     # a node at each object's centre of mass joined to all its vertices (gns.graph.centre_spokes):
     # every vertex two message-passing steps from every other, whatever the mesh
     centre_node: bool = False
+    # a node feature: the share of the next step each vertex would spend below the floor if the
+    # object flew on ballistically (0: no impact within the step, 1: already below). The time of
+    # impact is a ratio of height to speed, which the network's ReLU MLPs only approximate
+    impact_time: bool = False
 
 
 @dataclass

@@ -95,6 +95,7 @@ class FeatureLayout:
     collision_radius: float = 0.0
     velocity_scale: float = 0.0      # "velocity_direction": v / (|v| + velocity_scale), scene units per frame
     floor_signed: bool = False       # the floor distance keeps its sign below the floor (to -floor_clip)
+    gravity_z_step: float = 0.0      # "impact": gravity's z component times dt^2, scene units per frame^2
 
     @property
     def collisions(self) -> bool:
@@ -118,10 +119,11 @@ class FeatureLayout:
 
 
 def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, collisions: bool = False,
-                gravity_step: float | None = None) -> FeatureLayout:
+                gravity_step: float | None = None, gravity_z_step: float | None = None) -> FeatureLayout:
     """features_cfg: a FeatureConfig. floor_z None when the dataset has no floor; collisions
     when it has scenes of several objects; gravity_step |g| dt^2 (scene units per frame), which
-    features.velocity_direction is measured in (needs a dataset with gravity)."""
+    features.velocity_direction is measured in (needs a dataset with gravity); gravity_z_step its
+    z component (features.impact_time)."""
     f = features_cfg
     node = []
     if f.velocity:
@@ -147,11 +149,21 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, colli
         edge += [("relative", 3), ("relative_norm", 1)]
         if f.rest_edges:
             edge += [("rest_relative", 3), ("rest_relative_norm", 1)]
+    impact = bool(getattr(f, "impact_time", False))
+    if impact:
+        if floor_z is None or not f.floor_distance:
+            raise ConfigError("features.impact_time needs a dataset with a floor and features.floor_distance")
+        if gravity_z_step is None:
+            raise ConfigError("features.impact_time needs a dataset with gravity")
+        # last, so that a model trained without it can be fine-tuned with it (gns.train widens
+        # the node encoder's first layer by a zero column: the start computes what it did)
+        node.append(("impact", 1))
     if not node:
         raise ConfigError("no node features are on: switch on features.velocity or features.rest_position")
     collision = (("collision_relative", 3), ("collision_relative_norm", 1)) if collisions else ()
     return FeatureLayout(tuple(node), tuple(edge), floor_z if f.floor_distance else None, f.floor_clip,
-                         collision, float(f.collision_radius), velocity_scale, bool(f.floor_signed))
+                         collision, float(f.collision_radius), velocity_scale, bool(f.floor_signed),
+                         float(gravity_z_step or 0.0) if impact else 0.0)
 
 
 def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: GraphBatch) -> dict[str, torch.Tensor]:
@@ -172,6 +184,9 @@ def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
         elif name == "floor":
             low = -layout.floor_clip if layout.floor_signed else 0.0
             out[name] = (x_t[:, 2:3] - layout.floor_z).clamp(low, layout.floor_clip)
+        elif name == "impact":
+            out[name] = impact_share(x_t[:, 2:3] - layout.floor_z, history[:, -2, 2:3] - layout.floor_z,
+                                     layout.gravity_z_step)
         elif name == "material":
             out[name] = graph.material
         elif name == "rest_position":
@@ -179,6 +194,18 @@ def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
         elif name == "position":
             out[name] = x_t
     return {k: v.to(torch.float32) for k, v in out.items()}
+
+
+def impact_share(z_t: torch.Tensor, z_tm1: torch.Tensor, g_z: float) -> torch.Tensor:
+    """The share of the step t -> t+1 a vertex at height z_t (z_tm1 a frame before; heights above
+    the floor) spends below the floor if it moves on ballistically: 1 - (time of impact / dt),
+    with the time of impact interpolated linearly between z_t and the ballistic next height
+    2 z_t - z_tm1 + g_z. 0 without an impact in the step, 1 for a vertex already below."""
+    z_next = 2 * z_t - z_tm1 + g_z
+    crossing = (z_t > 0) & (z_next < 0)
+    share = torch.where(crossing, -z_next / torch.where(crossing, z_t - z_next, torch.ones_like(z_t)),
+                        torch.zeros_like(z_t))
+    return torch.where(z_t <= 0, torch.ones_like(z_t), share)
 
 
 def raw_edge_features(layout: FeatureLayout, history: torch.Tensor, graph: GraphBatch) -> dict[str, torch.Tensor]:

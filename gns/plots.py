@@ -382,3 +382,51 @@ def plot_training_curves(runs: Mapping[str, Sequence[Mapping]], path, log_loss: 
     with atomic_file(path, mode=0o644, suffix=path.suffix) as tmp:
         fig.savefig(tmp, dpi=dpi)
     return path
+
+
+# Offsets (points) tried around a point, nearest first, with the text alignment each needs.
+_LABEL_OFFSETS = [((5, 3), "left", "bottom"), ((5, -3), "left", "top"), ((-5, 3), "right", "bottom"),
+                  ((-5, -3), "right", "top"), ((0, 7), "center", "bottom"), ((0, -7), "center", "top"),
+                  ((12, 0), "left", "center"), ((-12, 0), "right", "center"), ((5, 13), "left", "bottom"),
+                  ((5, -13), "left", "top"), ((-5, 13), "right", "bottom"), ((-5, -13), "right", "top"),
+                  ((0, 20), "center", "bottom"), ((0, -20), "center", "top")]
+
+
+def _overlap(a, b) -> float:
+    w = min(a.x1, b.x1) - max(a.x0, b.x0)
+    h = min(a.y1, b.y1) - max(a.y0, b.y0)
+    return w * h if w > 0 and h > 0 else 0.0
+
+
+def label_points(ax, xs: Sequence[float], ys: Sequence[float], labels: Sequence[str], fontsize: float = 7,
+                 marker_px: float = 5.0) -> list:
+    """Annotate each (x, y) with its label at the offset, among a few around it, whose text box
+    overlaps least with the labels already placed, every marker and the axes' edge (greedy, in
+    the given order). Call after the axes' limits and scales are final. Returns the texts."""
+    fig = ax.figure
+    fig.canvas.draw()   # the transforms and the renderer of the final layout
+    renderer = fig.canvas.get_renderer()
+    from matplotlib.transforms import Bbox
+    pts = ax.transData.transform(np.column_stack([xs, ys])) if len(xs) else np.zeros((0, 2))
+    markers = [Bbox.from_extents(px - marker_px, py - marker_px, px + marker_px, py + marker_px) for px, py in pts]
+    frame = ax.get_window_extent(renderer)
+    placed, texts = [], []
+    for x, y, label in zip(xs, ys, labels):
+        best = None
+        for offset, ha, va in _LABEL_OFFSETS:
+            text = ax.annotate(label, (x, y), xytext=offset, textcoords="offset points", fontsize=fontsize,
+                               ha=ha, va=va)
+            box = text.get_window_extent(renderer)
+            outside = box.width * box.height - _overlap(box, frame)
+            cost = sum(_overlap(box, b) for b in placed) + sum(_overlap(box, m) for m in markers) + 2 * outside
+            if best is None or cost < best[0]:
+                if best is not None:
+                    best[1].remove()
+                best = (cost, text, box)
+            else:
+                text.remove()
+            if cost == 0:
+                break
+        placed.append(best[2])
+        texts.append(best[1])
+    return texts

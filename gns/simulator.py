@@ -190,7 +190,9 @@ class LearnedSimulator(nn.Module):
         self.mesh_vertices = int(getattr(features_cfg, "mesh_vertices", 0))
         self.centre_node = bool(getattr(features_cfg, "centre_node", False))
         self.layout: FeatureLayout = make_layout(features_cfg, spec.floor_z, spec.materials_vary,
-                                                 collisions=spec.collision_edges, gravity_step=self.gravity_step)
+                                                 collisions=spec.collision_edges, gravity_step=self.gravity_step,
+                                                 gravity_z_step=None if spec.gravity_per_frame is None
+                                                 else float(spec.gravity_per_frame[2]))
         steps = features_cfg.normalizer_steps
         self.node_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.node_groups})
         self.edge_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.edge_groups})

@@ -23,6 +23,7 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Callable
 
 import numpy as np
@@ -251,12 +252,34 @@ def _init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec)
     problem = "; ".join(p for p in problems if p)
     if problem:
         raise CheckpointError(f"cannot start from {path} (train.init_from): {problem}")
-    sim.load_state_dict(init["model"])
+    sim.load_state_dict(_widened(init["model"], sim, trained.node_features or ()))
     return _merge_ranges(trained, spec)
 
 
+def _widened(state: dict, sim: LearnedSimulator, trained_groups: Sequence[str]) -> dict:
+    """A checkpoint's weights for `sim`, which reads node feature groups added after the trained
+    ones (ADDABLE_NODE_GROUPS): the node encoder's first layer gets a zero column per new input
+    and the new groups fresh normalisers, so the start computes exactly what the checkpoint did
+    and training learns what the new inputs add."""
+    added = [(n, w) for n, w in sim.layout.node_groups if n not in trained_groups]
+    if not added:
+        return state
+    own = sim.state_dict()
+    out = dict(state)
+    for key, value in own.items():
+        if key not in out:   # the new groups' normalisers, which accumulate as training starts
+            out[key] = value
+    key = "network.node_encoder.0.weight"
+    extra = sum(w for _, w in added)
+    out[key] = torch.cat([state[key], state[key].new_zeros(state[key].shape[0], extra)], dim=1)
+    return out
+
+
 # keys a fine-tuning run (train.init_from) may change: the weights do not depend on them
-FINE_TUNE_FREE = ("features.mesh_vertices", "features.centre_node", "model.processor_repeats")
+FINE_TUNE_FREE = ("features.mesh_vertices", "features.centre_node", "model.processor_repeats",
+                  "features.impact_time")
+# node feature groups a fine-tuning run may add after the trained ones (_widened)
+ADDABLE_NODE_GROUPS = ("impact",)
 
 
 def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec,
@@ -265,7 +288,11 @@ def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelS
     fine_tune: as the start of a new run, which may change FINE_TUNE_FREE (a resumed run may not)."""
     diffs = config_differences(config, cfg, ARCHITECTURE_SECTIONS, ignore=FINE_TUNE_FREE if fine_tune else ())
     for key in ("node_features", "edge_features", "collision_features"):
-        if (getattr(trained, key) or ()) != getattr(spec, key):
+        theirs, mine = tuple(getattr(trained, key) or ()), tuple(getattr(spec, key))
+        if fine_tune and key == "node_features" and mine[:len(theirs)] == theirs \
+                and set(mine[len(theirs):]) <= set(ADDABLE_NODE_GROUPS):
+            continue
+        if theirs != mine:
             diffs.append(f"{key} are {list(getattr(trained, key) or ())} in the checkpoint, "
                          f"{list(getattr(spec, key))} with this data")
     old_floor, new_floor = trained.floor, spec.floor

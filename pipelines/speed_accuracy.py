@@ -232,41 +232,50 @@ def run_name(run: str) -> str:
 
 
 def pareto_plot(rows: list[dict], path: Path) -> Path:
-    from gns.plots import new_figure, save_figure
-    fig = new_figure((7.5, 4.8))
+    """Error against cost, log-log. A run's variants (one scene at a time, batched, fast, fast
+    symmetrized) are joined by a thin line and the run is named once, at its most accurate
+    point; labels are placed where they overlap least (gns.plots.label_points)."""
+    from gns.plots import label_points, new_figure, save_figure
+    fig = new_figure((8.5, 5.6))
     ax = fig.subplots()
+    cost = lambda r: r["seconds_per_simulated_second"]  # noqa: E731
+    err = lambda r: r["position_error_pct"]  # noqa: E731
+    labels = []   # (x, y, text)
     bullet = [r for r in rows if r["family"] == "pybullet"]
     for k, it in enumerate(sorted({r["solver_iterations"] for r in bullet})):
         pts = [r for r in bullet if r["solver_iterations"] == it]
-        ax.plot([r["seconds_per_simulated_second"] for r in pts], [r["position_error_pct"] for r in pts],
+        ax.plot([cost(r) for r in pts], [err(r) for r in pts],
                 "o-", color=f"C{k}", alpha=0.8, label=f"PyBullet, {it} solver iterations")
         if k == 0:  # one label per physics rate is enough
-            for r in pts:
-                ax.annotate(f"{r['physics_rate']} Hz", (r["seconds_per_simulated_second"], r["position_error_pct"]),
-                            fontsize=7, xytext=(-4, -11), textcoords="offset points")
+            labels += [(cost(r), err(r), f"{r['physics_rate']} Hz") for r in pts]
+    learned = [r for r in rows if r["family"].startswith("gns") and "position_error_pct" in r]
+    for run in dict.fromkeys(r["run"] for r in learned):
+        pts = sorted((r for r in learned if r["run"] == run), key=cost)
+        ax.plot([cost(r) for r in pts], [err(r) for r in pts], "-", color="0.6", lw=0.6, zorder=1)
+        best = min(pts, key=err)
+        labels.append((cost(best), err(best), run_name(run)))
     for family, marker, color, what in (("gns", "s", "C5", "GNS, one scene at a time"),
                                         ("gns batched", "^", "C6", "GNS, all test scenes batched"),
                                         ("gns fast", "*", "C3", f"GNS batched, {FAST}"),
                                         ("gns fast sym", "P", "C1", f"GNS batched, {FAST_SYM}")):
-        pts = [r for r in rows if r["family"] == family]
-        if not pts:
-            continue
-        ax.scatter([r["seconds_per_simulated_second"] for r in pts], [r["position_error_pct"] for r in pts],
-                   marker=marker, color=color, s=45, label=what)
-        for k, r in enumerate(pts):  # batched and single share a run name: name the batched point only
-            if family != "gns":  # alternate above and below: neighbouring labels overlap less
-                ax.annotate(run_name(r["run"]), (r["seconds_per_simulated_second"], r["position_error_pct"]),
-                            fontsize=7, xytext=(5, 3 if k % 2 == 0 else -10), textcoords="offset points")
+        pts = [r for r in learned if r["family"] == family]
+        if pts:
+            ax.scatter([cost(r) for r in pts], [err(r) for r in pts], marker=marker, color=color, s=45,
+                       label=what, zorder=2)
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ymax = max(r["position_error_pct"] for r in rows if "position_error_pct" in r)
+    ymax = max(err(r) for r in rows if "position_error_pct" in r)
     ax.set_ylim(top=ymax * 2)
     ax.set_xlabel("wall-clock seconds per simulated second per trajectory (1 CPU thread)")
     ax.set_ylabel("position error vs fine reference [% of size]")
-    ax.set_title("speed against accuracy (lower left is better)")
+    ax.set_title("speed against accuracy (lower left is better; a grey line joins one model's rollout options)")
+    ax.title.set_fontsize(9)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
+    if labels:
+        xs, ys, texts = zip(*labels)
+        label_points(ax, xs, ys, texts)
     return save_figure(fig, path, 130)
 
 
