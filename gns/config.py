@@ -54,6 +54,10 @@ class FeatureConfig:
     # object flew on ballistically (0: no impact within the step, 1: already below). The time of
     # impact is a ratio of height to speed, which the network's ReLU MLPs only approximate
     impact_time: bool = False
+    # an edge feature: the change of the edge's vector over the last frame, d_t - d_{t-1}: the
+    # object's spin at the resolution of the small relative motion, which the node velocities
+    # (normalised by the spread of flight speeds) carry only as a small difference
+    edge_velocity: bool = False
 
 
 @dataclass

@@ -149,6 +149,8 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, colli
         edge += [("relative", 3), ("relative_norm", 1)]
         if f.rest_edges:
             edge += [("rest_relative", 3), ("rest_relative_norm", 1)]
+        if getattr(f, "edge_velocity", False):
+            edge.append(("relative_velocity", 3))   # last: fine-tuning may add it (see "impact")
     impact = bool(getattr(f, "impact_time", False))
     if impact:
         if floor_z is None or not f.floor_distance:
@@ -217,6 +219,9 @@ def raw_edge_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
         x_t = history[:, -1]
         d = x_t[r] - x_t[s]
         out["relative"], out["relative_norm"] = d, d.norm(dim=-1, keepdim=True)
+    if "relative_velocity" in names:
+        x_t, x_tm1 = history[:, -1], history[:, -2]
+        out["relative_velocity"] = (x_t[r] - x_t[s]) - (x_tm1[r] - x_tm1[s])
     if "rest_relative" in names:
         d = graph.rest[r] - graph.rest[s]
         out["rest_relative"], out["rest_relative_norm"] = d, d.norm(dim=-1, keepdim=True)

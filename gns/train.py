@@ -23,7 +23,6 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
-from collections.abc import Sequence
 from typing import Callable
 
 import numpy as np
@@ -252,34 +251,33 @@ def _init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec)
     problem = "; ".join(p for p in problems if p)
     if problem:
         raise CheckpointError(f"cannot start from {path} (train.init_from): {problem}")
-    sim.load_state_dict(_widened(init["model"], sim, trained.node_features or ()))
+    sim.load_state_dict(_widened(init["model"], sim, trained))
     return _merge_ranges(trained, spec)
 
 
-def _widened(state: dict, sim: LearnedSimulator, trained_groups: Sequence[str]) -> dict:
-    """A checkpoint's weights for `sim`, which reads node feature groups added after the trained
-    ones (ADDABLE_NODE_GROUPS): the node encoder's first layer gets a zero column per new input
+def _widened(state: dict, sim: LearnedSimulator, trained: ModelSpec) -> dict:
+    """A checkpoint's weights for `sim`, which reads feature groups added after the trained ones
+    (ADDABLE_GROUPS): the node or edge encoder's first layer gets a zero column per new input
     and the new groups fresh normalisers, so the start computes exactly what the checkpoint did
     and training learns what the new inputs add."""
-    added = [(n, w) for n, w in sim.layout.node_groups if n not in trained_groups]
-    if not added:
-        return state
-    own = sim.state_dict()
     out = dict(state)
-    for key, value in own.items():
+    for kind, groups, encoder in (("node_features", sim.layout.node_groups, "node_encoder"),
+                                  ("edge_features", sim.layout.edge_groups, "edge_encoder")):
+        extra = sum(w for n, w in groups if n not in (getattr(trained, kind) or ()))
+        if extra:
+            key = f"network.{encoder}.0.weight"
+            out[key] = torch.cat([state[key], state[key].new_zeros(state[key].shape[0], extra)], dim=1)
+    for key, value in sim.state_dict().items():
         if key not in out:   # the new groups' normalisers, which accumulate as training starts
             out[key] = value
-    key = "network.node_encoder.0.weight"
-    extra = sum(w for _, w in added)
-    out[key] = torch.cat([state[key], state[key].new_zeros(state[key].shape[0], extra)], dim=1)
     return out
 
 
 # keys a fine-tuning run (train.init_from) may change: the weights do not depend on them
 FINE_TUNE_FREE = ("features.mesh_vertices", "features.centre_node", "model.processor_repeats",
-                  "features.impact_time")
-# node feature groups a fine-tuning run may add after the trained ones (_widened)
-ADDABLE_NODE_GROUPS = ("impact",)
+                  "features.impact_time", "features.edge_velocity")
+# feature groups a fine-tuning run may add after the trained ones (_widened), per kind
+ADDABLE_GROUPS = {"node_features": ("impact",), "edge_features": ("relative_velocity",)}
 
 
 def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec,
@@ -289,8 +287,7 @@ def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelS
     diffs = config_differences(config, cfg, ARCHITECTURE_SECTIONS, ignore=FINE_TUNE_FREE if fine_tune else ())
     for key in ("node_features", "edge_features", "collision_features"):
         theirs, mine = tuple(getattr(trained, key) or ()), tuple(getattr(spec, key))
-        if fine_tune and key == "node_features" and mine[:len(theirs)] == theirs \
-                and set(mine[len(theirs):]) <= set(ADDABLE_NODE_GROUPS):
+        if fine_tune and mine[:len(theirs)] == theirs and set(mine[len(theirs):]) <= set(ADDABLE_GROUPS.get(key, ())):
             continue
         if theirs != mine:
             diffs.append(f"{key} are {list(getattr(trained, key) or ())} in the checkpoint, "

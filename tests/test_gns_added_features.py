@@ -1,4 +1,5 @@
-"""The time-of-impact node feature (features.impact_time) and fine-tuning a model into it."""
+"""Features a fine-tuned model may add: the time of impact (features.impact_time, a node feature)
+and the edges' relative velocity (features.edge_velocity)."""
 import numpy as np
 import pytest
 import torch
@@ -68,3 +69,55 @@ def test_the_impact_feature_needs_a_floor_and_gravity():
         make_layout(FeatureConfig(impact_time=True), floor_z=0.0, materials_vary=False)
     assert make_layout(FeatureConfig(impact_time=True), floor_z=0.0, materials_vary=False,
                        gravity_z_step=-0.1).node_groups[-1] == ("impact", 1)
+
+
+def test_the_edge_velocity_is_the_change_of_each_edge_vector_and_turns_with_the_object():
+    from dataclasses import replace
+    from gns.config import FeatureConfig
+    from gns.features import make_layout, raw_edge_features
+    from gns.graph import MeshLibrary
+    from datagen.shapes import get_shape
+    mesh = get_shape("cube")
+    lib = MeshLibrary({"c": (mesh.vertices, mesh.faces)})
+    graph = lib.pack(lib.shape_ids(["c"]), torch.tensor([1.0]), torch.tensor([0.4]), torch.tensor([0.3]))
+    layout = make_layout(FeatureConfig(edge_velocity=True), floor_z=0.0, materials_vary=False)
+    assert layout.edge_groups[-1] == ("relative_velocity", 3)
+
+    def turned(a):
+        c, s = np.cos(a), np.sin(a)
+        return graph.rest @ torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1.0]], dtype=torch.float64).T
+
+    # a cube spinning about z at 0.1 rad a frame while it flies: the feature sees the spin only
+    w = 0.1
+    shift = torch.tensor([0.7, -0.2, 0.3], dtype=torch.float64)
+    history = torch.stack([turned(0.0), turned(w) + shift, turned(2 * w) + 2 * shift], dim=1)
+    f = raw_edge_features(layout, history, graph)["relative_velocity"].to(torch.float64)
+    s, r = graph.mesh_edges.senders, graph.mesh_edges.receivers
+    expected = (turned(2 * w)[r] - turned(2 * w)[s]) - (turned(w)[r] - turned(w)[s])
+    torch.testing.assert_close(f, expected, rtol=0, atol=1e-6)
+    still = torch.stack([graph.rest + k * shift for k in range(3)], dim=1)
+    assert float(raw_edge_features(layout, still, graph)["relative_velocity"].abs().max()) < 1e-6
+
+
+@pytest.mark.filterwarnings("ignore:outside training")
+def test_a_model_fine_tuned_with_edge_velocities_starts_as_it_was(tmp_path):
+    data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
+    small = ("train.steps=4", "valid.every=0", "features.normalizer_steps=2")
+    train(data, tmp_path / "plain", tiny(*small), log=quiet)
+    plain = gns.load(tmp_path / "plain")
+    cfg = tiny(*small, "features.edge_velocity=true", "features.impact_time=true",
+               f"train.init_from={tmp_path / 'plain'}")
+    sim, _, spec, _ = _build_model(cfg, load_data(data, cfg)[0], None, np.random.default_rng(0))
+    start = Model(sim.eval(), cfg, spec, plain.meshes, plain.device)
+    assert spec.edge_features[-1] == "relative_velocity" and spec.node_features[-1] == "impact"
+    kwargs = dict(shapes=["cube"], positions=[[0.0, 0.0, 1.2]], quaternions=[[0.9, 0.3, 0.2, 0.1]],
+                  velocities=[[1.0, 0.0, -4.0]], angular_velocities=[[0.0, 3.0, 1.0]], steps=6)
+    torch.testing.assert_close(start.rollout(**kwargs).positions, plain.rollout(**kwargs).positions, rtol=0, atol=1e-9)
+    train(data, tmp_path / "ev", tiny(*small, "features.edge_velocity=true", f"train.init_from={tmp_path / 'plain'}"),
+          log=quiet)
+    w = read_checkpoint(tmp_path / "ev" / "latest.pt")["model"]["network.edge_encoder.0.weight"]
+    assert float(w[:, -3:].abs().max()) > 0
+    # other edge features are weights of another shape: refused
+    with pytest.raises(CheckpointError, match="edge_features"):
+        train(data, tmp_path / "norest", tiny(*small, "features.rest_edges=false", f"train.init_from={tmp_path / 'plain'}"),
+              log=quiet)
