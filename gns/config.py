@@ -23,6 +23,9 @@ class ModelConfig:
     hidden_layers: int = 2             # hidden layers of every MLP
     message_passing_steps: int = 10    # L: blocks with unshared weights
     processor_repeats: int = 3         # K: the L blocks are applied K times
+    # what the predicted acceleration is added to: "linear", each vertex straight on (paper), or
+    # "rigid", each object keeping its last frame's velocity and turn (gns.simulator.rigid_extrapolation)
+    inertial_prior: str = "linear"
 
 
 @dataclass
@@ -219,6 +222,7 @@ def validate(cfg: Config) -> None:
         (cfg.train.contact_threshold > 0, "train.contact_threshold must be > 0"),
         (cfg.train.unroll_steps >= 1, "train.unroll_steps must be >= 1"),
         (cfg.train.loss in ("mse", "huber", "l1"), "train.loss must be 'mse', 'huber' or 'l1'"),
+        (cfg.model.inertial_prior in ("linear", "rigid"), "model.inertial_prior must be 'linear' or 'rigid'"),
         (cfg.train.huber_delta > 0, "train.huber_delta must be > 0"),
         (cfg.train.size_weight >= 0, "train.size_weight must be >= 0"),
         (cfg.train.log_every >= 1 and cfg.train.checkpoint_every >= 1,

@@ -273,9 +273,10 @@ def _widened(state: dict, sim: LearnedSimulator, trained: ModelSpec) -> dict:
     return out
 
 
-# keys a fine-tuning run (train.init_from) may change: the weights do not depend on them
+# keys a fine-tuning run (train.init_from) may change: the weights keep their shapes (the
+# inertial prior changes what the output means, which fine-tuning then learns)
 FINE_TUNE_FREE = ("features.mesh_vertices", "features.centre_node", "model.processor_repeats",
-                  "features.impact_time", "features.edge_velocity")
+                  "features.impact_time", "features.edge_velocity", "model.inertial_prior")
 # feature groups a fine-tuning run may add after the trained ones (_widened), per kind
 ADDABLE_GROUPS = {"node_features": ("impact",), "edge_features": ("relative_velocity",)}
 
