@@ -104,6 +104,12 @@ class TrainConfig:
     # > 0: each node's loss weighted by its object's size^-p (normalised to mean 1 over the
     # batch): p = 2 makes the loss of a small object count as its error in % of its size does
     size_weight: float = 0.0
+    # > 0 adds this weight times a loss on what a rollout keeps of a prediction: the shape-matched
+    # next vertices (the rest mesh fitted to the predicted ones, differentiably) against the
+    # shape-matched true ones, per node and axis in the target normaliser's units. The per-node
+    # loss also spends the network on the non-rigid part of its answer, which shape matching
+    # throws away (gns.simulator.LearnedSimulator.loss)
+    rigid_loss: float = 0.0
     tensorboard: bool = False          # also write TensorBoard event files to RUN/tb (the tensorboard extra)
     # Start a new run from another run's weights and normalisers (a run folder or .pt): fine-tuning,
     # e.g. on real tosses after training on an engine's. Same architecture, features, frame rate.
@@ -225,6 +231,7 @@ def validate(cfg: Config) -> None:
         (cfg.model.inertial_prior in ("linear", "rigid"), "model.inertial_prior must be 'linear' or 'rigid'"),
         (cfg.train.huber_delta > 0, "train.huber_delta must be > 0"),
         (cfg.train.size_weight >= 0, "train.size_weight must be >= 0"),
+        (cfg.train.rigid_loss >= 0, "train.rigid_loss must be >= 0"),
         (cfg.train.log_every >= 1 and cfg.train.checkpoint_every >= 1,
          "train.log_every and train.checkpoint_every must be >= 1"),
         (cfg.valid.every >= 0 and cfg.valid.rollout_steps >= 1, "valid.every must be >= 0, valid.rollout_steps >= 1"),

@@ -545,7 +545,7 @@ class LearnedSimulator(nn.Module):
         return torch.stack(out)
 
     def loss(self, history: torch.Tensor, target: torch.Tensor, graph: GraphBatch, kind: str = "mse",
-             delta: float = 1.0, node_weight: torch.Tensor | None = None) -> torch.Tensor:
+             delta: float = 1.0, node_weight: torch.Tensor | None = None, rigid: float = 0.0) -> torch.Tensor:
         """Per-node loss of the normalised acceleration: mean over nodes of the sum over x, y, z.
 
         history (N, 3, 3) float64 (possibly noisy) inputs; target (N, 3) float64 positions at t+1
@@ -554,20 +554,38 @@ class LearnedSimulator(nn.Module):
         beyond) and "l1" keep the rare, barely predictable impact accelerations, which are most
         of the normaliser's spread, from drowning the small but systematic ones of friction.
         node_weight (N,): each node's share of the mean (mean 1: train.size_weight).
+        rigid > 0 adds rigid x the same loss of the shape-matched prediction against the
+        shape-matched target (train.rigid_loss): what a rollout keeps of a step. Shape matching
+        runs through the differentiable polar factor (`_rotation_differentiable`).
         """
-        if self.inertial_prior == "linear":
+        if self.inertial_prior == "linear" and rigid == 0:
             accel = acceleration_of(history[:, -2], history[:, -1], target).to(torch.float32)
         else:
-            accel = (target - self.inertial(history[:, -2], history[:, -1], graph)).to(torch.float32)
+            prior = self.inertial(history[:, -2], history[:, -1], graph)
+            accel = (target - prior).to(torch.float32)
         target_norm = self.target_normalizer(accel, accumulate=self.training)
-        error = self(history, graph) - target_norm
-        if kind == "mse":
-            per = error ** 2
-        elif kind == "huber":
-            per = torch.nn.functional.huber_loss(error, torch.zeros_like(error), reduction="none", delta=delta)
-        elif kind == "l1":
-            per = error.abs()
-        else:
-            raise ValueError(f"unknown loss {kind!r}")
-        per = per.sum(-1)
+        output = self(history, graph)
+        per = _per_node(output - target_norm, kind, delta)
+        if rigid > 0:
+            # the prediction and the truth as rollouts keep them, differenced in normalised units
+            # (the normaliser's spread, not its mean: a difference of positions)
+            n, scale = graph.node_graph, self.target_normalizer.std.to(torch.float64)
+            moved = prior + self.target_normalizer.inverse(output.to(torch.float64))
+            kept = shape_match_packed(moved, graph.rest, n, graph.num_graphs)[2]
+            with torch.no_grad():
+                truth = shape_match_packed(target, graph.rest, n, graph.num_graphs)[2]
+            per = per + rigid * _per_node(((kept - truth) / scale).to(torch.float32), kind, delta)
         return (per if node_weight is None else per * node_weight).mean()
+
+
+def _per_node(error: torch.Tensor, kind: str, delta: float) -> torch.Tensor:
+    """(N, 3) normalised errors -> (N,) losses summed over x, y, z."""
+    if kind == "mse":
+        per = error ** 2
+    elif kind == "huber":
+        per = torch.nn.functional.huber_loss(error, torch.zeros_like(error), reduction="none", delta=delta)
+    elif kind == "l1":
+        per = error.abs()
+    else:
+        raise ValueError(f"unknown loss {kind!r}")
+    return per.sum(-1)

@@ -301,7 +301,8 @@ def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelS
 
 def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: Batch, lr: float,
                grad_clip: float, loss_kind: str = "mse", huber_delta: float = 1.0,
-               fraction: float = 1.0, processes: int = 1, size_weight: float = 0.0) -> float:
+               fraction: float = 1.0, processes: int = 1, size_weight: float = 0.0,
+               rigid_loss: float = 0.0) -> float:
     """One Adam step on the per-node MSE of a batch; returns the loss.
 
     On several processes `batch` is this process's share of the global batch, holding
@@ -312,7 +313,7 @@ def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: B
     """
     for group in optimizer.param_groups:
         group["lr"] = lr
-    loss = unrolled_loss(sim, batch, loss_kind, huber_delta, size_weight)
+    loss = unrolled_loss(sim, batch, loss_kind, huber_delta, size_weight, rigid_loss)
     if processes > 1:
         # every process sees the same global loss, so all stop together on a NaN
         total = parallel.sum_over_processes(loss.detach() * fraction)
@@ -342,7 +343,7 @@ def size_weights(graph: GraphBatch, power: float) -> torch.Tensor | None:
 
 
 def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta: float = 1.0,
-                  size_weight: float = 0.0) -> torch.Tensor:
+                  size_weight: float = 0.0, rigid_loss: float = 0.0) -> torch.Tensor:
     """The one-step loss, averaged over the batch's target frames (pushforward training).
 
     Step k > 1 starts from the model's own earlier predictions, shape-matched as in rollouts and
@@ -355,7 +356,7 @@ def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta:
     total = 0.0
     for k in range(targets.shape[1]):
         history = torch.stack(frames[-HISTORY:], dim=1)
-        total = total + sim.loss(history, targets[:, k], batch.graph, kind, delta, weight)
+        total = total + sim.loss(history, targets[:, k], batch.graph, kind, delta, weight, rigid_loss)
         if k + 1 < targets.shape[1]:
             with torch.no_grad():
                 x = sim.predict_next(*frames[-HISTORY:], batch.graph)
@@ -732,7 +733,8 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
         batch, fraction = _next_batch(tracks, rng, cfg, world, lo, hi)
         try:
             loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, cfg.train.loss,
-                              cfg.train.huber_delta, fraction, world.size, cfg.train.size_weight)
+                              cfg.train.huber_delta, fraction, world.size, cfg.train.size_weight,
+                              cfg.train.rigid_loss)
         except FloatingPointError as e:
             raise TrainingError(_stopped(str(e), step + 1, last_good)) from None
         step += 1
