@@ -45,13 +45,7 @@ def rigid_extrapolation(x_tm1: torch.Tensor, x_t: torch.Tensor, node_graph: torc
     centripetal acceleration at every step just to keep the spin, and any shrinkage of its
     answer is lost spin. With this prior, keeping the spin is the default and the network learns
     only what changes momentum. Translation and rotation equivariant, exact for a rigid input."""
-    count = torch.zeros(num_graphs, dtype=x_t.dtype, device=x_t.device).index_add_(
-        0, node_graph, torch.ones_like(x_t[:, 0]))[:, None]
-    c0 = torch.zeros(num_graphs, 3, dtype=x_t.dtype, device=x_t.device).index_add_(0, node_graph, x_tm1) / count
-    c1 = torch.zeros(num_graphs, 3, dtype=x_t.dtype, device=x_t.device).index_add_(0, node_graph, x_t) / count
-    p, q = x_t - c1[node_graph], x_tm1 - c0[node_graph]
-    h = torch.zeros(num_graphs, 3, 3, dtype=x_t.dtype, device=x_t.device).index_add_(
-        0, node_graph, p[:, :, None] * q[:, None, :])
+    c1, c0, p, h = _packed_fit(x_t, x_tm1, node_graph, num_graphs)
     turn = _rotation(h)[node_graph]
     return x_t + (turn @ p[:, :, None])[..., 0] - p + (c1 - c0)[node_graph]
 
@@ -120,19 +114,27 @@ def shape_match(x: torch.Tensor, rest: torch.Tensor) -> tuple[torch.Tensor, torc
     return rot, t, rest @ rot.transpose(1, 2) + t[:, None]
 
 
+def _packed_fit(a: torch.Tensor, b: torch.Tensor, node_graph: torch.Tensor, num_graphs: int):
+    """Per graph of a packed batch: the point sets' means ca, cb (G, 3), a's offsets p = a - ca
+    (N, 3) and the covariance h = sum p (b - cb)^T (G, 3, 3), whose polar factor best turns b's
+    offsets onto a's (Kabsch)."""
+    count = torch.zeros(num_graphs, dtype=a.dtype, device=a.device).index_add_(
+        0, node_graph, torch.ones_like(a[:, 0]))[:, None]
+    ca = torch.zeros(num_graphs, 3, dtype=a.dtype, device=a.device).index_add_(0, node_graph, a) / count
+    cb = torch.zeros(num_graphs, 3, dtype=a.dtype, device=a.device).index_add_(0, node_graph, b) / count
+    p, q = a - ca[node_graph], b - cb[node_graph]
+    h = torch.zeros(num_graphs, 3, 3, dtype=a.dtype, device=a.device).index_add_(
+        0, node_graph, p[:, :, None] * q[:, None, :])
+    return ca, cb, p, h
+
+
 def shape_match_packed(x: torch.Tensor, rest: torch.Tensor, node_graph: torch.Tensor,
                        num_graphs: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """`shape_match` for a packed batch with different vertex counts per graph.
 
     x, rest: (N, 3); node_graph: (N,) graph index. Returns R (G, 3, 3), t (G, 3), x_proj (N, 3).
     """
-    count = torch.zeros(num_graphs, dtype=x.dtype, device=x.device).index_add_(
-        0, node_graph, torch.ones_like(x[:, 0]))[:, None]
-    cx = torch.zeros(num_graphs, 3, dtype=x.dtype, device=x.device).index_add_(0, node_graph, x) / count
-    cr = torch.zeros(num_graphs, 3, dtype=x.dtype, device=x.device).index_add_(0, node_graph, rest) / count
-    p, q = x - cx[node_graph], rest - cr[node_graph]
-    h = torch.zeros(num_graphs, 3, 3, dtype=x.dtype, device=x.device).index_add_(
-        0, node_graph, p[:, :, None] * q[:, None, :])
+    cx, cr, _, h = _packed_fit(x, rest, node_graph, num_graphs)
     rot = _rotation(h)
     t = cx - (rot @ cr[:, :, None])[..., 0]
     x_proj = (rot[node_graph] @ rest[:, :, None])[..., 0] + t[node_graph]
