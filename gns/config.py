@@ -16,6 +16,9 @@ from pathlib import Path
 from datagen.config import ConfigError, parse_value, typed_value  # noqa: E402
 
 
+INERTIAL_PRIORS = ("linear", "rigid")   # model.inertial_prior (gns.simulator.LearnedSimulator.inertial)
+
+
 @dataclass
 class ModelConfig:
     latent_size: int = 128
@@ -228,7 +231,7 @@ def validate(cfg: Config) -> None:
         (cfg.train.contact_threshold > 0, "train.contact_threshold must be > 0"),
         (cfg.train.unroll_steps >= 1, "train.unroll_steps must be >= 1"),
         (cfg.train.loss in ("mse", "huber", "l1"), "train.loss must be 'mse', 'huber' or 'l1'"),
-        (cfg.model.inertial_prior in ("linear", "rigid"), "model.inertial_prior must be 'linear' or 'rigid'"),
+        (cfg.model.inertial_prior in INERTIAL_PRIORS, "model.inertial_prior must be 'linear' or 'rigid'"),
         (cfg.train.huber_delta > 0, "train.huber_delta must be > 0"),
         (cfg.train.size_weight >= 0, "train.size_weight must be >= 0"),
         (cfg.train.rigid_loss >= 0, "train.rigid_loss must be >= 0"),

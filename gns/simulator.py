@@ -15,6 +15,7 @@ from torch import nn
 
 from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_collision_features,
                           raw_edge_features, raw_node_features)
+from gns.config import INERTIAL_PRIORS
 from gns.contacts import surface_edges
 from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collision_edges, per_graph, select_graphs, stack_graphs,
                        with_symmetries)
@@ -48,9 +49,6 @@ def rigid_extrapolation(x_tm1: torch.Tensor, x_t: torch.Tensor, node_graph: torc
     c1, c0, p, h = _packed_fit(x_t, x_tm1, node_graph, num_graphs)
     turn = _rotation(h)[node_graph]
     return x_t + (turn @ p[:, :, None])[..., 0] - p + (c1 - c0)[node_graph]
-
-
-INERTIAL_PRIORS = ("linear", "rigid")
 
 
 def _rotation_from_covariance(h: torch.Tensor) -> torch.Tensor:
@@ -397,7 +395,7 @@ class LearnedSimulator(nn.Module):
         (`rigid_extrapolation`, model.inertial_prior = "rigid")."""
         if self.inertial_prior == "rigid":
             return rigid_extrapolation(x_tm1, x_t, graph.node_graph, graph.num_graphs)
-        return integrate(x_tm1, x_t, torch.zeros_like(x_t))
+        return x_t + (x_t - x_tm1)
 
     def predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         """Vertex positions (N, 3) float64 at t-2, t-1, t -> positions at t+1 (N, 3) float64."""

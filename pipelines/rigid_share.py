@@ -53,8 +53,7 @@ def _share(values: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]]) -
 @torch.no_grad()
 def rigid_share(run, data, batches: int = 20, batch_size: int = 16, seed: int = 0) -> dict:
     """{"noise_std": {"error_nonrigid_share", "target_nonrigid_share"}} for the training noise and 0."""
-    sim, saved = load_simulator(run)
-    sim.eval()
+    sim, saved = load_simulator(run)   # in eval mode
     cfg = build_config(base=saved["config"])
     spec, tracks, _ = load_data(data, cfg)
     gravity = torch.as_tensor(spec.gravity_per_frame, dtype=torch.float64) if spec.gravity_per_frame is not None \
