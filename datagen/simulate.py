@@ -120,8 +120,10 @@ def steps_per_frame(cfg: dict) -> int:
     return int(round(float(cfg["physics"]["rate"]) / float(cfg["scene"]["frame_rate"])))
 
 
-def simulate(spec: SceneSpec, cfg: dict) -> Scene:
-    """Simulate one scene and record `scene.frames` frames (frame 0 is the initial state)."""
+def simulate(spec: SceneSpec, cfg: dict, after_frame=None) -> Scene:
+    """Simulate one scene and record `scene.frames` frames (frame 0 is the initial state).
+    `after_frame(t, client, bodies)`, if given, is called once each frame is recorded: a study may
+    change the world there (pipelines/movi_a_sensitivity.py perturbs the state at one frame)."""
     frames, sub = int(cfg["scene"]["frames"]), steps_per_frame(cfg)
     n = len(spec.objects)
     pos = np.empty((frames, n, 3))
@@ -138,6 +140,8 @@ def simulate(spec: SceneSpec, cfg: dict) -> Scene:
                 p, q = pb.getBasePositionAndOrientation(b, physicsClientId=c)
                 v, w = pb.getBaseVelocity(b, physicsClientId=c)
                 pos[t, j], quat[t, j], vel[t, j], ang[t, j] = p, wxyz(q), v, w
+            if after_frame is not None:
+                after_frame(t, c, bodies)
     finally:
         pb.disconnect(c)
     return Scene(

@@ -1,0 +1,201 @@
+"""How predictable a PyBullet toss is: the error of exact physics started from a slightly wrong state.
+
+A learned simulator is scored against one sample of a chaotic system: a beveled cube that lands
+on an edge goes one way or the other on a hair's difference. This re-simulates every scene of a
+datagen split with the generator's own engine, world and parameters (datagen.simulate, the
+recorded config), changes one thing by a small amount right after the last frame a GNS is given
+(frame HISTORY - 1 = 2), and scores the result with `gns eval`'s metrics. The unperturbed row
+reproduces the data and must score 0 (a check that the study runs the data's physics). What the
+other rows score is the error a simulator with perfect physics makes when its state or its
+material is off by that much: the floor a learned model's error is to be read against
+(docs/accuracy.md, session 9).
+
+    python -m pipelines.movi_a_sensitivity --data data/movi_a_4000 [--split test] [--limit N] [--out DIR]
+
+Perturbations (each scene draws its own random directions and signs from --seed and its index):
+  turn E deg       the pose turned by E degrees about a random axis through the centre of mass
+  shift E %        the centre moved by E% of the object's size in a random direction
+  velocity E %     the linear velocity changed by E% of its magnitude in a random direction
+  spin E deg/frame an angular velocity of E degrees per frame about a random axis added
+  friction E %     the object's friction scaled by 1 +- E/100 (random sign)
+  restitution E %  the object's restitution scaled by 1 +- E/100 (random sign)
+Writes results.json (every row's metrics, the data's fingerprint, the seed) and report.md.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from datagen.atomic import atomic_file
+from datagen.shards import DataError, Dataset
+from gns.evaluate import score_predictions
+from gns.features import HISTORY
+from pipelines.common import guarded, say
+
+KINDS = ("exact", "turn", "shift", "velocity", "spin", "friction", "restitution")
+UNITS = {"exact": "", "turn": "deg", "shift": "% of size", "velocity": "%", "spin": "deg/frame",
+         "friction": "%", "restitution": "%"}
+DEFAULT = ("exact:0", "turn:0.1", "turn:1", "turn:3", "shift:1", "velocity:1", "spin:1", "friction:10",
+           "restitution:10")
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    kind: str
+    size: float
+
+    @classmethod
+    def parse(cls, text: str) -> "Perturbation":
+        kind, _, size = text.partition(":")
+        if kind not in KINDS:
+            raise DataError(f"unknown perturbation {kind!r} in {text!r}; known: {', '.join(KINDS)}")
+        try:
+            value = float(size or 0)
+        except ValueError:
+            raise DataError(f"perturbation {text!r}: size {size!r} is not a number") from None
+        if not np.isfinite(value) or value < 0:
+            raise DataError(f"perturbation {text!r}: size must be a finite number >= 0")
+        return cls(kind, value)
+
+    @property
+    def label(self) -> str:
+        return "exact (none)" if self.kind == "exact" else f"{self.kind} {self.size:g} {UNITS[self.kind]}"
+
+
+def _unit(rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def _turn(quat_xyzw, axis: np.ndarray, degrees: float):
+    from scipy.spatial.transform import Rotation
+    return (Rotation.from_rotvec(np.radians(degrees) * axis) * Rotation.from_quat(quat_xyzw)).as_quat()
+
+
+def perturber(p: Perturbation, rng: np.random.Generator, frame: int, frame_rate: float, objects: list):
+    """A datagen.simulate `after_frame` hook applying p to every object (datagen.scenes.ObjectSpec)
+    once frame `frame` is recorded."""
+    from datagen.simulate import pb
+
+    def hook(t, c, bodies):
+        if t != frame or p.kind == "exact":
+            return
+        for b, o in zip(bodies, objects):
+            pos, quat = pb.getBasePositionAndOrientation(b, physicsClientId=c)
+            vel, ang = (np.array(v) for v in pb.getBaseVelocity(b, physicsClientId=c))
+            pos = np.array(pos)
+            if p.kind == "turn":
+                quat = _turn(quat, _unit(rng), p.size)
+            elif p.kind == "shift":
+                pos = pos + _unit(rng) * p.size / 100 * o.scale
+            elif p.kind == "velocity":
+                vel = vel + _unit(rng) * p.size / 100 * np.linalg.norm(vel)
+            elif p.kind == "spin":
+                ang = ang + _unit(rng) * np.radians(p.size) * frame_rate
+            elif p.kind == "friction":
+                pb.changeDynamics(b, -1, lateralFriction=o.friction * (1 + rng.choice((-1, 1)) * p.size / 100),
+                                  physicsClientId=c)
+            elif p.kind == "restitution":
+                # from the spec: getDynamicsInfo reports 0 restitution for maximal-coordinate bodies
+                pb.changeDynamics(b, -1, restitution=o.restitution * (1 + rng.choice((-1, 1)) * p.size / 100),
+                                  physicsClientId=c)
+            pb.resetBasePositionAndOrientation(b, pos.tolist(), list(quat), physicsClientId=c)
+            pb.resetBaseVelocity(b, vel.tolist(), ang.tolist(), physicsClientId=c)
+    return hook
+
+
+def resimulate(ds: Dataset, scenes: list, p: Perturbation, seed: int, frame: int = HISTORY - 1) -> list:
+    """Every scene simulated again from its recorded spec (datagen.scenes.sample_scene with the
+    dataset's config and seed), perturbed by p after `frame`."""
+    from datagen.scenes import sample_scene
+    from datagen.simulate import simulate
+    cfg, data_seed = ds.meta["config"], int(ds.meta["seed"])
+    out = []
+    for sc in scenes:
+        split, _, index = str(sc.attrs["scene_id"]).partition("-")
+        spec = sample_scene(cfg, data_seed, split, int(index))
+        rng = np.random.default_rng([seed, int(index), KINDS.index(p.kind)])
+        hook = perturber(p, rng, frame, ds.frame_rate, spec.objects)
+        out.append(simulate(spec, cfg, after_frame=hook))
+    return out
+
+
+METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
+
+
+def study(data: str | Path, split: str = "test", limit: int | None = None,
+          perturbations: tuple[str, ...] = DEFAULT, seed: int = 0, progress: bool = True) -> dict:
+    parsed = [Perturbation.parse(text) for text in perturbations]   # a typo fails before any simulation
+    ds = Dataset(data)
+    if ds.meta.get("generator") != "datagen toss" or "config" not in ds.meta:
+        raise DataError(f"{data}: not made by `datagen toss` (no generator config to re-simulate with)")
+    if split not in ds.splits:
+        raise DataError(f"{data}: no scenes in split {split!r}; it has {', '.join(ds.splits) or 'none'}")
+    scenes = ds.load(split, limit)
+    rows = []
+    for p in parsed:
+        t0 = time.perf_counter()
+        pred = resimulate(ds, scenes, p, seed)
+        res = score_predictions(pred, scenes, ds, time.perf_counter() - t0)
+        row = {"perturbation": p.kind, "size": p.size, "label": p.label, **{k: res[k] for k in METRICS},
+               "horizons": {h: {k: v[k] for k in METRICS} for h, v in res["horizons"].items()},
+               "by_shape": {s: {k: v[k] for k in METRICS} for s, v in res["by_shape"].items()}}
+        rows.append(row)
+        if progress:
+            say(f"{p.label}: {row['position_error_pct']:.2f}% / {row['rotation_error_deg']:.2f} deg "
+                f"({time.perf_counter() - t0:.0f} s, {len(scenes)} scenes)")
+    return {"data": str(data), "data_fingerprint": ds.meta.get("fingerprint"), "split": split,
+            "num_scenes": len(scenes), "seed": seed, "perturbed_after_frame": HISTORY - 1, "rows": rows}
+
+
+def report(results: dict) -> str:
+    shapes = sorted(results["rows"][0]["by_shape"])
+    horizons = sorted(results["rows"][0]["horizons"], key=int)
+    head = ["perturbation after frame 2", "position %", "rotation deg", "penetration %",
+            *(f"rotation deg at {h}" for h in horizons), *(f"{s}: pos % / rot deg" for s in shapes)]
+    lines = [f"Exact physics from a perturbed state: {results['num_scenes']} {results['split']} scenes of "
+             f"`{results['data']}` (fingerprint {str(results['data_fingerprint'])[:16]}), seed {results['seed']}.",
+             "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in results["rows"]:
+        cells = [r["label"], f"{r['position_error_pct']:.2f}", f"{r['rotation_error_deg']:.2f}",
+                 f"{r['penetration_pct']:.3f}", *(f"{r['horizons'][h]['rotation_error_deg']:.2f}" for h in horizons),
+                 *(f"{r['by_shape'][s]['position_error_pct']:.2f} / {r['by_shape'][s]['rotation_error_deg']:.2f}"
+                   for s in shapes)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m pipelines.movi_a_sensitivity", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, required=True, help="a dataset made by `datagen toss`")
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--limit", type=int, help="only the first N scenes of the split")
+    ap.add_argument("--perturb", nargs="+", default=list(DEFAULT), metavar="KIND:SIZE",
+                    help=f"perturbations to run (default: {' '.join(DEFAULT)})")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the perturbations' random directions and signs")
+    ap.add_argument("--out", type=Path, default=Path("runs/movi_a_sensitivity"), help="folder for results.json and report.md")
+    a = ap.parse_args(argv)
+    if a.limit is not None and a.limit < 1:
+        ap.error("--limit must be >= 1")
+
+    def stages():
+        results = study(a.data, a.split, a.limit, tuple(a.perturb), a.seed)
+        a.out.mkdir(parents=True, exist_ok=True)
+        with atomic_file(a.out / "results.json") as tmp:
+            tmp.write_text(json.dumps(results, indent=1))
+        text = report(results)
+        with atomic_file(a.out / "report.md") as tmp:
+            tmp.write_text(text)
+        print(text)
+    return guarded(stages)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
