@@ -19,6 +19,16 @@ Perturbations (each scene draws its own random directions and signs from --seed 
   spin E deg/frame an angular velocity of E degrees per frame about a random axis added
   friction E %     the object's friction scaled by 1 +- E/100 (random sign)
   restitution E %  the object's restitution scaled by 1 +- E/100 (random sign)
+The contact kinds stand in for a learned simulator's own errors, which it makes at every step
+in contact (pipelines/one_step.py: 86% of its one-step rotation error), not once; its next step
+reads its velocity off its own last two frames, so a wrong frame is a wrong velocity too:
+  contact_turn E   after every step in contact (from the first predicted frame on; the step's
+                   centre acceleration off gravity by more than train.contact_threshold x g, as
+                   gns.data.in_contact), the pose turned by E degrees about a random axis and
+                   E degrees per frame of spin added about the same axis
+  contact_shift E  the same with the centre moved by E% of the size and the velocity changed by
+                   E% of the size per frame in the same direction
+Parts joined by '+' are applied together: contact_turn:2+contact_shift:1.5 is one row.
 Writes results.json (every row's metrics, the data's fingerprint, the seed) and report.md.
 """
 from __future__ import annotations
@@ -38,34 +48,46 @@ from gns.evaluate import score_predictions
 from gns.features import HISTORY
 from pipelines.common import guarded, say
 
-KINDS = ("exact", "turn", "shift", "velocity", "spin", "friction", "restitution")
+KINDS = ("exact", "turn", "shift", "velocity", "spin", "friction", "restitution", "contact_turn", "contact_shift")
 UNITS = {"exact": "", "turn": "deg", "shift": "% of size", "velocity": "%", "spin": "deg/frame",
-         "friction": "%", "restitution": "%"}
+         "friction": "%", "restitution": "%", "contact_turn": "deg a contact step",
+         "contact_shift": "% of size a contact step"}
 DEFAULT = ("exact:0", "turn:0.1", "turn:1", "turn:3", "shift:1", "velocity:1", "spin:1", "friction:10",
            "restitution:10")
 
 
 @dataclass(frozen=True)
 class Perturbation:
-    kind: str
-    size: float
+    """One row of the study: KIND:SIZE, or several joined by '+' and applied together."""
+    parts: tuple[tuple[str, float], ...]
 
     @classmethod
     def parse(cls, text: str) -> "Perturbation":
-        kind, _, size = text.partition(":")
-        if kind not in KINDS:
-            raise DataError(f"unknown perturbation {kind!r} in {text!r}; known: {', '.join(KINDS)}")
-        try:
-            value = float(size or 0)
-        except ValueError:
-            raise DataError(f"perturbation {text!r}: size {size!r} is not a number") from None
-        if not np.isfinite(value) or value < 0:
-            raise DataError(f"perturbation {text!r}: size must be a finite number >= 0")
-        return cls(kind, value)
+        parts = []
+        for piece in text.split("+"):
+            kind, _, size = piece.partition(":")
+            if kind not in KINDS:
+                raise DataError(f"unknown perturbation {kind!r} in {text!r}; known: {', '.join(KINDS)}")
+            try:
+                value = float(size or 0)
+            except ValueError:
+                raise DataError(f"perturbation {text!r}: size {size!r} is not a number") from None
+            if not np.isfinite(value) or value < 0:
+                raise DataError(f"perturbation {text!r}: size must be a finite number >= 0")
+            parts.append((kind, value))
+        return cls(tuple(parts))
+
+    @property
+    def kind(self) -> str:
+        return "+".join(k for k, _ in self.parts)
+
+    @property
+    def size(self) -> float | None:
+        return self.parts[0][1] if len(self.parts) == 1 else None
 
     @property
     def label(self) -> str:
-        return "exact (none)" if self.kind == "exact" else f"{self.kind} {self.size:g} {UNITS[self.kind]}"
+        return " + ".join("exact (none)" if k == "exact" else f"{k} {v:g} {UNITS[k]}" for k, v in self.parts)
 
 
 def _unit(rng: np.random.Generator) -> np.ndarray:
@@ -78,35 +100,61 @@ def _turn(quat_xyzw, axis: np.ndarray, degrees: float):
     return (Rotation.from_rotvec(np.radians(degrees) * axis) * Rotation.from_quat(quat_xyzw)).as_quat()
 
 
-def perturber(p: Perturbation, rng: np.random.Generator, frame: int, frame_rate: float, objects: list):
+def perturber(p: Perturbation, rng: np.random.Generator, frame: int, frame_rate: float, objects: list,
+              gravity: np.ndarray):
     """A datagen.simulate `after_frame` hook applying p to every object (datagen.scenes.ObjectSpec)
-    once frame `frame` is recorded."""
+    once frame `frame` is recorded (the contact kinds: after every later frame a step in contact made)."""
     from datagen.simulate import pb
+    from gns.config import TrainConfig
+    g_step = np.asarray(gravity, float) / frame_rate ** 2
+    centres: list[list[np.ndarray]] = [[] for _ in objects]
+
+    def contact_step(j: int, t: int) -> bool:
+        """Did the step to frame t (> frame) touch something: the centre's second difference over
+        frames t-2..t off free fall (gns.data.in_contact's test of the step t-1 -> t)."""
+        if t <= frame or len(centres[j]) < 3:
+            return False
+        a = centres[j][-1] - 2 * centres[j][-2] + centres[j][-3] - g_step
+        return float(np.linalg.norm(a)) > TrainConfig.contact_threshold * float(np.linalg.norm(g_step))
 
     def hook(t, c, bodies):
-        if t != frame or p.kind == "exact":
-            return
-        for b, o in zip(bodies, objects):
+        for j, (b, o) in enumerate(zip(bodies, objects)):
             pos, quat = pb.getBasePositionAndOrientation(b, physicsClientId=c)
-            vel, ang = (np.array(v) for v in pb.getBaseVelocity(b, physicsClientId=c))
             pos = np.array(pos)
-            if p.kind == "turn":
-                quat = _turn(quat, _unit(rng), p.size)
-            elif p.kind == "shift":
-                pos = pos + _unit(rng) * p.size / 100 * o.scale
-            elif p.kind == "velocity":
-                vel = vel + _unit(rng) * p.size / 100 * np.linalg.norm(vel)
-            elif p.kind == "spin":
-                ang = ang + _unit(rng) * np.radians(p.size) * frame_rate
-            elif p.kind == "friction":
-                pb.changeDynamics(b, -1, lateralFriction=o.friction * (1 + rng.choice((-1, 1)) * p.size / 100),
-                                  physicsClientId=c)
-            elif p.kind == "restitution":
-                # from the spec: getDynamicsInfo reports 0 restitution for maximal-coordinate bodies
-                pb.changeDynamics(b, -1, restitution=o.restitution * (1 + rng.choice((-1, 1)) * p.size / 100),
-                                  physicsClientId=c)
-            pb.resetBasePositionAndOrientation(b, pos.tolist(), list(quat), physicsClientId=c)
-            pb.resetBaseVelocity(b, vel.tolist(), ang.tolist(), physicsClientId=c)
+            centres[j].append(pos)
+            touched = contact_step(j, t)
+            vel, ang = (np.array(v) for v in pb.getBaseVelocity(b, physicsClientId=c))
+            moved = False
+            for kind, size in p.parts:
+                applies = touched if kind.startswith("contact") else (t == frame and kind != "exact")
+                if not applies:
+                    continue
+                if kind == "friction":
+                    pb.changeDynamics(b, -1, lateralFriction=o.friction * (1 + rng.choice((-1, 1)) * size / 100),
+                                      physicsClientId=c)
+                    continue
+                if kind == "restitution":
+                    # from the spec: getDynamicsInfo reports 0 restitution for maximal-coordinate bodies
+                    pb.changeDynamics(b, -1, restitution=o.restitution * (1 + rng.choice((-1, 1)) * size / 100),
+                                      physicsClientId=c)
+                    continue
+                if size == 0:   # a reset to the same state is not quite a no-op in Bullet
+                    continue
+                moved = True
+                axis = _unit(rng)
+                if kind in ("turn", "contact_turn"):
+                    quat = _turn(quat, axis, size)
+                if kind == "contact_turn" or kind == "spin":
+                    ang = ang + axis * np.radians(size) * frame_rate
+                if kind in ("shift", "contact_shift"):
+                    pos = pos + axis * size / 100 * o.scale
+                if kind == "contact_shift":
+                    vel = vel + axis * size / 100 * o.scale * frame_rate
+                if kind == "velocity":
+                    vel = vel + axis * size / 100 * np.linalg.norm(vel)
+            if moved:
+                pb.resetBasePositionAndOrientation(b, pos.tolist(), list(quat), physicsClientId=c)
+                pb.resetBaseVelocity(b, vel.tolist(), ang.tolist(), physicsClientId=c)
     return hook
 
 
@@ -120,8 +168,8 @@ def resimulate(ds: Dataset, scenes: list, p: Perturbation, seed: int, frame: int
     for sc in scenes:
         split, _, index = str(sc.attrs["scene_id"]).partition("-")
         spec = sample_scene(cfg, data_seed, split, int(index))
-        rng = np.random.default_rng([seed, int(index), KINDS.index(p.kind)])
-        hook = perturber(p, rng, frame, ds.frame_rate, spec.objects)
+        rng = np.random.default_rng([seed, int(index), *(KINDS.index(k) for k, _ in p.parts)])
+        hook = perturber(p, rng, frame, ds.frame_rate, spec.objects, np.asarray(ds.meta["gravity"], float))
         out.append(simulate(spec, cfg, after_frame=hook))
     return out
 
