@@ -56,3 +56,15 @@ def test_bad_perturbations_and_data_get_one_clear_error(tosses, tmp_path, capsys
     assert len(err) == 1 and "'abc' is not a number" in err[0]
     assert main(["--data", str(tmp_path / "missing"), "--out", str(tmp_path)]) == 2
     assert "missing" in capsys.readouterr().err
+
+
+def test_contact_errors_start_at_the_first_contact_and_parts_combine(tosses):
+    res = study(tosses, "test", perturbations=("contact_turn:2", "contact_shift:2", "contact_turn:2+contact_shift:2"),
+                progress=False)
+    turn, shift, both = res["rows"]
+    # the tosses start in the air: the first predicted frame is untouched, the rest is not
+    for row in (turn, shift, both):
+        assert row["horizons"]["1"]["rotation_error_deg"] == 0.0 and row["horizons"]["1"]["position_error_pct"] == 0.0
+        assert row["rotation_error_deg"] > 0 and row["position_error_pct"] > 0
+    assert both["perturbation"] == "contact_turn+contact_shift" and both["size"] is None
+    assert both["label"] == "contact_turn 2 deg a contact step + contact_shift 2 % of size a contact step"
