@@ -47,14 +47,18 @@ def one_step_errors(run, data, split: str = "test", limit: int | None = None, sy
     _, true_rot = tracks.poses(which, torch.zeros_like(which), frames)
     g = torch.as_tensor(ds.gravity, dtype=torch.float64) / ds.frame_rate ** 2
     contact = in_contact(centres, g, CONTACT)[:, 2:frames - 1].T.numpy()   # (steps, tracks): frame t -> t+1
-    rot, pos = [], []
+    rot, pos, turned, true_turn = [], [], [], []
     with torch.no_grad():
         for t in range(2, frames - 1):
             x = sim.predict_next(verts[:, t - 2], verts[:, t - 1], verts[:, t], graph)
             r_pred, c_pred, _ = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
-            rot.append(rotation_error_deg(matrix_to_quat(r_pred.numpy()), matrix_to_quat(true_rot[:, t + 1].numpy())))
+            q_now, q_pred = matrix_to_quat(true_rot[:, t].numpy()), matrix_to_quat(r_pred.numpy())
+            q_next = matrix_to_quat(true_rot[:, t + 1].numpy())
+            rot.append(rotation_error_deg(q_pred, q_next))
             pos.append((c_pred - centres[:, t + 1]).norm(dim=-1).numpy())
-    rot, pos = np.array(rot), np.array(pos)
+            turned.append(rotation_error_deg(q_now, q_pred))     # the angle the step turned the object
+            true_turn.append(rotation_error_deg(q_now, q_next))
+    rot, pos, turned, true_turn = np.array(rot), np.array(pos), np.array(turned), np.array(true_turn)
     width = np.asarray([object_width(float(sc.scale[n]), np.asarray(ds.meshes[sc.shape[n]][0]))
                         for sc in scenes for n in range(sc.num_objects)])  # tracks are numbered scene by scene
     pos = 100.0 * pos / width[None, :]
@@ -64,7 +68,10 @@ def one_step_errors(run, data, split: str = "test", limit: int | None = None, sy
                      "position_error_pct": float(pos[mask].mean()) if mask.any() else None,
                      "rotation_error_deg": float(rot[mask].mean()) if mask.any() else None,
                      "rotation_percentiles_50_90_99": np.percentile(rot[mask], [50, 90, 99]).tolist()
-                     if mask.any() else None}
+                     if mask.any() else None,
+                     # the angle turned in one step, predicted over true (summed): below 1, the
+                     # model turns objects too little from the true history, a bias a rollout adds up
+                     "spin_ratio": float(turned[mask].sum() / max(true_turn[mask].sum(), 1e-300)) if mask.any() else None}
     out["contact_share_of_rotation_error"] = float(rot[contact].sum() / max(rot.sum(), 1e-300))
     out.update(run=str(run), data=str(data), split=split, num_tracks=int(tracks.num_tracks),
                frames_per_track=frames, symmetrize=symmetrize, autocast=autocast)
@@ -89,7 +96,8 @@ def main(argv=None) -> int:
         if r["steps"]:
             p50, p90, p99 = r["rotation_percentiles_50_90_99"]
             print(f"{name:8s} {r['steps']:6d} steps: position {r['position_error_pct']:.3g}% of size, rotation "
-                  f"{r['rotation_error_deg']:.3g} deg (50/90/99%: {p50:.3g} / {p90:.3g} / {p99:.3g})")
+                  f"{r['rotation_error_deg']:.3g} deg (50/90/99%: {p50:.3g} / {p90:.3g} / {p99:.3g}), "
+                  f"spin ratio {r['spin_ratio']:.3f}")
     print(f"contact steps hold {100 * res['contact_share_of_rotation_error']:.0f}% of the one-step rotation error")
     if args.json:
         with open(args.json, "w") as f:
