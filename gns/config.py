@@ -96,6 +96,12 @@ class TrainConfig:
     # contact_threshold x |g| dt^2) make up this share of each batch; 0 samples all windows alike.
     contact_fraction: float = 0.0
     contact_threshold: float = 0.5
+    # > 0: this share of each batch is drawn in proportion to each window's one-step error (the
+    # shape-matched step, as rollouts keep it), scored by the network being trained every
+    # hard_every steps: a model's contact-step errors are heavy-tailed, and the rare large ones
+    # cost rollouts most (docs/accuracy.md, session 9)
+    hard_fraction: float = 0.0
+    hard_every: int = 2500
     # Steps of pushforward training: the model predicts unroll_steps frames from 3 true ones, each
     # step on its own (shape-matched) earlier predictions, detached; the loss averages all steps.
     unroll_steps: int = 1
@@ -228,6 +234,8 @@ def validate(cfg: Config) -> None:
         (cfg.train.lr_init > 0 and cfg.train.lr_final >= 0, "learning rates must be positive"),
         (cfg.train.lr_decay_steps > 0, "train.lr_decay_steps must be > 0"),
         (0 <= cfg.train.contact_fraction <= 1, "train.contact_fraction must be in [0, 1]"),
+        (0 <= cfg.train.hard_fraction <= 1, "train.hard_fraction must be in [0, 1]"),
+        (cfg.train.hard_every >= 1, "train.hard_every must be >= 1"),
         (cfg.train.contact_threshold > 0, "train.contact_threshold must be > 0"),
         (cfg.train.unroll_steps >= 1, "train.unroll_steps must be >= 1"),
         (cfg.train.loss in ("mse", "huber", "l1"), "train.loss must be 'mse', 'huber' or 'l1'"),

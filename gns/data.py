@@ -151,6 +151,7 @@ class ObjectTracks:
         if self.num_windows == 0:
             raise DataError(f"{name}: no scene has the {self.window} frames a training window needs")
         self.contact = None  # (num_windows,) bool once mark_contacts ran
+        self.hard_cdf = None  # (num_windows,) cumulative window weights once set_hardness ran
 
     @property
     def num_tracks(self) -> int:
@@ -247,11 +248,26 @@ class ObjectTracks:
         self.contact = torch.zeros(self.num_windows, dtype=torch.float64).index_add_(0, window_of, per_track.double()) > 0
         return float(self.contact.double().mean())
 
+    def set_hardness(self, error: torch.Tensor) -> None:
+        """Weights (num_windows,) >= 0 for `sample`'s hard share: each window is drawn in
+        proportion to its weight (train.hard_fraction: the model's own one-step error)."""
+        w = torch.as_tensor(error, dtype=torch.float64).reshape(-1)
+        if w.shape[0] != self.num_windows or not torch.isfinite(w).all() or (w < 0).any() or w.sum() <= 0:
+            raise ValueError(f"window weights must be {self.num_windows} finite values >= 0, not all 0")
+        self.hard_cdf = torch.cumsum(w, 0) / w.sum()
+
     def sample(self, rng: np.random.Generator, batch_size: int, rotate: bool, noise_std: float,
                vertex_noise: float = 0.0, track_noise: float = 0.0, contact_fraction: float = 0.0,
-               mirror: bool = False, body_symmetry: bool = False) -> Batch:
-        """A random batch; with contact_fraction > 0 (after mark_contacts) that share of its windows,
-        rounded at random, is drawn from the windows in contact, the rest from all windows."""
+               mirror: bool = False, body_symmetry: bool = False, hard_fraction: float = 0.0) -> Batch:
+        """A random batch; with hard_fraction > 0 (after set_hardness) that share of its windows,
+        rounded at random, is drawn in proportion to the windows' weights; with contact_fraction > 0
+        (after mark_contacts) that share of the others from the windows in contact, the rest from
+        all windows."""
+        hard = None
+        if hard_fraction > 0 and self.hard_cdf is not None:
+            n_hard = int(rng.binomial(batch_size, hard_fraction))
+            hard = torch.searchsorted(self.hard_cdf, torch.from_numpy(rng.random(n_hard))).clamp_max(self.num_windows - 1)
+            batch_size -= n_hard
         if contact_fraction > 0 and self.contact is not None and self.contact.any():
             contact = torch.nonzero(self.contact)[:, 0]
             n_contact = int(rng.binomial(batch_size, contact_fraction))
@@ -259,6 +275,8 @@ class ObjectTracks:
                                  torch.from_numpy(rng.integers(0, self.num_windows, batch_size - n_contact))])
         else:
             windows = torch.from_numpy(rng.integers(0, self.num_windows, batch_size))
+        if hard is not None:
+            windows = torch.cat([hard, windows])
         return self.batch(windows, rng, rotate, noise_std, vertex_noise, track_noise, mirror, body_symmetry)
 
     def track_vertices(self, tracks: torch.Tensor, frames: int) -> tuple[GraphBatch, torch.Tensor, torch.Tensor]:

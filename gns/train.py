@@ -366,6 +366,32 @@ def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta:
 
 
 @torch.no_grad()
+def window_errors(sim: LearnedSimulator, tracks: ObjectTracks, device: torch.device, chunk: int = 256) -> torch.Tensor:
+    """(num_windows,) each window's one-step error as a rollout keeps it: the shape-matched next
+    vertices against the true ones, squared in the target normaliser's units, mean over the
+    window's nodes; from the true history, without augmentation or noise (train.hard_fraction)."""
+    was_training = sim.training
+    sim.eval()
+    scale = sim.target_normalizer.std.to(device=device, dtype=torch.float64)
+    out = torch.empty(tracks.num_windows, dtype=torch.float64)
+    try:
+        for lo in range(0, tracks.num_windows, chunk):
+            windows = torch.arange(lo, min(lo + chunk, tracks.num_windows))
+            batch = tracks.batch(windows).to(device)
+            g = batch.graph
+            x = sim.predict_next(*batch.history.unbind(1), g)
+            kept = shape_match_packed(x, g.rest, g.node_graph, g.num_graphs)[2]
+            per_node = (((kept - batch.targets[:, 0]) / scale) ** 2).sum(-1).cpu()
+            node_window = tracks.window_tracks(windows)[1][g.node_graph.cpu()]   # graphs are grouped by window
+            total = torch.zeros(len(windows), dtype=torch.float64).index_add_(0, node_window, per_node)
+            count = torch.zeros(len(windows), dtype=torch.float64).index_add_(0, node_window, torch.ones_like(per_node))
+            out[lo:lo + len(windows)] = total / count
+    finally:
+        sim.train(was_training)
+    return out
+
+
+@torch.no_grad()
 def validate(sim: LearnedSimulator, valid: ObjectTracks, cfg: Config, device: torch.device) -> dict:
     """One-step loss on evenly spaced valid windows; centre error of short shape-matched rollouts."""
     sim.eval()
@@ -730,6 +756,8 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
     while step < cfg.train.steps:
         t0 = time.perf_counter()
         lr = learning_rate(cfg, step)
+        if cfg.train.hard_fraction > 0 and (tracks.hard_cdf is None or step % cfg.train.hard_every == 0):
+            tracks.set_hardness(window_errors(sim, tracks, device))
         batch, fraction = _next_batch(tracks, rng, cfg, world, lo, hi)
         try:
             loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, cfg.train.loss,
@@ -802,7 +830,7 @@ def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, wor
     batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std,
                           cfg.augment.vertex_noise, cfg.augment.track_noise,
                           cfg.train.contact_fraction, cfg.augment.mirror,
-                          cfg.augment.body_symmetry)
+                          cfg.augment.body_symmetry, cfg.train.hard_fraction)
     if world.size == 1:
         return batch, 1.0
     nodes = batch.graph.num_nodes
