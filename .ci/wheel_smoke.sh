@@ -25,6 +25,9 @@ friction=0.5, restitution=0.5, steps=3); assert out.positions.shape == (4, 1, 3)
 positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]], steps=3); assert out.positions.shape == (4, 1, 3)"
 "$work/venv/bin/python" -m pipelines.movi_a --preset tiny --out movi_tiny --workers 1
 test -s eval.json && test -s movi_tiny/report.md
+# the installed datagen re-simulates its own data exactly: the unperturbed row scores 0
+"$work/venv/bin/python" -m pipelines.movi_a_sensitivity --data data --perturb exact:0 turn:1 --out sens
+grep -q "^| exact (none) | 0.00 | 0.00 |" sens/report.md
 # provenance from a wheel: versions and a fingerprint, no commit (no checkout around the code)
 "$work/venv/bin/python" -c "import json; m = json.load(open('data/metadata.json')); p = m['provenance']; \
 assert p['code'] is None and p['versions']['torch'] and len(m['fingerprint']) == 64, p"
