@@ -171,9 +171,11 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--sleep", action="store_true",
                    help="hold resting objects still until another object touches them, as physics engines "
                         "deactivate bodies (docs/stability.md); off by default")
-    p.add_argument("--symmetrize", action="store_true",
-                   help="average each step's prediction over the floor's mirror and half-turn symmetries: exactly "
-                        "mirror-equivariant rollouts at 4x the network cost")
+    p.add_argument("--symmetrize", nargs="?", const="d2", default=False, choices=["d2", "d4"], metavar="GROUP",
+                   help="average each step's prediction over the floor's symmetries: d2 (the default when no GROUP "
+                        "is given) the mirrors in x and y and the half turn, exactly mirror-equivariant rollouts "
+                        "at 4x the network cost; d4 also the quarter turns and diagonal mirrors, at 8x "
+                        "(measured 0.2 points better, docs/accuracy.md session 9)")
     p.add_argument("--body-frames", action="store_true",
                    help="also average over each object's equivalent body frames (a cube's 24 rotations onto "
                         "itself): exactly invariant to which one describes it, at that many times the cost")

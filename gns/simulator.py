@@ -186,7 +186,29 @@ class Sleep:
 SUBGRAPH_MIN_SHARE = 0.2
 
 # Diagonals of the world maps that keep the floor: identity, mirror x, mirror y, half turn about z.
-FLOOR_SYMMETRIES = ((1.0, 1.0, 1.0), (-1.0, 1.0, 1.0), (1.0, -1.0, 1.0), (-1.0, -1.0, 1.0))
+def _maps(*rows) -> tuple:
+    return tuple(tuple(tuple(float(v) for v in r) for r in m) for m in rows)
+
+
+_MIRRORS = _maps(((1, 0, 0), (0, 1, 0), (0, 0, 1)), ((-1, 0, 0), (0, 1, 0), (0, 0, 1)),
+                 ((1, 0, 0), (0, -1, 0), (0, 0, 1)), ((-1, 0, 0), (0, -1, 0), (0, 0, 1)))
+# the floor's symmetries a rollout may average over (3x3 maps of the world, z kept): "d2" the
+# identity, the mirrors in x and in y and the half turn; "d4" also the quarter turns and the
+# diagonal mirrors (x and y swapped), at twice the cost
+SYMMETRY_GROUPS = {"d2": _MIRRORS,
+                   "d4": _MIRRORS + tuple(tuple((m[1], m[0], m[2])) for m in _MIRRORS)}
+FLOOR_SYMMETRIES = SYMMETRY_GROUPS["d2"]
+
+
+def symmetry_group(symmetrize) -> str | None:
+    """The group a `symmetrize` setting names: False/None -> None, True -> "d2", or "d2"/"d4"."""
+    if symmetrize is None or symmetrize is False:
+        return None
+    if symmetrize is True:
+        return "d2"
+    if symmetrize not in SYMMETRY_GROUPS:
+        raise ValueError(f"unknown symmetry group {symmetrize!r}; known: {', '.join(SYMMETRY_GROUPS)}")
+    return symmetrize
 IMAGE_NODES = 32768  # most nodes in one network call of symmetrized images (predict_acceleration)
 
 
@@ -198,7 +220,7 @@ def _listed(t: torch.Tensor | None) -> list | None:
 class LearnedSimulator(nn.Module):
     """GNS for rigid meshes. `spec` is what it is trained on (gns.spec.ModelSpec; gns.data.feature_spec)."""
 
-    symmetrize: bool = False  # average predictions over FLOOR_SYMMETRIES (rollouts; not saved)
+    symmetrize: bool | str = False  # average predictions over SYMMETRY_GROUPS (True: "d2"; rollouts; not saved)
     body_frames: bool = False  # and over each object's equivalent body frames (graph.symmetries)
     autocast: torch.dtype | None = None  # the network (only) runs in this dtype under autocast (train.autocast)
     autocast_used: str = "none"  # what set_speed took: "none" or "bf16" ("auto" resolved)
@@ -358,7 +380,8 @@ class LearnedSimulator(nn.Module):
         syms = graph.symmetries if body_frames else None
         if not symmetrize and syms is None:
             return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
-        floors = FLOOR_SYMMETRIES if symmetrize else FLOOR_SYMMETRIES[:1]
+        group = symmetry_group(symmetrize)
+        floors = SYMMETRY_GROUPS[group] if group else FLOOR_SYMMETRIES[:1]
         frames = 1 if syms is None else syms.shape[1]
         inputs, graphs, maps = [], [], []
         for k in range(frames):
@@ -372,10 +395,10 @@ class LearnedSimulator(nn.Module):
                 weight = ((k < counts).to(history.dtype) / counts.to(history.dtype))[:, None]
             for m in floors:
                 g = torch.tensor(m, dtype=history.dtype, device=history.device)
-                # the body frame is mapped too (x = R rest + p -> (g R g) (g rest) + g p): the network
-                # sees a proper rotation, as in training, and the average is exactly equivariant
-                inputs.append(history * g)
-                graphs.append(replace(graph, rest=rest * g, collision_edges=None))
+                # the body frame is mapped too (x = R rest + p -> (g R g^T) (g rest) + g p): the
+                # network sees a proper rotation, as in training, and the average is exactly equivariant
+                inputs.append(history @ g.T)
+                graphs.append(replace(graph, rest=rest @ g.T, collision_edges=None))
                 maps.append((g, weight))
         # images share network calls: per node, a call on 6400 nodes costs ~0.6x one on 1600;
         # calls stay under IMAGE_NODES nodes (24 body frames x 4 mirrors of a batch would not fit)
@@ -386,7 +409,7 @@ class LearnedSimulator(nn.Module):
             out = self.target_normalizer.inverse(
                 self(torch.cat(inputs[lo:hi]), stack_graphs(graphs[lo:hi])).to(torch.float64))
             for a, (g, weight) in zip(out.split(graph.num_nodes), maps[lo:hi]):
-                total = total + a * g * weight
+                total = total + (a @ g) * weight   # g^T a: the map undone
         return total / len(floors)
 
     def inertial(self, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
