@@ -27,6 +27,7 @@ def test_tiny_preset_end_to_end_and_rerun(tmp_path, capsys):
     assert "tuned-MuJoCo tosses" in (out / "report.md").read_text()
     sim, cfg = load_model(export / "gns_real_cubes_n2.pt")   # the shipped form loads alone
     assert cfg.features.frame_stride == 8 and cfg.train.all_phases and cfg.augment.body_symmetry
+    assert cfg.train.rigid_loss == 1
     load_model(export / "gns_real_cubes_mujoco_n2.pt")
     capsys.readouterr()
     before = (out / "eval" / "gns_n2.json").stat().st_mtime_ns
