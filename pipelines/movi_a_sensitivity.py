@@ -11,6 +11,7 @@ material is off by that much: the floor a learned model's error is to be read ag
 (docs/accuracy.md, session 9).
 
     python -m pipelines.movi_a_sensitivity --data data/movi_a_4000 [--split test] [--limit N] [--out DIR]
+        [--run gns_movi_a_rigidloss ...]   # also the learned models' rollouts, in the same table
 
 Perturbations (each scene draws its own random directions and signs from --seed and its index):
   turn E deg       the pose turned by E degrees about a random axis through the centre of mass
@@ -47,7 +48,7 @@ import numpy as np
 
 from datagen.atomic import atomic_file
 from datagen.shards import DataError, Dataset
-from gns.evaluate import score_predictions
+from gns.evaluate import evaluate_run, score_predictions
 from gns.features import HISTORY
 from pipelines.common import guarded, say
 
@@ -185,8 +186,17 @@ def resimulate(ds: Dataset, scenes: list, p: Perturbation, seed: int, frame: int
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 
 
+def _row(label: str, kind: str, size, res: dict) -> dict:
+    return {"perturbation": kind, "size": size, "label": label, **{k: res[k] for k in METRICS},
+            "horizons": {h: {k: v[k] for k in METRICS} for h, v in res["horizons"].items()},
+            "by_shape": {s: {k: v[k] for k in METRICS} for s, v in res["by_shape"].items()}}
+
+
 def study(data: str | Path, split: str = "test", limit: int | None = None,
-          perturbations: tuple[str, ...] = DEFAULT, seed: int = 0, progress: bool = True) -> dict:
+          perturbations: tuple[str, ...] = DEFAULT, seed: int = 0, progress: bool = True,
+          runs: tuple[str, ...] = ()) -> dict:
+    """Every perturbation's row; with `runs`, also each learned model's rollouts of the same scenes
+    (free flight, symmetrized, autocast auto: the options the accuracy tables use)."""
     parsed = [Perturbation.parse(text) for text in perturbations]   # a typo fails before any simulation
     ds = Dataset(data)
     if ds.meta.get("generator") != "datagen toss" or "config" not in ds.meta:
@@ -199,13 +209,17 @@ def study(data: str | Path, split: str = "test", limit: int | None = None,
         t0 = time.perf_counter()
         pred = resimulate(ds, scenes, p, seed)
         res = score_predictions(pred, scenes, ds, time.perf_counter() - t0)
-        row = {"perturbation": p.kind, "size": p.size, "label": p.label, **{k: res[k] for k in METRICS},
-               "horizons": {h: {k: v[k] for k in METRICS} for h, v in res["horizons"].items()},
-               "by_shape": {s: {k: v[k] for k in METRICS} for s, v in res["by_shape"].items()}}
+        row = _row(p.label, p.kind, p.size, res)
         rows.append(row)
         if progress:
             say(f"{p.label}: {row['position_error_pct']:.2f}% / {row['rotation_error_deg']:.2f} deg "
                 f"({time.perf_counter() - t0:.0f} s, {len(scenes)} scenes)")
+    for run in runs:
+        res, *_ = evaluate_run(run, data, split, limit, progress=False, free_flight=True, symmetrize=True,
+                               autocast="auto")
+        rows.append(_row(f"GNS {run} (its own rollout)", "gns", None, res))
+        if progress:
+            say(f"GNS {run}: {res['position_error_pct']:.2f}% / {res['rotation_error_deg']:.2f} deg")
     return {"data": str(data), "data_fingerprint": ds.meta.get("fingerprint"), "split": split,
             "num_scenes": len(scenes), "seed": seed, "perturbed_after_frame": HISTORY - 1, "rows": rows}
 
@@ -237,12 +251,15 @@ def main(argv=None) -> int:
                     help=f"perturbations to run (default: {' '.join(DEFAULT)})")
     ap.add_argument("--seed", type=int, default=0, help="seed of the perturbations' random directions and signs")
     ap.add_argument("--out", type=Path, default=Path("runs/movi_a_sensitivity"), help="folder for results.json and report.md")
+    ap.add_argument("--run", action="append", default=[], metavar="RUN",
+                    help="also roll out this trained model (run folder or shipped name; repeatable) on the same "
+                         "scenes, free flight + symmetrized, as a row of the same table")
     a = ap.parse_args(argv)
     if a.limit is not None and a.limit < 1:
         ap.error("--limit must be >= 1")
 
     def stages():
-        results = study(a.data, a.split, a.limit, tuple(a.perturb), a.seed)
+        results = study(a.data, a.split, a.limit, tuple(a.perturb), a.seed, runs=tuple(a.run))
         a.out.mkdir(parents=True, exist_ok=True)
         with atomic_file(a.out / "results.json") as tmp:
             tmp.write_text(json.dumps(results, indent=1))

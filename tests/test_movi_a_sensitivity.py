@@ -46,6 +46,19 @@ def test_the_command_writes_results_and_report(tosses, tmp_path, capsys):
     assert not list(tmp_path.glob("*.tmp"))
 
 
+@pytest.mark.filterwarnings("ignore:outside training")
+def test_a_trained_model_is_a_row_of_the_same_table(tosses, tmp_path):
+    from gns.config import build_config
+    from gns.train import train
+    train(tosses, tmp_path / "run", build_config(path="gns_tiny", overrides=["train.steps=3", "valid.every=0"]),
+          log=lambda _: None)
+    assert main(["--data", str(tosses), "--limit", "2", "--perturb", "exact:0", "--run", str(tmp_path / "run"),
+                 "--out", str(tmp_path / "out")]) == 0
+    rows = json.loads((tmp_path / "out" / "results.json").read_text())["rows"]
+    assert [r["perturbation"] for r in rows] == ["exact", "gns"]
+    assert rows[1]["position_error_pct"] > 0 and "(its own rollout)" in rows[1]["label"]
+
+
 def test_bad_perturbations_and_data_get_one_clear_error(tosses, tmp_path, capsys):
     with pytest.raises(DataError, match="unknown perturbation 'twist'"):
         Perturbation.parse("twist:1")
