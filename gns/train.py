@@ -815,6 +815,9 @@ def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: 
     n_params = sum(p.numel() for p in sim.parameters())
     contact = (f" ({float(tracks.contact.double().mean()):.0%} in contact, drawn as {cfg.train.contact_fraction:.0%})"
                if tracks.contact is not None else "")
+    if cfg.train.hard_fraction > 0:
+        contact += (f", {cfg.train.hard_fraction:.0%} of each batch drawn by one-step error "
+                    f"(rescored every {cfg.train.hard_every} steps)")
     processes = f" on {world.size} processes" if world.size > 1 else ""
     precision = f", network in {'bf16' if sim.autocast_used == 'bf16' else 'float32'} (autocast auto, measured)" \
         if cfg.train.autocast == "auto" else ""
