@@ -185,7 +185,6 @@ class Sleep:
 # out (multi-object MOVi-style scenes, benchmarks/bench_learned_vs_physics.py).
 SUBGRAPH_MIN_SHARE = 0.2
 
-# Diagonals of the world maps that keep the floor: identity, mirror x, mirror y, half turn about z.
 def _maps(*rows) -> tuple:
     return tuple(tuple(tuple(float(v) for v in r) for r in m) for m in rows)
 
@@ -209,6 +208,8 @@ def symmetry_group(symmetrize) -> str | None:
     if symmetrize not in SYMMETRY_GROUPS:
         raise ValueError(f"unknown symmetry group {symmetrize!r}; known: {', '.join(SYMMETRY_GROUPS)}")
     return symmetrize
+
+
 IMAGE_NODES = 32768  # most nodes in one network call of symmetrized images (predict_acceleration)
 
 

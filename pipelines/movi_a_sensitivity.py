@@ -111,18 +111,20 @@ def perturber(p: Perturbation, rng: np.random.Generator, frame: int, frame_rate:
               gravity: np.ndarray):
     """A datagen.simulate `after_frame` hook applying p to every object (datagen.scenes.ObjectSpec)
     once frame `frame` is recorded (the contact kinds: after every later frame a step in contact made)."""
+    import torch
+
     from datagen.simulate import pb
     from gns.config import TrainConfig
-    g_step = np.asarray(gravity, float) / frame_rate ** 2
+    from gns.data import in_contact
+    g_step = torch.as_tensor(np.asarray(gravity, float) / frame_rate ** 2)
     centres: list[list[np.ndarray]] = [[] for _ in objects]
 
     def contact_step(j: int, t: int) -> bool:
-        """Did the step to frame t (> frame) touch something: the centre's second difference over
-        frames t-2..t off free fall (gns.data.in_contact's test of the step t-1 -> t)."""
+        """Did the step to frame t (> frame) touch something: the training's test
+        (gns.data.in_contact) of the centre's second difference over frames t-2..t."""
         if t <= frame or len(centres[j]) < 3:
             return False
-        a = centres[j][-1] - 2 * centres[j][-2] + centres[j][-3] - g_step
-        return float(np.linalg.norm(a)) > TrainConfig.contact_threshold * float(np.linalg.norm(g_step))
+        return bool(in_contact(torch.as_tensor(np.stack(centres[j][-3:])), g_step, TrainConfig.contact_threshold)[1])
 
     def hook(t, c, bodies):
         for j, (b, o) in enumerate(zip(bodies, objects)):
