@@ -38,7 +38,8 @@ from gns.graph import GraphBatch
 from gns.ranges import outside_training
 from gns.simulator import LearnedSimulator, shape_match_packed
 from gns.spec import ModelSpec
-from gns.train import CheckpointError, load_model, parse_device, read_checkpoint
+from gns.checkpoint import CheckpointError, load_model, read_checkpoint
+from gns.train import parse_device
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:

@@ -221,7 +221,7 @@ def add_eval_parsers(sub) -> None:
 
 def cmd_export(args: argparse.Namespace) -> None:
     from gns.evaluate import checkpoint_of
-    from gns.train import export_model
+    from gns.checkpoint import export_model
 
     out = export_model(checkpoint_of(args.run_dir), args.out, overwrite=args.overwrite)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB): model, config and training ranges, no optimiser state")

@@ -20,7 +20,8 @@ from gns.data import feature_spec
 from gns.features import HISTORY
 from gns.ranges import outside_training
 from gns.spec import ModelSpec
-from gns.train import LATEST, CheckpointError, load_model, parse_device, read_checkpoint
+from gns.checkpoint import LATEST, CheckpointError, load_model, read_checkpoint
+from gns.train import parse_device
 
 
 SHIPPED_MODELS = Path(__file__).resolve().parent / "models"

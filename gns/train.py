@@ -16,9 +16,7 @@ import json
 import math
 import os
 import random
-import shutil
 import signal
-import sys
 import threading
 import time
 from dataclasses import replace
@@ -33,16 +31,18 @@ from datagen.atomic import atomic_file
 from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns import parallel
-from gns.config import (ARCHITECTURE_SECTIONS, Config, ConfigError, build_config, config_differences,
-                        config_to_dict)
+from gns.config import Config, ConfigError, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import GraphBatch, MeshLibrary, graph_sizes
 from gns.features import HISTORY
 from gns.simulator import LearnedSimulator, shape_match_packed
-from gns.spec import Floor, ModelSpec, SpecError
+from gns.spec import ModelSpec
+# the checkpoint API stays importable from here (pipelines and users' scripts import it so)
+from gns.checkpoint import (CHECKPOINT_FORMAT, LATEST, CheckpointError, build_simulator, checkpoint_paths,  # noqa: F401
+                            export_model, exported_model_message, is_exported, load_model, read_checkpoint,
+                            resume_point, save_checkpoint)
+from gns.fine_tune import incompatibility, init_from, merge_ranges, with_layout
 
-CHECKPOINT_FORMAT = 1
-LATEST = "latest.pt"
 METRICS = "metrics.jsonl"
 PROVENANCE = "provenance.json"
 TENSORBOARD_DIR = "tb"
@@ -81,222 +81,10 @@ class _StopRequest:
         return False
 
 
-class CheckpointError(Exception):
-    """A run folder or checkpoint that cannot be used as asked. One line for a user."""
-
-
 def learning_rate(cfg: Config, step: int) -> float:
     """lr_final + (lr_init - lr_final) * 0.1^(step / lr_decay_steps), as learning_to_simulate."""
     t = cfg.train
     return t.lr_final + (t.lr_init - t.lr_final) * 0.1 ** (step / t.lr_decay_steps)
-
-
-def checkpoint_paths(run: Path) -> list[Path]:
-    """Numbered checkpoints of a run folder, oldest first."""
-    return sorted(run.glob("ckpt-*.pt"))
-
-
-def save_checkpoint(run: Path, state: dict, keep: int) -> Path:
-    path = run / f"ckpt-{state['step']:06d}.pt"
-    with atomic_file(path) as tmp:
-        torch.save(state, tmp)
-    with atomic_file(run / LATEST) as tmp:
-        shutil.copyfile(path, tmp)
-    if keep > 0:
-        # Numbers beyond this step are left from before a resume that passed them over (unreadable);
-        # training overwrites them when it gets there, so the rotation never deletes the new one.
-        for old in [p for p in checkpoint_paths(run) if p.name <= path.name][:-keep]:
-            old.unlink()
-    return path
-
-
-def read_checkpoint(path: str | Path) -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"no checkpoint at {path}")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # torch raises many types for a damaged or foreign file
-        # torch's own first line runs on for several sentences of advice; its first says what broke
-        reason = str(e).splitlines()[0].split(". ")[0] if str(e) else ""
-        if isinstance(e, KeyError) or not reason:  # torch's KeyError carries only a number
-            reason = f"not a torch.save file ({type(e).__name__})"
-        raise CheckpointError(f"unreadable checkpoint {path}: {reason}") from None
-    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path} is not a gns checkpoint of format {CHECKPOINT_FORMAT}")
-    try:
-        ModelSpec.from_dict(ckpt.get("spec"))  # read again where used: the file stays as written
-    except SpecError as e:
-        raise CheckpointError(f"{path}: {e}") from None
-    return ckpt
-
-
-def is_exported(ckpt: dict) -> bool:
-    """An export_model file: the model without the optimiser and random state."""
-    return "optimizer" not in ckpt or "rng" not in ckpt
-
-
-def exported_model_message(path: Path) -> str:
-    return (f"{path} is an exported model (no optimiser state): training cannot resume from it; "
-            f"gns eval and gns rollout can use it")
-
-
-def resume_point(run: str | Path) -> tuple[Path, dict, str | None]:
-    """The newest checkpoint of a run that training can resume from: latest.pt, else the
-    newest readable ckpt-*.pt (a crash or a full disk can leave latest.pt torn while the
-    numbered copies are intact). Returns (path, checkpoint, a one-line note naming the files
-    passed over, or None). Nothing is deleted; raises CheckpointError if none is usable."""
-    run = Path(run)
-    candidates = [p for p in [run / LATEST, *reversed(checkpoint_paths(run))] if p.exists()]
-    if not candidates:
-        raise CheckpointError(f"nothing to resume: {run / LATEST} does not exist")
-    passed = []
-    for path in candidates:
-        try:
-            ckpt = read_checkpoint(path)
-        except CheckpointError as e:
-            passed.append(str(e))
-            continue
-        if is_exported(ckpt):
-            passed.append(exported_model_message(path))
-            continue
-        note = None
-        if passed:
-            note = (f"warning: resuming from {path.name} (step {int(ckpt['step'])}), the newest usable checkpoint; "
-                    f"passed over: {'; '.join(passed)}")
-        return path, ckpt, note
-    if len(passed) == 1:
-        raise CheckpointError(passed[0])
-    raise CheckpointError(f"nothing to resume in {run}: no checkpoint is usable ({'; '.join(passed)}); "
-                          "move them away to train from the start")
-
-
-def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool = False) -> Path:
-    """A checkpoint without the optimiser and random state (about half the size): enough to
-    roll out and evaluate (load_model), not to resume training.
-
-    An existing `out` is replaced only with `overwrite` and only if it is itself an exported
-    model: a full checkpoint (a run's latest.pt, say) or another file is never replaced."""
-    ckpt = read_checkpoint(checkpoint_path)
-    out = Path(out)
-    if out.is_dir():
-        raise DataError(f"--out {out} is a folder; give a file name such as {out / 'model.pt'}")
-    if out.exists():
-        if not overwrite:
-            raise DataError(f"{out} exists; pass --overwrite to replace an earlier exported model")
-        try:
-            old = read_checkpoint(out)
-        except CheckpointError:
-            old = None
-        if old is None or not is_exported(old):
-            raise DataError(f"{out} exists and is not an exported gns model; refusing to replace it")
-    check_writable(out.parent, "output folder")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance") if k in ckpt}
-    with atomic_file(out, mode=0o644) as tmp:  # an exported model is meant to be shared
-        torch.save(slim, tmp)
-    return out
-
-
-def build_simulator(cfg: Config, spec: ModelSpec) -> LearnedSimulator:
-    return LearnedSimulator(cfg.model, cfg.features, spec)
-
-
-def load_model(checkpoint: str | Path | dict, device: str | torch.device = "cpu") -> tuple[LearnedSimulator, Config]:
-    """Rebuild a trained simulator (in eval mode, on `device`) and its config from a checkpoint
-    file, or from one already read with read_checkpoint (its spec and step need no second read)."""
-    ckpt = checkpoint if isinstance(checkpoint, dict) else read_checkpoint(checkpoint)
-    cfg = build_config(base=ckpt["config"])
-    sim = build_simulator(cfg, ModelSpec.from_dict(ckpt["spec"]))
-    try:
-        sim.load_state_dict(ckpt["model"])
-    except RuntimeError as e:  # weights that do not fit the model the checkpoint's own config builds
-        where = "" if isinstance(checkpoint, dict) else f"{checkpoint}: "
-        raise CheckpointError(f"{where}damaged checkpoint, its weights do not fit its model "
-                              f"({str(e).splitlines()[1].strip() if len(str(e).splitlines()) > 1 else e})") from None
-    sim.to(device).eval()
-    return sim, cfg
-
-
-def _with_layout(spec: ModelSpec, sim: LearnedSimulator) -> ModelSpec:
-    return replace(spec, node_features=tuple(n for n, _ in sim.layout.node_groups),
-                   edge_features=tuple(n for n, _ in sim.layout.edge_groups),
-                   collision_features=tuple(n for n, _ in sim.layout.collision_groups))
-
-
-def _merge_ranges(old: ModelSpec, new: ModelSpec) -> ModelSpec:
-    """The spec of training on old data then new data: value ranges and shapes united."""
-    ranges = {k: (min(old.ranges[k][0], v[0]), max(old.ranges[k][1], v[1])) for k, v in new.ranges.items()}
-    return replace(new, ranges=ranges, shapes=tuple(sorted(set(old.shapes) | set(new.shapes))),
-                   meshes={**(old.meshes or {}), **(new.meshes or {})})
-
-
-def _shown(value):
-    """A spec value as checkpoints hold it (lists, dicts), for messages."""
-    return value.to_dict() if isinstance(value, Floor) else list(value) if isinstance(value, tuple) else value
-
-
-def _init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec) -> ModelSpec:
-    """Load another run's weights and normalisers into a new run's simulator (fine-tuning); returns
-    the spec with the two datasets' ranges united. The loaded normalisers have spent their
-    accumulation budget, so they stay as the weights were trained with."""
-    path = Path(source)
-    path = path / LATEST if path.is_dir() else path
-    init = read_checkpoint(path)
-    trained = ModelSpec.from_dict(init["spec"])
-    problems = [_incompatibility(init["config"], trained, cfg, spec, fine_tune=True)]
-    for key in ("frame_rate", "gravity"):
-        if getattr(trained, key) != getattr(spec, key):
-            problems.append(f"{key} is {_shown(getattr(trained, key))} there, {_shown(getattr(spec, key))} in this data")
-    problem = "; ".join(p for p in problems if p)
-    if problem:
-        raise CheckpointError(f"cannot start from {path} (train.init_from): {problem}")
-    sim.load_state_dict(_widened(init["model"], sim, trained))
-    return _merge_ranges(trained, spec)
-
-
-def _widened(state: dict, sim: LearnedSimulator, trained: ModelSpec) -> dict:
-    """A checkpoint's weights for `sim`, which reads feature groups added after the trained ones
-    (ADDABLE_GROUPS): the node or edge encoder's first layer gets a zero column per new input
-    and the new groups fresh normalisers, so the start computes exactly what the checkpoint did
-    and training learns what the new inputs add."""
-    out = dict(state)
-    for kind, groups, encoder in (("node_features", sim.layout.node_groups, "node_encoder"),
-                                  ("edge_features", sim.layout.edge_groups, "edge_encoder")):
-        extra = sum(w for n, w in groups if n not in (getattr(trained, kind) or ()))
-        if extra:
-            key = f"network.{encoder}.0.weight"
-            out[key] = torch.cat([state[key], state[key].new_zeros(state[key].shape[0], extra)], dim=1)
-    for key, value in sim.state_dict().items():
-        if key not in out:   # the new groups' normalisers, which accumulate as training starts
-            out[key] = value
-    return out
-
-
-# keys a fine-tuning run (train.init_from) may change: the weights keep their shapes (the
-# inertial prior changes what the output means, which fine-tuning then learns)
-FINE_TUNE_FREE = ("features.mesh_vertices", "features.centre_node", "model.processor_repeats",
-                  "features.impact_time", "features.edge_velocity", "model.inertial_prior")
-# feature groups a fine-tuning run may add after the trained ones (_widened), per kind
-ADDABLE_GROUPS = {"node_features": ("impact",), "edge_features": ("relative_velocity",)}
-
-
-def _incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec,
-                     fine_tune: bool = False) -> str | None:
-    """How a checkpoint (its config and spec) cannot carry on as the model of cfg on data of spec.
-    fine_tune: as the start of a new run, which may change FINE_TUNE_FREE (a resumed run may not)."""
-    diffs = config_differences(config, cfg, ARCHITECTURE_SECTIONS, ignore=FINE_TUNE_FREE if fine_tune else ())
-    for key in ("node_features", "edge_features", "collision_features"):
-        theirs, mine = tuple(getattr(trained, key) or ()), tuple(getattr(spec, key))
-        if fine_tune and mine[:len(theirs)] == theirs and set(mine[len(theirs):]) <= set(ADDABLE_GROUPS.get(key, ())):
-            continue
-        if theirs != mine:
-            diffs.append(f"{key} are {list(getattr(trained, key) or ())} in the checkpoint, "
-                         f"{list(getattr(spec, key))} with this data")
-    old_floor, new_floor = trained.floor, spec.floor
-    if (old_floor is None) != (new_floor is None) or (old_floor and old_floor.z != new_floor.z):
-        diffs.append(f"floor is {_shown(old_floor)} in the checkpoint, {_shown(new_floor)} in this data")
-    return "; ".join(diffs) or None
 
 
 def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: Batch, lr: float,
@@ -675,21 +463,21 @@ def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] |
     the resumed checkpoint left them (weights, optimiser, step, feature ranges, random state).
     Returns (simulator, optimiser, spec, step)."""
     sim = build_simulator(cfg, data_spec)
-    spec = _with_layout(data_spec, sim)
+    spec = with_layout(data_spec, sim)
     optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
     if resumed is None:
         if cfg.train.init_from:
-            spec = _init_from(sim, cfg.train.init_from, cfg, spec)
+            spec = init_from(sim, cfg.train.init_from, cfg, spec)
         return sim, optimizer, spec, 0
     path, ckpt = resumed
     trained = ModelSpec.from_dict(ckpt["spec"])
-    problem = _incompatibility(ckpt["config"], trained, cfg, spec)
+    problem = incompatibility(ckpt["config"], trained, cfg, spec)
     if problem:
         raise CheckpointError(f"cannot resume {path}: {problem}")
     sim.load_state_dict(ckpt["model"])
     optimizer.load_state_dict(ckpt["optimizer"])
     step = int(ckpt["step"])
-    spec = _merge_ranges(trained, spec)
+    spec = merge_ranges(trained, spec)
     _restore_rng(ckpt["rng"], rng)
     return sim, optimizer, spec, step
 

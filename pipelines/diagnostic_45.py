@@ -51,7 +51,7 @@ from datagen.tilted import side, tilted_scene, training_scene
 from gns.evaluate import checkpoint_of, evaluate_run, write_json
 from gns.rollout import rollout_scenes
 from gns.spec import ModelSpec
-from gns.train import load_model, read_checkpoint
+from gns.checkpoint import load_model, read_checkpoint
 from pipelines.common import finished_dataset, guarded, say, train_stage
 
 ANGLES = (43.0, 44.0, 44.5, 44.75, 45.25, 45.5, 46.0, 47.0)

@@ -25,7 +25,7 @@ from pathlib import Path
 from datagen.outputs import check_writable
 from gns.evaluate import evaluate_run, write_json
 from gns.metrics import format_table
-from gns.train import read_checkpoint
+from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
 
 # Everything run() writes into --out: --fresh deletes a folder holding only these.

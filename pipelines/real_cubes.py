@@ -35,7 +35,7 @@ import numpy as np
 from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns.evaluate import evaluate_run, write_json
-from gns.train import read_checkpoint
+from gns.checkpoint import read_checkpoint
 from pipelines.common import Costs, done, guarded, remove_output, say, train_stage, trained_step
 from pipelines.real_cubes_baselines import available_engines, baselines_stage
 from pipelines.real_cubes_data import duplicate_groups, import_stage, make_split, overlaps, read_tosses, training_ids

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from datagen.shards import DataError
 from gns.evaluate import evaluate_run, write_json
-from gns.train import export_model
+from gns.checkpoint import export_model
 from pipelines.common import Costs, done, guarded, say, train_stage, trained_step
 from pipelines.engine_pretrain import synthetic_stage
 from pipelines.real_cubes_baselines import available_engines, baselines_stage

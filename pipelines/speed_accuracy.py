@@ -31,7 +31,7 @@ from gns.evaluate import checkpoint_of, load_split, write_json
 from gns.metrics import METRICS, evaluate_scenes
 from gns.rollout import rollout_scenes, split_diverged
 from gns.simulator import LearnedSimulator
-from gns.train import load_model, read_checkpoint
+from gns.checkpoint import load_model, read_checkpoint
 from datagen.outputs import check_writable
 from pipelines.common import CONFIGS, data_stage, guarded, say, train_stage
 

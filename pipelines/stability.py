@@ -23,7 +23,7 @@ from gns.simulator import Sleep
 from gns.evaluate import checkpoint_of, load_split, write_json
 from gns.stability import REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene
 from gns.spec import ModelSpec
-from gns.train import load_model, read_checkpoint
+from gns.checkpoint import load_model, read_checkpoint
 from pipelines.common import guarded, say
 
 

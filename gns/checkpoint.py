@@ -1,0 +1,156 @@
+"""Checkpoint files: writing them safely, reading them with one-line errors, exporting a slim
+model, finding where a run resumes, and rebuilding a simulator from one.
+
+A checkpoint is a `torch.save` dict of format CHECKPOINT_FORMAT: "format", "step", "seed",
+"config" (the full config as a dict), "spec" (the dataset feature spec, gns.spec.ModelSpec),
+"model" (weights and normalisers), "provenance", and in a training checkpoint also
+"optimizer" and "rng". An exported model (`export_model`) drops the last two. docs/gns.md
+documents the keys.
+"""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import torch
+
+from datagen.atomic import atomic_file
+from datagen.outputs import check_writable
+from datagen.shards import DataError
+from gns.config import Config, build_config
+from gns.simulator import LearnedSimulator
+from gns.spec import ModelSpec, SpecError
+
+CHECKPOINT_FORMAT = 1
+LATEST = "latest.pt"
+
+
+class CheckpointError(Exception):
+    """A run folder or checkpoint that cannot be used as asked. One line for a user."""
+
+
+def checkpoint_paths(run: Path) -> list[Path]:
+    """Numbered checkpoints of a run folder, oldest first."""
+    return sorted(run.glob("ckpt-*.pt"))
+
+
+def save_checkpoint(run: Path, state: dict, keep: int) -> Path:
+    path = run / f"ckpt-{state['step']:06d}.pt"
+    with atomic_file(path) as tmp:
+        torch.save(state, tmp)
+    with atomic_file(run / LATEST) as tmp:
+        shutil.copyfile(path, tmp)
+    if keep > 0:
+        # Numbers beyond this step are left from before a resume that passed them over (unreadable);
+        # training overwrites them when it gets there, so the rotation never deletes the new one.
+        for old in [p for p in checkpoint_paths(run) if p.name <= path.name][:-keep]:
+            old.unlink()
+    return path
+
+
+def read_checkpoint(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many types for a damaged or foreign file
+        # torch's own first line runs on for several sentences of advice; its first says what broke
+        reason = str(e).splitlines()[0].split(". ")[0] if str(e) else ""
+        if isinstance(e, KeyError) or not reason:  # torch's KeyError carries only a number
+            reason = f"not a torch.save file ({type(e).__name__})"
+        raise CheckpointError(f"unreadable checkpoint {path}: {reason}") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path} is not a gns checkpoint of format {CHECKPOINT_FORMAT}")
+    try:
+        ModelSpec.from_dict(ckpt.get("spec"))  # read again where used: the file stays as written
+    except SpecError as e:
+        raise CheckpointError(f"{path}: {e}") from None
+    return ckpt
+
+
+def is_exported(ckpt: dict) -> bool:
+    """An export_model file: the model without the optimiser and random state."""
+    return "optimizer" not in ckpt or "rng" not in ckpt
+
+
+def exported_model_message(path: Path) -> str:
+    return (f"{path} is an exported model (no optimiser state): training cannot resume from it; "
+            f"gns eval and gns rollout can use it")
+
+
+def resume_point(run: str | Path) -> tuple[Path, dict, str | None]:
+    """The newest checkpoint of a run that training can resume from: latest.pt, else the
+    newest readable ckpt-*.pt (a crash or a full disk can leave latest.pt torn while the
+    numbered copies are intact). Returns (path, checkpoint, a one-line note naming the files
+    passed over, or None). Nothing is deleted; raises CheckpointError if none is usable."""
+    run = Path(run)
+    candidates = [p for p in [run / LATEST, *reversed(checkpoint_paths(run))] if p.exists()]
+    if not candidates:
+        raise CheckpointError(f"nothing to resume: {run / LATEST} does not exist")
+    passed = []
+    for path in candidates:
+        try:
+            ckpt = read_checkpoint(path)
+        except CheckpointError as e:
+            passed.append(str(e))
+            continue
+        if is_exported(ckpt):
+            passed.append(exported_model_message(path))
+            continue
+        note = None
+        if passed:
+            note = (f"warning: resuming from {path.name} (step {int(ckpt['step'])}), the newest usable checkpoint; "
+                    f"passed over: {'; '.join(passed)}")
+        return path, ckpt, note
+    if len(passed) == 1:
+        raise CheckpointError(passed[0])
+    raise CheckpointError(f"nothing to resume in {run}: no checkpoint is usable ({'; '.join(passed)}); "
+                          "move them away to train from the start")
+
+
+def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool = False) -> Path:
+    """A checkpoint without the optimiser and random state (about half the size): enough to
+    roll out and evaluate (load_model), not to resume training.
+
+    An existing `out` is replaced only with `overwrite` and only if it is itself an exported
+    model: a full checkpoint (a run's latest.pt, say) or another file is never replaced."""
+    ckpt = read_checkpoint(checkpoint_path)
+    out = Path(out)
+    if out.is_dir():
+        raise DataError(f"--out {out} is a folder; give a file name such as {out / 'model.pt'}")
+    if out.exists():
+        if not overwrite:
+            raise DataError(f"{out} exists; pass --overwrite to replace an earlier exported model")
+        try:
+            old = read_checkpoint(out)
+        except CheckpointError:
+            old = None
+        if old is None or not is_exported(old):
+            raise DataError(f"{out} exists and is not an exported gns model; refusing to replace it")
+    check_writable(out.parent, "output folder")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance") if k in ckpt}
+    with atomic_file(out, mode=0o644) as tmp:  # an exported model is meant to be shared
+        torch.save(slim, tmp)
+    return out
+
+
+def build_simulator(cfg: Config, spec: ModelSpec) -> LearnedSimulator:
+    return LearnedSimulator(cfg.model, cfg.features, spec)
+
+
+def load_model(checkpoint: str | Path | dict, device: str | torch.device = "cpu") -> tuple[LearnedSimulator, Config]:
+    """Rebuild a trained simulator (in eval mode, on `device`) and its config from a checkpoint
+    file, or from one already read with read_checkpoint (its spec and step need no second read)."""
+    ckpt = checkpoint if isinstance(checkpoint, dict) else read_checkpoint(checkpoint)
+    cfg = build_config(base=ckpt["config"])
+    sim = build_simulator(cfg, ModelSpec.from_dict(ckpt["spec"]))
+    try:
+        sim.load_state_dict(ckpt["model"])
+    except RuntimeError as e:  # weights that do not fit the model the checkpoint's own config builds
+        where = "" if isinstance(checkpoint, dict) else f"{checkpoint}: "
+        raise CheckpointError(f"{where}damaged checkpoint, its weights do not fit its model "
+                              f"({str(e).splitlines()[1].strip() if len(str(e).splitlines()) > 1 else e})") from None
+    sim.to(device).eval()
+    return sim, cfg

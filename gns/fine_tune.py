@@ -1,0 +1,99 @@
+"""What a trained checkpoint may carry on as: the start of a fine-tuning run (train.init_from),
+or a resumed run, on data whose feature spec may differ in what fine-tuning allows.
+
+A fine-tune may change FINE_TUNE_FREE (the weights keep their shapes) and add ADDABLE_GROUPS
+after the trained feature groups (their encoder columns start at zero, so the start computes
+exactly what the checkpoint did); everything else of the architecture must match.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from gns.checkpoint import LATEST, CheckpointError, read_checkpoint
+from gns.config import ARCHITECTURE_SECTIONS, Config, config_differences
+from gns.simulator import LearnedSimulator
+from gns.spec import Floor, ModelSpec
+
+
+def with_layout(spec: ModelSpec, sim: LearnedSimulator) -> ModelSpec:
+    return replace(spec, node_features=tuple(n for n, _ in sim.layout.node_groups),
+                   edge_features=tuple(n for n, _ in sim.layout.edge_groups),
+                   collision_features=tuple(n for n, _ in sim.layout.collision_groups))
+
+
+def merge_ranges(old: ModelSpec, new: ModelSpec) -> ModelSpec:
+    """The spec of training on old data then new data: value ranges and shapes united."""
+    ranges = {k: (min(old.ranges[k][0], v[0]), max(old.ranges[k][1], v[1])) for k, v in new.ranges.items()}
+    return replace(new, ranges=ranges, shapes=tuple(sorted(set(old.shapes) | set(new.shapes))),
+                   meshes={**(old.meshes or {}), **(new.meshes or {})})
+
+
+def _shown(value):
+    """A spec value as checkpoints hold it (lists, dicts), for messages."""
+    return value.to_dict() if isinstance(value, Floor) else list(value) if isinstance(value, tuple) else value
+
+
+def init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec) -> ModelSpec:
+    """Load another run's weights and normalisers into a new run's simulator (fine-tuning); returns
+    the spec with the two datasets' ranges united. The loaded normalisers have spent their
+    accumulation budget, so they stay as the weights were trained with."""
+    path = Path(source)
+    path = path / LATEST if path.is_dir() else path
+    init = read_checkpoint(path)
+    trained = ModelSpec.from_dict(init["spec"])
+    problems = [incompatibility(init["config"], trained, cfg, spec, fine_tune=True)]
+    for key in ("frame_rate", "gravity"):
+        if getattr(trained, key) != getattr(spec, key):
+            problems.append(f"{key} is {_shown(getattr(trained, key))} there, {_shown(getattr(spec, key))} in this data")
+    problem = "; ".join(p for p in problems if p)
+    if problem:
+        raise CheckpointError(f"cannot start from {path} (train.init_from): {problem}")
+    sim.load_state_dict(_widened(init["model"], sim, trained))
+    return merge_ranges(trained, spec)
+
+
+def _widened(state: dict, sim: LearnedSimulator, trained: ModelSpec) -> dict:
+    """A checkpoint's weights for `sim`, which reads feature groups added after the trained ones
+    (ADDABLE_GROUPS): the node or edge encoder's first layer gets a zero column per new input
+    and the new groups fresh normalisers, so the start computes exactly what the checkpoint did
+    and training learns what the new inputs add."""
+    out = dict(state)
+    for kind, groups, encoder in (("node_features", sim.layout.node_groups, "node_encoder"),
+                                  ("edge_features", sim.layout.edge_groups, "edge_encoder")):
+        extra = sum(w for n, w in groups if n not in (getattr(trained, kind) or ()))
+        if extra:
+            key = f"network.{encoder}.0.weight"
+            out[key] = torch.cat([state[key], state[key].new_zeros(state[key].shape[0], extra)], dim=1)
+    for key, value in sim.state_dict().items():
+        if key not in out:   # the new groups' normalisers, which accumulate as training starts
+            out[key] = value
+    return out
+
+
+# keys a fine-tuning run (train.init_from) may change: the weights keep their shapes (the
+# inertial prior changes what the output means, which fine-tuning then learns)
+FINE_TUNE_FREE = ("features.mesh_vertices", "features.centre_node", "model.processor_repeats",
+                  "features.impact_time", "features.edge_velocity", "model.inertial_prior")
+# feature groups a fine-tuning run may add after the trained ones (_widened), per kind
+ADDABLE_GROUPS = {"node_features": ("impact",), "edge_features": ("relative_velocity",)}
+
+
+def incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec,
+                     fine_tune: bool = False) -> str | None:
+    """How a checkpoint (its config and spec) cannot carry on as the model of cfg on data of spec.
+    fine_tune: as the start of a new run, which may change FINE_TUNE_FREE (a resumed run may not)."""
+    diffs = config_differences(config, cfg, ARCHITECTURE_SECTIONS, ignore=FINE_TUNE_FREE if fine_tune else ())
+    for key in ("node_features", "edge_features", "collision_features"):
+        theirs, mine = tuple(getattr(trained, key) or ()), tuple(getattr(spec, key))
+        if fine_tune and mine[:len(theirs)] == theirs and set(mine[len(theirs):]) <= set(ADDABLE_GROUPS.get(key, ())):
+            continue
+        if theirs != mine:
+            diffs.append(f"{key} are {list(getattr(trained, key) or ())} in the checkpoint, "
+                         f"{list(getattr(spec, key))} with this data")
+    old_floor, new_floor = trained.floor, spec.floor
+    if (old_floor is None) != (new_floor is None) or (old_floor and old_floor.z != new_floor.z):
+        diffs.append(f"floor is {_shown(old_floor)} in the checkpoint, {_shown(new_floor)} in this data")
+    return "; ".join(diffs) or None
