@@ -92,8 +92,9 @@ class TrainConfig:
     log_every: int = 100
     checkpoint_every: int = 1000
     keep_checkpoints: int = 3          # numbered checkpoints kept besides latest.pt; 0 keeps all
-    # Windows in contact (some centre acceleration differs from free fall by more than
-    # contact_threshold x |g| dt^2) make up this share of each batch; 0 samples all windows alike.
+    # This share of each batch is drawn from the windows in contact (some centre acceleration
+    # differs from free fall by more than contact_threshold x |g| dt^2), the rest from all
+    # windows, contact ones included; 0 samples all windows alike.
     contact_fraction: float = 0.0
     contact_threshold: float = 0.5
     # > 0: this share of each batch is drawn in proportion to each window's one-step error (the

@@ -601,8 +601,11 @@ def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: 
                 world: parallel.World, resumed_from: Path | None) -> str:
     """The log's first line: what is trained on what."""
     n_params = sum(p.numel() for p in sim.parameters())
-    contact = (f" ({float(tracks.contact.double().mean()):.0%} in contact, drawn as {cfg.train.contact_fraction:.0%})"
-               if tracks.contact is not None else "")
+    contact = ""
+    if tracks.contact is not None:
+        # the drawn share comes on top of the contact windows among the rest, drawn from all
+        natural, f = float(tracks.contact.double().mean()), cfg.train.contact_fraction
+        contact = f" ({natural:.0%} in contact, {f + (1 - f) * natural:.0%} of each batch: {f:.0%} drawn from them)"
     if cfg.train.hard_fraction > 0:
         contact += (f", {cfg.train.hard_fraction:.0%} of each batch drawn by one-step error "
                     f"(rescored every {cfg.train.hard_every} steps)")
