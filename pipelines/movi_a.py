@@ -11,10 +11,19 @@ Rerunning continues where the last run stopped: finished stages are skipped.
 Presets (measured costs on a 2-core CPU in the README):
   tiny   a smoke test for the test suite: a few scenes, a tiny model, a few steps
   small  1000 training scenes, the CPU model (L=5, K=1, latent 64), 20000 steps: < 30 minutes
+  budget 4000 training scenes, the first 3 stages of the chain behind the best model
+         (pipelines/movi_a_recipes.py): ~2.5 hours on one core; reproduces gns_movi_a_pf
+         (19.6% / 29.1 deg on 400 test scenes)
+  best   the whole chain, 8 stages, ~7 hours on one core; reproduces gns_movi_a_k3 (16.5% /
+         25.2 deg); stop it any time and rerun: finished stages are skipped
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
                report adds interpenetration between objects (% of size, vs the truth's own)
+  chain_tiny   smoke test of a chain: two stages of the tiny model
+The chains (budget, best) are scored as their models are, with free flight and symmetrized
+rollouts. Their data are the README's data/movi_a_4000 (the same config and seed): a link
+OUT/data -> data/movi_a_4000 skips generating them again.
 """
 from __future__ import annotations
 
@@ -27,9 +36,10 @@ from gns.evaluate import evaluate_run, write_json
 from gns.metrics import format_table
 from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
+from pipelines.movi_a_recipes import MOVI_A_CHAIN, TINY_CHAIN, COMMON, stage_overrides
 
 # Everything run() writes into --out: --fresh deletes a folder holding only these.
-OUTPUTS = {"data", "run", "results.json", "report.md", "plots"}
+OUTPUTS = {"data", "run", "results.json", "report.md", "plots"} | {f"run_{s.name}" for s in MOVI_A_CHAIN + TINY_CHAIN}
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
@@ -37,6 +47,13 @@ PRESETS = {
     "tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", steps=40, scene=["scene.frames=12"]),
     "small": dict(counts={"train": 1000, "valid": 50, "test": 100}, model="cpu", steps=20000, scene=[]),
     "paper": dict(counts={"train": 9000, "valid": 500, "test": 500}, model="paper", steps=1_000_000, scene=[]),
+    # chains of fine-tuning stages (pipelines/movi_a_recipes.py), on the README's data/movi_a_4000 scenes
+    "budget": dict(counts={"train": 4000, "valid": 50, "test": 400}, model="cpu", chain=MOVI_A_CHAIN[:3],
+                   common=COMMON, scene=[], rollout=dict(free_flight=True, symmetrize=True, autocast="auto")),
+    "best": dict(counts={"train": 4000, "valid": 50, "test": 400}, model="cpu", chain=MOVI_A_CHAIN,
+                 common=COMMON, scene=[], rollout=dict(free_flight=True, symmetrize=True, autocast="auto")),
+    "chain_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),
+                       scene=["scene.frames=12"], rollout=dict(free_flight=True, symmetrize=True)),
     # MOVi-A proper has 3-10 objects a scene; these presets train with collision edges between them
     "multi_tiny": dict(counts={"train": 6, "valid": 2, "test": 2}, model="tiny", steps=30,
                        scene=["scene.frames=12", 'scene.objects="2-3"']),
@@ -75,6 +92,16 @@ def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:
               "## Plots", "", "![error against time](plots/error_vs_time.png)", "",
               "![worst scene](plots/trajectory_worst.png)", "", "![median scene](plots/trajectory_median.png)", "",
               "![best scene](plots/trajectory_best.png)", "", "Animation of the worst scene: `plots/rollout_worst.gif`."]
+    if results.get("stages"):
+        lines += ["", "## Training stages", "",
+                  f"Each stage starts from the one before (`train.init_from`); {sum(s['steps'] for s in results['stages'])} "
+                  "steps in all (pipelines/movi_a_recipes.py). Rollouts: "
+                  f"free flight {'on' if results.get('free_flight') else 'off'}, "
+                  f"symmetrized {'yes' if results.get('symmetrize') else 'no'}.", "",
+                  "| stage | steps | settings beyond gns_cpu | reproduces |", "|---|---|---|---|"]
+        for s in results["stages"]:
+            shown = [kv for kv in s["settings"] if not kv.startswith(("train.init_from=", "train.steps="))]
+            lines.append(f"| {s['name']} | {s['steps']} | {' '.join(shown)} | {s['ships_as'] or '-'} |")
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
@@ -85,14 +112,18 @@ def run(preset: str, out: Path, workers: int, seed: int) -> dict:
     check_writable(out)
     out.mkdir(parents=True, exist_ok=True)
     data = data_stage(out / "data", [SHAPES, *p["scene"]], p["counts"], seed, workers)
-    ckpt = train_stage(data.root, out / "run", p["model"], [f"train.steps={p['steps']}", f"train.seed={seed}"])
+    if "chain" in p:
+        ckpt, stages = train_chain(data.root, out, p, seed)
+    else:
+        ckpt = train_stage(data.root, out / "run", p["model"], [f"train.steps={p['steps']}", f"train.seed={seed}"])
+        stages = None
     results = done(out / "results.json", ckpt)
     if results is None:
         say("eval: rolling out the test split")
-        results, *_ = evaluate_run(ckpt, data.root, "test", plots_dir=out / "plots")
+        results, *_ = evaluate_run(ckpt, data.root, "test", plots_dir=out / "plots", **p.get("rollout", {}))
         saved = read_checkpoint(ckpt)
         m = saved["config"]["model"]
-        results.update(checkpoint_step=int(saved["step"]), preset=preset, paper=PAPER, train={
+        results.update(checkpoint_step=int(saved["step"]), preset=preset, paper=PAPER, stages=stages, train={
             "model": p["model"], "step": int(saved["step"]), "L": m["message_passing_steps"],
             "K": m["processor_repeats"], "latent": m["latent_size"],
             "parameters": sum(v.numel() for k, v in saved["model"].items() if "normalizer" not in k)})
@@ -105,13 +136,26 @@ def run(preset: str, out: Path, workers: int, seed: int) -> dict:
     return results
 
 
+def train_chain(data: Path, out: Path, p: dict, seed: int) -> tuple[Path, list[dict]]:
+    """Train a preset's stages in order, each from the last one's checkpoint, into OUT/run_<name>;
+    finished stages are skipped. Returns the last checkpoint and what each stage was."""
+    previous, stages = None, []
+    for stage in p["chain"]:
+        overrides = stage_overrides(stage, previous, seed, p["common"])
+        ckpt = train_stage(data, out / f"run_{stage.name}", p["model"], overrides)
+        stages.append({"name": stage.name, "steps": stage.steps, "settings": overrides, "ships_as": stage.ships_as})
+        previous = str(ckpt)
+    return ckpt, stages
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m pipelines.movi_a", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", choices=sorted(PRESETS), default="small")
     ap.add_argument("--out", type=Path, help="output folder (default runs/movi_a_<preset>)")
     ap.add_argument("--workers", type=int, default=2, help="data generation processes")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0,
+                    help="data seed (and the small preset's training seed); the chains add it to each stage's seed")
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
     a = ap.parse_args(argv)
     out = a.out or Path("runs") / f"movi_a_{a.preset}"

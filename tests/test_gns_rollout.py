@@ -80,6 +80,27 @@ def test_movi_a_pipeline_tiny_runs_end_to_end_and_resumes(tmp_path, capsys):
     assert "data: " in err and err.count("skipping") == 3
 
 
+def test_movi_a_chain_trains_each_stage_from_the_last_and_resumes(tmp_path, capsys):
+    from gns.checkpoint import read_checkpoint
+    out = tmp_path / "c"
+    assert movi_a.main(["--preset", "chain_tiny", "--out", str(out), "--workers", "1"]) == 0
+    first, second = (read_checkpoint(out / f"run_{s}" / "latest.pt") for s in ("a", "b"))
+    assert (first["step"], second["step"]) == (20, 10)
+    assert not first["config"]["train"]["init_from"]
+    assert second["config"]["train"]["init_from"] == str(out / "run_a" / "latest.pt")
+    # the levers the second stage adds
+    assert second["config"]["model"]["processor_repeats"] == 2 and second["config"]["features"]["centre_node"]
+    assert second["config"]["train"]["unroll_steps"] == 2 and second["seed"] == 1
+    results = json.loads((out / "results.json").read_text())
+    assert results["free_flight"] and results["symmetrize"] and results["checkpoint_step"] == 10
+    assert [s["name"] for s in results["stages"]] == ["a", "b"]
+    assert "## Training stages" in (out / "report.md").read_text()
+    capsys.readouterr()
+    assert movi_a.main(["--preset", "chain_tiny", "--out", str(out), "--workers", "1"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("skipping") == 4   # the data, both stages, the evaluation
+
+
 def test_movi_a_multi_object_preset_reports_interpenetration(tmp_path, capsys):
     out = tmp_path / "m"
     assert movi_a.main(["--preset", "multi_tiny", "--out", str(out), "--workers", "1"]) == 0
