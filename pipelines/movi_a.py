@@ -142,9 +142,10 @@ def train_chain(data: Path, out: Path, p: dict, seed: int) -> tuple[Path, list[d
     previous, stages = None, []
     for stage in p["chain"]:
         overrides = stage_overrides(stage, previous, seed, p["common"])
-        ckpt = train_stage(data, out / f"run_{stage.name}", p["model"], overrides)
+        run = out / f"run_{stage.name}"
+        ckpt = train_stage(data, run, p["model"], overrides)
         stages.append({"name": stage.name, "steps": stage.steps, "settings": overrides, "ships_as": stage.ships_as})
-        previous = str(ckpt)
+        previous = str(run)   # the folder (its latest.pt): the same setting whichever checkpoint a rerun finds
     return ckpt, stages
 
 
