@@ -25,6 +25,11 @@ friction=0.5, restitution=0.5, steps=3); assert out.positions.shape == (4, 1, 3)
 positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]], steps=3); assert out.positions.shape == (4, 1, 3)"
 "$work/venv/bin/python" -m pipelines.movi_a --preset tiny --out movi_tiny --workers 1
 test -s eval.json && test -s movi_tiny/report.md
+# a chain of stages from the installed recipes, and the error breakdown of its model
+"$work/venv/bin/python" -m pipelines.movi_a --preset chain_tiny --out chain_tiny --workers 1
+grep -q "## Training stages" chain_tiny/report.md
+"$work/venv/bin/python" -m pipelines.error_breakdown --run chain_tiny/run_b --data chain_tiny/data --json bd.json
+test -s bd.json
 # the installed datagen re-simulates its own data exactly: the unperturbed row scores 0
 "$work/venv/bin/python" -m pipelines.movi_a_sensitivity --data data --perturb exact:0 turn:1 --out sens
 grep -q "^| exact (none) | 0.00 | 0.00 |" sens/report.md

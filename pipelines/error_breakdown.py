@@ -1,0 +1,111 @@
+"""Where a model's rollout error sits: spread over scenes, and rotation against position.
+
+    python -m pipelines.error_breakdown --run gns_movi_a_k3 --data data/movi_a_4000 --free-flight --symmetrize \
+        [--split test|train|valid] [--limit N] [--autocast bf16] [--json FILE]
+
+Rolls out a split as `gns eval` does and prints three tables:
+- scenes: mean and median of the per-scene errors, and the share of the total the worst 5%,
+  10%, 20%, 50% of scenes hold (a few bad scenes, or error everywhere?);
+- rotation by position error: object-frames binned by their position error (% of size), the
+  mean rotation error of each bin and its share of all rotation error (is the rotation wrong
+  on trajectories that are right?);
+- rotation by true spin: the same binned by the true turn per frame.
+`--split train` on a model's own training scenes against `--split test` tells overfitting
+from underfitting (docs/accuracy.md, session 10).
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from gns.evaluate import evaluate_run, write_json
+from gns.metrics import scene_errors
+from pipelines.common import guarded
+
+POSITION_BINS = (0.0, 5.0, 10.0, 25.0, 50.0, np.inf)   # % of size
+SPIN_BINS = (0.0, 1.0, 5.0, 15.0, np.inf)               # true degrees a frame
+WORST = (0.05, 0.10, 0.20, 0.50)
+
+
+def worst_shares(per_scene: np.ndarray) -> dict[str, float]:
+    """The share of the summed error the worst q of scenes hold, for each q of WORST."""
+    ordered = np.sort(per_scene)[::-1]
+    total = ordered.sum()
+    return {f"{q:.0%}": float(ordered[:max(1, int(round(q * len(ordered))))].sum() / total) if total > 0 else 0.0
+            for q in WORST}
+
+
+def binned(values: np.ndarray, by: np.ndarray, edges) -> list[dict]:
+    """For each bin [lo, hi) of `by`: its share of the entries, the mean of `values` in it and
+    its share of their sum."""
+    total = values.sum()
+    rows = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (by >= lo) & (by < hi)
+        rows.append({"low": float(lo), "high": float(hi), "share_of_frames": float(m.mean()),
+                     "mean": float(values[m].mean()) if m.any() else None,
+                     "share_of_error": float(values[m].sum() / total) if total > 0 else 0.0})
+    return rows
+
+
+def breakdown(errors: list[dict]) -> dict:
+    """The three tables from gns.metrics.scene_errors of a split."""
+    pos = np.array([e["position_error_pct"].mean() for e in errors])
+    rot = np.array([e["rotation_error_deg"].mean() for e in errors])
+    p, r, s = (np.concatenate([e[k].ravel() for e in errors])
+               for k in ("position_error_pct", "rotation_error_deg", "true_spin_deg"))
+    return {"num_scenes": len(errors), "num_object_frames": int(p.size),
+            "scenes": {"position_error_pct": {"mean": float(pos.mean()), "median": float(np.median(pos)),
+                                              "worst_share": worst_shares(pos)},
+                       "rotation_error_deg": {"mean": float(rot.mean()), "median": float(np.median(rot)),
+                                              "worst_share": worst_shares(rot)}},
+            "rotation_by_position_error": binned(r, p, POSITION_BINS),
+            "rotation_by_true_spin": binned(r, s, SPIN_BINS)}
+
+
+def format_breakdown(b: dict) -> str:
+    lines = [f"{b['num_scenes']} scenes, {b['num_object_frames']} object-frames", "",
+             "per scene          mean   median   worst 5% / 10% / 20% / 50% of scenes hold"]
+    for key, label in (("position_error_pct", "position %"), ("rotation_error_deg", "rotation deg")):
+        d = b["scenes"][key]
+        shares = " / ".join(f"{v:.0%}" for v in d["worst_share"].values())
+        lines.append(f"{label:<16} {d['mean']:6.2f}  {d['median']:6.2f}   {shares}")
+    for key, label, unit in (("rotation_by_position_error", "position error", "%"),
+                             ("rotation_by_true_spin", "true spin", " deg/frame")):
+        lines += ["", f"{label + ' bin':<24} object-frames   mean rotation deg   share of rotation error"]
+        for row in b[key]:
+            hi = "inf" if np.isinf(row["high"]) else f"{row['high']:g}"
+            mean = "-" if row["mean"] is None else f"{row['mean']:.1f}"
+            label = f"{row['low']:g}-{hi}{unit}"
+            lines.append(f"{label:<24} {row['share_of_frames']:>13.0%}   {mean:>17}   {row['share_of_error']:>23.0%}")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m pipelines.error_breakdown", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", required=True, help="run folder, checkpoint or shipped model name")
+    ap.add_argument("--data", required=True, type=Path, help="dataset folder")
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--limit", type=int, help="only the first N scenes")
+    ap.add_argument("--free-flight", action="store_true", help="as gns eval --free-flight")
+    ap.add_argument("--symmetrize", action="store_true", help="as gns eval --symmetrize (d2)")
+    ap.add_argument("--autocast", choices=("none", "bf16", "auto"), default="none")
+    ap.add_argument("--json", type=Path, help="also write the tables as JSON")
+    a = ap.parse_args(argv)
+
+    def stages():
+        _, pred, true, ds = evaluate_run(a.run, a.data, a.split, a.limit, progress=False, symmetrize=a.symmetrize,
+                                         free_flight=a.free_flight, autocast=a.autocast)
+        b = breakdown(scene_errors(pred, true, ds.meshes))
+        b.update(run=str(a.run), data=str(a.data), split=a.split, free_flight=a.free_flight, symmetrize=a.symmetrize)
+        print(format_breakdown(b))
+        if a.json:
+            write_json(a.json, b)
+    return guarded(stages)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
