@@ -290,7 +290,8 @@ def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
     # Imported after parsing so that `gns --help` and usage errors do not wait for torch.
     from gns.rollout import DivergedError
-    from gns.train import CheckpointError, TrainingError
+    from gns.checkpoint import CheckpointError
+    from gns.train import TrainingError
 
     try:
         args.run(args)

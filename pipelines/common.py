@@ -13,7 +13,8 @@ from datagen.generate import generate
 from datagen.shards import Dataset, DataError
 from gns.config import build_config, config_differences
 from gns.evaluate import write_json
-from gns.train import LATEST, CheckpointError, checkpoint_paths, resume_point, train
+from gns.checkpoint import LATEST, CheckpointError, checkpoint_paths, resume_point
+from gns.train import train
 
 CONFIGS = config_dir()
 
@@ -73,7 +74,7 @@ def guarded(stages) -> int:
     """Run a pipeline's stages; a user error ends it with one `error:` line and exit status 2."""
     from gns.config import ConfigError
     from gns.rollout import DivergedError
-    from gns.train import CheckpointError, TrainingError
+    from gns.train import TrainingError
     try:
         stages()
     except (DataError, ConfigError, CheckpointError, TrainingError, DivergedError) as e:

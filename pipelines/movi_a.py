@@ -43,15 +43,20 @@ OUTPUTS = {"data", "run", "results.json", "report.md", "plots"} | {f"run_{s.name
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
+
+def _chain_preset(chain) -> dict:
+    """A preset training `chain` on the 4000 MOVi-A scenes, scored as its models are."""
+    return dict(counts={"train": 4000, "valid": 50, "test": 400}, model="cpu", chain=chain, common=COMMON, scene=[],
+                rollout=dict(free_flight=True, symmetrize=True, autocast="auto"))
+
+
 PRESETS = {
     "tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", steps=40, scene=["scene.frames=12"]),
     "small": dict(counts={"train": 1000, "valid": 50, "test": 100}, model="cpu", steps=20000, scene=[]),
     "paper": dict(counts={"train": 9000, "valid": 500, "test": 500}, model="paper", steps=1_000_000, scene=[]),
     # chains of fine-tuning stages (pipelines/movi_a_recipes.py), on the README's data/movi_a_4000 scenes
-    "budget": dict(counts={"train": 4000, "valid": 50, "test": 400}, model="cpu", chain=MOVI_A_CHAIN[:3],
-                   common=COMMON, scene=[], rollout=dict(free_flight=True, symmetrize=True, autocast="auto")),
-    "best": dict(counts={"train": 4000, "valid": 50, "test": 400}, model="cpu", chain=MOVI_A_CHAIN,
-                 common=COMMON, scene=[], rollout=dict(free_flight=True, symmetrize=True, autocast="auto")),
+    "budget": _chain_preset(MOVI_A_CHAIN[:3]),
+    "best": _chain_preset(MOVI_A_CHAIN),
     "chain_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),
                        scene=["scene.frames=12"], rollout=dict(free_flight=True, symmetrize=True)),
     # MOVi-A proper has 3-10 objects a scene; these presets train with collision edges between them

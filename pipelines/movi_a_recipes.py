@@ -29,30 +29,30 @@ class Stage:
     settings: tuple        # KEY=VALUE on top of the gns_cpu preset and COMMON
     seed: int              # train.seed (the pipeline's --seed s adds s)
     ships_as: str = ""     # the shipped model it reproduces (gns/models/<name>.pt), if any
-    minutes: int = 0       # measured on one core (docs/accuracy.md)
 
 
 PUSHFORWARD_3 = ("train.unroll_steps=3",)
 CENTRE = ("features.centre_node=true",)
 RIGID = ("train.rigid_loss=1",)
 
-# docs/accuracy.md sessions 4-9; scores: 400 test scenes, free flight + symmetrized
+# docs/accuracy.md sessions 4-9; minutes on one core, then the score on 400 test scenes (free
+# flight + symmetrized)
 MOVI_A_CHAIN = (
-    Stage("long", 96_000, ("train.lr_init=5e-4", "train.lr_decay_steps=50000"), 0, minutes=71),
+    Stage("long", 96_000, ("train.lr_init=5e-4", "train.lr_decay_steps=50000"), 0),  # 71 min
     Stage("long2", 60_000, ("train.lr_init=2e-4", "train.lr_decay_steps=25000"), 1,
-          "gns_movi_a_long2", 33),                                             # 22.5% / 31.7 deg
+          "gns_movi_a_long2"),                                                 # 33 min: 22.5% / 31.7 deg
     Stage("pf", 35_000, ("train.lr_init=2e-4", "train.lr_decay_steps=20000", "train.unroll_steps=2"), 3,
-          "gns_movi_a_pf", 46),                                                # 19.6% / 29.1 deg
+          "gns_movi_a_pf"),                                                    # 46 min: 19.6% / 29.1 deg
     Stage("pf3", 15_000, ("train.lr_init=1e-4", "train.lr_decay_steps=15000", *PUSHFORWARD_3), 4,
-          "gns_movi_a_pf3", 65),                                               # 19.0% / 28.3 deg
+          "gns_movi_a_pf3"),                                                   # 65 min: 19.0% / 28.3 deg
     Stage("centre", 20_000, ("train.lr_init=2e-4", "train.lr_decay_steps=10000", *PUSHFORWARD_3, *CENTRE), 5,
-          "gns_movi_a_centre", 72),                                            # 17.9% / 27.7 deg
+          "gns_movi_a_centre"),                                                # 72 min: 17.9% / 27.7 deg
     Stage("rigidloss", 10_000, ("train.lr_init=1e-4", "train.lr_decay_steps=5000", *PUSHFORWARD_3, *CENTRE,
-                                *RIGID), 7, "gns_movi_a_rigidloss", 20),       # 17.1% / 26.8 deg
+                                *RIGID), 7, "gns_movi_a_rigidloss"),           # 20 min: 17.1% / 26.8 deg
     Stage("k2", 12_500, ("train.lr_init=2e-4", "train.lr_decay_steps=10000", *PUSHFORWARD_3, *CENTRE, *RIGID,
-                         "model.processor_repeats=2"), 11, minutes=50),        # 16.7% / 25.3 deg
+                         "model.processor_repeats=2"), 11),                    # 50 min: 16.7% / 25.3 deg
     Stage("k3", 10_000, ("train.lr_init=1e-4", "train.lr_decay_steps=5000", *PUSHFORWARD_3, *CENTRE, *RIGID,
-                         "model.processor_repeats=3"), 17, "gns_movi_a_k3", 55),  # 16.5% / 25.2 deg
+                         "model.processor_repeats=3"), 17, "gns_movi_a_k3"),   # 55 min: 16.5% / 25.2 deg
 )
 
 # a smoke test of the chaining for the test suite: the tiny model, a few steps, two levers added
