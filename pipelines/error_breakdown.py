@@ -78,8 +78,8 @@ def format_breakdown(b: dict) -> str:
         for row in b[key]:
             hi = "inf" if np.isinf(row["high"]) else f"{row['high']:g}"
             mean = "-" if row["mean"] is None else f"{row['mean']:.1f}"
-            label = f"{row['low']:g}-{hi}{unit}"
-            lines.append(f"{label:<24} {row['share_of_frames']:>13.0%}   {mean:>17}   {row['share_of_error']:>23.0%}")
+            edges = f"{row['low']:g}-{hi}{unit}"
+            lines.append(f"{edges:<24} {row['share_of_frames']:>13.0%}   {mean:>17}   {row['share_of_error']:>23.0%}")
     return "\n".join(lines)
 
 
