@@ -62,7 +62,8 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     steps with the rigid loss: 25.5% / 33.6 deg free flight at 1.1x PyBullet), gns_movi_a_k3 (rigidloss + 12.5k
     steps passing messages twice a step and 10k thrice: 16.5% / 25.2 deg), gns_movi_a_budget (centre node,
     rigid loss and three-step pushforward from the first step, 2 h 16 min: 18.4% / 27.7 deg) and
-    gns_diagnostic_45 (cube drops, 8 of 8 with body-frame rollouts) load by name and roll out fresh scenes of what they were trained on, far better than a broken model would."""
+    gns_diagnostic_45 (cube drops, 8 of 8 with body-frame rollouts) load by name and roll out fresh scenes
+    of what they were trained on, far better than a broken model would."""
     from datagen.cli import main as datagen
     movi_a = ("gns_movi_a_long", "gns_movi_a_long2", "gns_movi_a_pf", "gns_movi_a_pf3", "gns_movi_a_coarse",
               "gns_movi_a_centre", "gns_movi_a_rigidloss", "gns_movi_a_coarse_pf3", "gns_movi_a_k3",
