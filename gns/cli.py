@@ -88,7 +88,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     check_output(args.out, args.overwrite, args.data)
     ckpt = checkpoint_of(args.run_dir)
     sim, saved = load_simulator(ckpt, device, args.symmetrize, args.body_frames, args.autocast, args.compile,
-                                args.ensemble)
+                                args.ensemble, args.turn_seed)
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(args.data, args.split, args.limit, spec.frame_rate)
     check_ranges(spec, ds, scenes)
@@ -107,7 +107,8 @@ def cmd_rollout(args: argparse.Namespace) -> None:
             "given_frames": 3, "seconds": seconds,
             "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize, "body_frames": args.body_frames,
             "free_flight": args.free_flight, "autocast": args.autocast, "compile": args.compile,
-            "ensemble": list(args.ensemble), "object_steps": sim.rollout_counts, **provenance_of(saved, ds)}
+            "ensemble": list(args.ensemble), "object_steps": sim.rollout_counts, "turn_seed": args.turn_seed,
+            **provenance_of(saved, ds)}
     write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
     print(f"rolled out {len(pred)} scenes in {seconds:.2f} s; wrote {len(pred) - len(diverged)} to {args.out}")
 
@@ -125,7 +126,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                                batch_tracks=args.batch, sleep=_sleep(args), symmetrize=args.symmetrize,
                                at_data_rate=args.at_data_rate, body_frames=args.body_frames, device=args.device,
                                free_flight=args.free_flight, autocast=args.autocast, compile=args.compile,
-                               ensemble=args.ensemble)
+                               ensemble=args.ensemble, turn_seed=args.turn_seed)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched"
@@ -171,11 +172,17 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--sleep", action="store_true",
                    help="hold resting objects still until another object touches them, as physics engines "
                         "deactivate bodies (docs/stability.md); off by default")
-    p.add_argument("--symmetrize", nargs="?", const="d2", default=False, choices=["d2", "d4"], metavar="GROUP",
+    p.add_argument("--symmetrize", nargs="?", const="d2", default=False, choices=["d2", "d4", "d1", "c2", "c4", "r1", "r2"],
+                   metavar="GROUP",
                    help="average each step's prediction over the floor's symmetries: d2 (the default when no GROUP "
                         "is given) the mirrors in x and y and the half turn, exactly mirror-equivariant rollouts "
                         "at 4x the network cost; d4 also the quarter turns and diagonal mirrors, at 8x "
-                        "(measured 0.2 points better, docs/accuracy.md session 9)")
+                        "(measured 0.2 points better, docs/accuracy.md session 9); d1 (the mirror in x) and "
+                        "c2 (the half turn) at 2x, c4 (the quarter turns) at 4x; r1 each scene turned about z to "
+                        "a random heading every step (no extra network work, not exactly equivariant), r2 that "
+                        "heading and its half turn averaged, at 2x (docs/speed.md, session 12)")
+    p.add_argument("--turn-seed", type=int, default=0, metavar="N",
+                   help="seed of the random headings of --symmetrize r1/r2 (recorded in the output)")
     p.add_argument("--body-frames", action="store_true",
                    help="also average over each object's equivalent body frames (a cube's 24 rotations onto "
                         "itself): exactly invariant to which one describes it, at that many times the cost")

@@ -16,6 +16,7 @@ from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene
+from gns.simulator import RANDOM_TURNS
 from gns.data import feature_spec
 from gns.features import HISTORY
 from gns.ranges import outside_training
@@ -56,7 +57,7 @@ def write_json(path: str | Path, obj) -> None:
 
 def load_simulator(run: str | Path, device: str | torch.device = "cpu", symmetrize: bool = False,
                    body_frames: bool = False, autocast: str = "none", compile: bool = False,
-                   ensemble: Sequence[str | Path] = ()) -> tuple:
+                   ensemble: Sequence[str | Path] = (), turn_seed: int = 0) -> tuple:
     """The model of `run` (folder, checkpoint or shipped name) set up for rollouts, with the runs
     of `ensemble` as members whose predictions each step averages (LearnedSimulator.set_ensemble).
     Returns (simulator, its saved checkpoint)."""
@@ -66,6 +67,7 @@ def load_simulator(run: str | Path, device: str | torch.device = "cpu", symmetri
         model.set_speed(autocast, compile)
     sim.symmetrize = symmetrize   # members follow the model's symmetrization (set_ensemble)
     sim.body_frames = body_frames
+    sim.turn_seed = turn_seed
     if members:
         try:
             sim.set_ensemble(members)
@@ -79,7 +81,8 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                  batch_tracks: int = 256, sleep=None, symmetrize: bool = False,
                  at_data_rate: bool = False, body_frames: bool = False,
                  device: str = "cpu", free_flight: bool = False, autocast: str = "none",
-                 compile: bool = False, ensemble: Sequence[str | Path] = ()) -> tuple[dict, list, list, Dataset]:
+                 compile: bool = False, ensemble: Sequence[str | Path] = (),
+                 turn_seed: int = 0) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it (with `ensemble`, the
     predictions averaged with those runs' at every step: load_simulator).
 
@@ -92,7 +95,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     """
     device = parse_device(device, "--device")
     ckpt = checkpoint_of(run)
-    sim, saved = load_simulator(ckpt, device, symmetrize, body_frames, autocast, compile, ensemble)
+    sim, saved = load_simulator(ckpt, device, symmetrize, body_frames, autocast, compile, ensemble, turn_seed)
     if plots_dir is not None:
         check_writable(plots_dir, "plots folder")
     spec = ModelSpec.from_dict(saved["spec"])
@@ -121,6 +124,8 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                    free_flight=free_flight, object_steps=counts, autocast=autocast,
                    autocast_used=sim.autocast_used, compile=compile,
                    ensemble=[str(r) for r in ensemble], device=str(device), **provenance_of(saved, ds))
+    if symmetrize in RANDOM_TURNS:
+        results["turn_seed"] = turn_seed
     return results, pred, scenes, ds
 
 

@@ -7,6 +7,8 @@ throughout; the network runs in float32 on normalised features.
 """
 from __future__ import annotations
 
+import math
+
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -193,14 +195,21 @@ _MIRRORS = _maps(((1, 0, 0), (0, 1, 0), (0, 0, 1)), ((-1, 0, 0), (0, 1, 0), (0, 
                  ((1, 0, 0), (0, -1, 0), (0, 0, 1)), ((-1, 0, 0), (0, -1, 0), (0, 0, 1)))
 # the floor's symmetries a rollout may average over (3x3 maps of the world, z kept): "d2" the
 # identity, the mirrors in x and in y and the half turn; "d4" also the quarter turns and the
-# diagonal mirrors (x and y swapped), at twice the cost
+# diagonal mirrors (x and y swapped), at twice the cost; "d1" (the identity and the mirror in x)
+# and "c2" (the identity and the half turn) at half the cost, "c4" (the quarter turns) at the same:
+# which of d2's gain is the exact mirror and which the average over images (docs/speed.md, session 12)
 SYMMETRY_GROUPS = {"d2": _MIRRORS,
-                   "d4": _MIRRORS + tuple(tuple((m[1], m[0], m[2])) for m in _MIRRORS)}
+                   "d4": _MIRRORS + tuple(tuple((m[1], m[0], m[2])) for m in _MIRRORS),
+                   "d1": (_MIRRORS[0], _MIRRORS[1]),
+                   "c2": (_MIRRORS[0], _MIRRORS[3]),
+                   "c4": (_MIRRORS[0], _maps(((0, -1, 0), (1, 0, 0), (0, 0, 1)))[0], _MIRRORS[3],
+                          _maps(((0, 1, 0), (-1, 0, 0), (0, 0, 1)))[0])}
 FLOOR_SYMMETRIES = SYMMETRY_GROUPS["d2"]
 
 
 def symmetry_group(symmetrize) -> str | None:
-    """The group a `symmetrize` setting names: False/None -> None, True -> "d2", or "d2"/"d4"."""
+    """The group a `symmetrize` setting names: False/None -> None, True -> "d2", or a key of
+    SYMMETRY_GROUPS."""
     if symmetrize is None or symmetrize is False:
         return None
     if symmetrize is True:
@@ -209,6 +218,9 @@ def symmetry_group(symmetrize) -> str | None:
         raise ValueError(f"unknown symmetry group {symmetrize!r}; known: {', '.join(SYMMETRY_GROUPS)}")
     return symmetrize
 
+
+# rollout options averaging over random headings instead of a fixed group (_predict_turned)
+RANDOM_TURNS = {"r1": 1, "r2": 2}
 
 IMAGE_NODES = 32768  # most nodes in one network call of symmetrized images (predict_acceleration)
 
@@ -223,6 +235,7 @@ class LearnedSimulator(nn.Module):
 
     symmetrize: bool | str = False  # average predictions over SYMMETRY_GROUPS (True: "d2"; rollouts; not saved)
     body_frames: bool = False  # and over each object's equivalent body frames (graph.symmetries)
+    turn_seed: int = 0  # the random headings of symmetrize="r1"/"r2" (not saved)
     autocast: torch.dtype | None = None  # the network (only) runs in this dtype under autocast (train.autocast)
     autocast_used: str = "none"  # what set_speed took: "none" or "bf16" ("auto" resolved)
 
@@ -381,6 +394,8 @@ class LearnedSimulator(nn.Module):
         syms = graph.symmetries if body_frames else None
         if not symmetrize and syms is None:
             return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
+        if symmetrize in RANDOM_TURNS:
+            return self._predict_turned(history, graph, RANDOM_TURNS[symmetrize])
         group = symmetry_group(symmetrize)
         floors = SYMMETRY_GROUPS[group] if group else FLOOR_SYMMETRIES[:1]
         frames = 1 if syms is None else syms.shape[1]
@@ -412,6 +427,38 @@ class LearnedSimulator(nn.Module):
             for a, (g, weight) in zip(out.split(graph.num_nodes), maps[lo:hi]):
                 total = total + (a @ g) * weight   # g^T a: the map undone
         return total / len(floors)
+
+    def _predict_turned(self, history: torch.Tensor, graph: GraphBatch, images: int) -> torch.Tensor:
+        """The prediction for each scene turned about z by a random angle (and, with 2 images,
+        by that angle plus a half turn), turned back and averaged: the network's error for an
+        input depends on the input's heading, which a rollout keeps from step to step; a new
+        heading every step makes consecutive errors independent. Angles from a generator seeded
+        with `turn_seed` at the start of every rollout (reset_turns), so a rollout repeats exactly."""
+        rng = self.__dict__.get("_turn_rng")
+        if rng is None:
+            rng = self.reset_turns()
+        scene = graph.node_scene
+        angle = torch.rand(int(scene.max()) + 1, generator=rng, dtype=torch.float64) * (2 * math.pi)
+        total = torch.zeros_like(history[:, -1])
+        for k in range(images):
+            a = (angle + k * (2 * math.pi / images)).to(history.device)[scene]
+            c, s = torch.cos(a), torch.sin(a)
+            turn = torch.zeros(a.shape[0], 3, 3, dtype=history.dtype, device=history.device)
+            turn[:, 0, 0], turn[:, 0, 1], turn[:, 1, 0], turn[:, 1, 1], turn[:, 2, 2] = c, -s, s, c, 1.0
+            # a proper rotation: the body frame's rest shape stays, as in training's z augmentation
+            out = self.target_normalizer.inverse(
+                self(torch.einsum("nij,ntj->nti", turn, history), graph).to(torch.float64))
+            total = total + torch.einsum("nji,nj->ni", turn, out)
+        return total / images
+
+    def reset_turns(self) -> torch.Generator:
+        """Restart the random headings of symmetrize="r1"/"r2" from `turn_seed` (rollout_scenes
+        calls it first): the same scenes, batches and seed give the same rollouts."""
+        rng = self.__dict__["_turn_rng"] = torch.Generator().manual_seed(int(self.turn_seed))
+        for m in self.__dict__.get("_members") or ():   # an ensemble's members take the same headings
+            m.turn_seed = self.turn_seed
+            m.reset_turns()
+        return rng
 
     def inertial(self, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         """Positions (N, 3) at t+1 without acceleration, which the network's acceleration is added
