@@ -13,6 +13,9 @@ batched, in each variant asked:
   compile   the network through torch.compile (`--compile`; compiled before timing)
   sym       each step averaged over the floor's 4 mirror symmetries (`--symmetrize`): the most
             accurate rollouts, at 4x the network's work
+  d1, c2, c4, d4, r1, r2
+            the other averages of `--symmetrize GROUP` (c2: the half turn, 2x the work; r1: a
+            random heading every step, no extra work; docs/speed.md, session 12)
 
 joined with "+" (e.g. free+bf16). Several --run give every variant of every model, all in the
 same rounds (e.g. a model on the full meshes against one on coarse meshes). Cost is wall-clock ms per simulated second per trajectory
@@ -47,7 +50,8 @@ from gns.rollout import rollout_scenes  # noqa: E402
 from gns.simulator import Sleep  # noqa: E402
 from gns.train import load_model, read_checkpoint  # noqa: E402
 
-KNOWN = ("plain", "free", "sleep", "bf16", "compile", "sym")
+GROUPS = ("d1", "c2", "c4", "d4", "r1", "r2")   # --symmetrize GROUP; "sym" is d2
+KNOWN = ("plain", "free", "sleep", "bf16", "compile", "sym", *GROUPS)
 
 
 def parse_variants(text: str) -> list[tuple[str, set[str]]]:
@@ -57,6 +61,9 @@ def parse_variants(text: str) -> list[tuple[str, set[str]]]:
         unknown = parts - set(KNOWN)
         if unknown:
             raise SystemExit(f"error: unknown variant part {sorted(unknown)[0]!r}; known: {', '.join(KNOWN)}")
+        groups = sorted(parts & {"sym", *GROUPS})
+        if len(groups) > 1:
+            raise SystemExit(f"error: variant {name.strip()!r} averages over {' and '.join(groups)}; one group a variant")
         out.append((name.strip(), parts))
     return out
 
@@ -82,7 +89,8 @@ class Roller:
 
     def __call__(self, parts: set[str]):
         self.sim.set_speed("bf16" if "bf16" in parts else "none", "compile" in parts)
-        self.sim.symmetrize = "sym" in parts
+        groups = [p for p in parts if p in GROUPS] + (["d2"] if "sym" in parts else [])
+        self.sim.symmetrize = groups[0] if groups else False
         return rollout_scenes(self.sim, self.scenes, self.ds.meshes, self.ds.frame_rate, progress=False,
                               free_flight="free" in parts, sleep=Sleep() if "sleep" in parts else None)
 

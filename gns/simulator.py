@@ -255,6 +255,7 @@ class LearnedSimulator(nn.Module):
         # the graphs this model reads: self.mesh_library(meshes)
         self.mesh_vertices = int(getattr(features_cfg, "mesh_vertices", 0))
         self.centre_node = bool(getattr(features_cfg, "centre_node", False))
+        self.canonical_heading = bool(getattr(features_cfg, "canonical_heading", False))
         self.layout: FeatureLayout = make_layout(features_cfg, spec.floor_z, spec.materials_vary,
                                                  collisions=spec.collision_edges, gravity_step=self.gravity_step,
                                                  gravity_z_step=None if spec.gravity_per_frame is None
@@ -345,8 +346,28 @@ class LearnedSimulator(nn.Module):
 
     def forward(self, history: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         """history (N, 3, 3) float64 positions at t-2, t-1, t -> normalised acceleration (N, 3) float32."""
+        if self.canonical_heading:
+            return self._forward_canonical(history, graph)
         nodes, edge_sets = self._inputs(history, graph)
         return self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
+
+    def _forward_canonical(self, history: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
+        """forward with each scene turned to its canonical heading (features.canonical_heading):
+        about z, so that the mean horizontal velocity of its nodes over the last frame points
+        along +x; the acceleration is turned back in scene units (the target normaliser's x and
+        y statistics need not match). A scene at rest keeps its heading (atan2(0, 0) = 0)."""
+        scene = graph.node_scene
+        count = int(scene.max()) + 1 if scene.numel() else 0
+        step = (history[:, -1, :2] - history[:, -2, :2])
+        velocity = torch.zeros(count, 2, dtype=history.dtype, device=history.device).index_add_(0, scene, step)
+        angle = torch.atan2(velocity[:, 1], velocity[:, 0])[scene]
+        c, s = torch.cos(angle), torch.sin(angle)
+        turn = torch.zeros(scene.shape[0], 3, 3, dtype=history.dtype, device=history.device)
+        turn[:, 0, 0], turn[:, 0, 1], turn[:, 1, 0], turn[:, 1, 1], turn[:, 2, 2] = c, s, -s, c, 1.0  # by -angle
+        nodes, edge_sets = self._inputs(torch.einsum("nij,ntj->nti", turn, history), graph)
+        out = self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
+        acc = torch.einsum("nji,nj->ni", turn, self.target_normalizer.inverse(out.to(history.dtype)))
+        return self.target_normalizer(acc).to(torch.float32)
 
     def set_ensemble(self, members: Sequence["LearnedSimulator"]) -> None:
         """Average every step's predicted acceleration with these models' (an ensemble: runs
