@@ -13,7 +13,7 @@ batched, in each variant asked:
   compile   the network through torch.compile (`--compile`; compiled before timing)
   sym       each step averaged over the floor's 4 mirror symmetries (`--symmetrize`): the most
             accurate rollouts, at 4x the network's work
-  d1, c2, c4, d4, r1, r2
+  d1, c2, c4, d4, r1, r2, r4
             the other averages of `--symmetrize GROUP` (c2: the half turn, 2x the work; r1: a
             random heading every step, no extra work; docs/speed.md, session 12)
 
@@ -50,7 +50,7 @@ from gns.rollout import rollout_scenes  # noqa: E402
 from gns.simulator import Sleep  # noqa: E402
 from gns.train import load_model, read_checkpoint  # noqa: E402
 
-GROUPS = ("d1", "c2", "c4", "d4", "r1", "r2")   # --symmetrize GROUP; "sym" is d2
+GROUPS = ("d1", "c2", "c4", "d4", "r1", "r2", "r4")   # --symmetrize GROUP; "sym" is d2
 KNOWN = ("plain", "free", "sleep", "bf16", "compile", "sym", *GROUPS)
 
 

@@ -172,7 +172,7 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--sleep", action="store_true",
                    help="hold resting objects still until another object touches them, as physics engines "
                         "deactivate bodies (docs/stability.md); off by default")
-    p.add_argument("--symmetrize", nargs="?", const="d2", default=False, choices=["d2", "d4", "d1", "c2", "c4", "r1", "r2"],
+    p.add_argument("--symmetrize", nargs="?", const="d2", default=False, choices=["d2", "d4", "d1", "c2", "c4", "r1", "r2", "r4"],
                    metavar="GROUP",
                    help="average each step's prediction over the floor's symmetries: d2 (the default when no GROUP "
                         "is given) the mirrors in x and y and the half turn, exactly mirror-equivariant rollouts "
@@ -180,9 +180,10 @@ def _add_rollout_args(p) -> None:
                         "(measured 0.2 points better, docs/accuracy.md session 9); d1 (the mirror in x) and "
                         "c2 (the half turn) at 2x, c4 (the quarter turns) at 4x; r1 each scene turned about z to "
                         "a random heading every step (no extra network work, not exactly equivariant), r2 that "
-                        "heading and its half turn averaged, at 2x (docs/speed.md, session 12)")
+                        "heading and its half turn averaged, at 2x, r4 four quarter-turn-spaced headings, at 4x "
+                        "(docs/speed.md, session 12)")
     p.add_argument("--turn-seed", type=int, default=0, metavar="N",
-                   help="seed of the random headings of --symmetrize r1/r2 (recorded in the output)")
+                   help="seed of the random headings of --symmetrize r1/r2/r4 (recorded in the output)")
     p.add_argument("--body-frames", action="store_true",
                    help="also average over each object's equivalent body frames (a cube's 24 rotations onto "
                         "itself): exactly invariant to which one describes it, at that many times the cost")

@@ -220,7 +220,7 @@ def symmetry_group(symmetrize) -> str | None:
 
 
 # rollout options averaging over random headings instead of a fixed group (_predict_turned)
-RANDOM_TURNS = {"r1": 1, "r2": 2}
+RANDOM_TURNS = {"r1": 1, "r2": 2, "r4": 4}
 
 IMAGE_NODES = 32768  # most nodes in one network call of symmetrized images (predict_acceleration)
 
@@ -235,7 +235,7 @@ class LearnedSimulator(nn.Module):
 
     symmetrize: bool | str = False  # average predictions over SYMMETRY_GROUPS (True: "d2"; rollouts; not saved)
     body_frames: bool = False  # and over each object's equivalent body frames (graph.symmetries)
-    turn_seed: int = 0  # the random headings of symmetrize="r1"/"r2" (not saved)
+    turn_seed: int = 0  # the random headings of symmetrize="r1"/"r2"/"r4" (not saved)
     autocast: torch.dtype | None = None  # the network (only) runs in this dtype under autocast (train.autocast)
     autocast_used: str = "none"  # what set_speed took: "none" or "bf16" ("auto" resolved)
 
@@ -450,8 +450,8 @@ class LearnedSimulator(nn.Module):
         return total / len(floors)
 
     def _predict_turned(self, history: torch.Tensor, graph: GraphBatch, images: int) -> torch.Tensor:
-        """The prediction for each scene turned about z by a random angle (and, with 2 images,
-        by that angle plus a half turn), turned back and averaged: the network's error for an
+        """The prediction for each scene turned about z by a random angle (and, with more images,
+        by that angle plus equal parts of a full turn), turned back and averaged: the network's error for an
         input depends on the input's heading, which a rollout keeps from step to step; a new
         heading every step makes consecutive errors independent. Angles from a generator seeded
         with `turn_seed` at the start of every rollout (reset_turns), so a rollout repeats exactly."""
@@ -473,7 +473,7 @@ class LearnedSimulator(nn.Module):
         return total / images
 
     def reset_turns(self) -> torch.Generator:
-        """Restart the random headings of symmetrize="r1"/"r2" from `turn_seed` (rollout_scenes
+        """Restart the random headings of symmetrize="r1"/"r2"/"r4" from `turn_seed` (rollout_scenes
         calls it first): the same scenes, batches and seed give the same rollouts."""
         rng = self.__dict__["_turn_rng"] = torch.Generator().manual_seed(int(self.turn_seed))
         for m in self.__dict__.get("_members") or ():   # an ensemble's members take the same headings
