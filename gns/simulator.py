@@ -8,7 +8,6 @@ throughout; the network runs in float32 on normalised features.
 from __future__ import annotations
 
 import math
-
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -225,6 +224,14 @@ RANDOM_TURNS = {"r1": 1, "r2": 2, "r4": 4}
 IMAGE_NODES = 32768  # most nodes in one network call of symmetrized images (predict_acceleration)
 
 
+def z_turns(angle: torch.Tensor) -> torch.Tensor:
+    """(N,) angles -> (N, 3, 3) rotations about z by them."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    turn = torch.zeros(angle.shape[0], 3, 3, dtype=angle.dtype, device=angle.device)
+    turn[:, 0, 0], turn[:, 0, 1], turn[:, 1, 0], turn[:, 1, 1], turn[:, 2, 2] = c, -s, s, c, 1.0
+    return turn
+
+
 def _listed(t: torch.Tensor | None) -> list | None:
     """A small tensor as a list, for comparisons and messages."""
     return None if t is None else [round(float(v), 12) for v in t.reshape(-1)]
@@ -360,10 +367,7 @@ class LearnedSimulator(nn.Module):
         count = int(scene.max()) + 1 if scene.numel() else 0
         step = (history[:, -1, :2] - history[:, -2, :2])
         velocity = torch.zeros(count, 2, dtype=history.dtype, device=history.device).index_add_(0, scene, step)
-        angle = torch.atan2(velocity[:, 1], velocity[:, 0])[scene]
-        c, s = torch.cos(angle), torch.sin(angle)
-        turn = torch.zeros(scene.shape[0], 3, 3, dtype=history.dtype, device=history.device)
-        turn[:, 0, 0], turn[:, 0, 1], turn[:, 1, 0], turn[:, 1, 1], turn[:, 2, 2] = c, s, -s, c, 1.0  # by -angle
+        turn = z_turns(-torch.atan2(velocity[:, 1], velocity[:, 0])[scene])
         nodes, edge_sets = self._inputs(torch.einsum("nij,ntj->nti", turn, history), graph)
         out = self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
         acc = torch.einsum("nji,nj->ni", turn, self.target_normalizer.inverse(out.to(history.dtype)))
@@ -451,10 +455,11 @@ class LearnedSimulator(nn.Module):
 
     def _predict_turned(self, history: torch.Tensor, graph: GraphBatch, images: int) -> torch.Tensor:
         """The prediction for each scene turned about z by a random angle (and, with more images,
-        by that angle plus equal parts of a full turn), turned back and averaged: the network's error for an
-        input depends on the input's heading, which a rollout keeps from step to step; a new
-        heading every step makes consecutive errors independent. Angles from a generator seeded
-        with `turn_seed` at the start of every rollout (reset_turns), so a rollout repeats exactly."""
+        by that angle plus equal parts of a full turn), turned back and averaged: the network's
+        error for an input depends on the input's heading, which a rollout keeps from step to
+        step; a new heading every step makes consecutive errors independent. Angles from a
+        generator seeded with `turn_seed` at the start of every rollout (reset_turns), so a
+        rollout repeats exactly."""
         rng = self.__dict__.get("_turn_rng")
         if rng is None:
             rng = self.reset_turns()
@@ -462,10 +467,7 @@ class LearnedSimulator(nn.Module):
         angle = torch.rand(int(scene.max()) + 1, generator=rng, dtype=torch.float64) * (2 * math.pi)
         total = torch.zeros_like(history[:, -1])
         for k in range(images):
-            a = (angle + k * (2 * math.pi / images)).to(history.device)[scene]
-            c, s = torch.cos(a), torch.sin(a)
-            turn = torch.zeros(a.shape[0], 3, 3, dtype=history.dtype, device=history.device)
-            turn[:, 0, 0], turn[:, 0, 1], turn[:, 1, 0], turn[:, 1, 1], turn[:, 2, 2] = c, -s, s, c, 1.0
+            turn = z_turns((angle + k * (2 * math.pi / images)).to(history)[scene])
             # a proper rotation: the body frame's rest shape stays, as in training's z augmentation
             out = self.target_normalizer.inverse(
                 self(torch.einsum("nij,ntj->nti", turn, history), graph).to(torch.float64))
