@@ -61,13 +61,14 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     three-step steps with the rigid loss: 17.1% / 26.8 deg), gns_movi_a_coarse_pf3 (coarse + 20k three-step
     steps with the rigid loss: 25.5% / 33.6 deg free flight at 1.1x PyBullet), gns_movi_a_k3 (rigidloss + 12.5k
     steps passing messages twice a step and 10k thrice: 16.5% / 25.2 deg), gns_movi_a_budget (centre node,
-    rigid loss and three-step pushforward from the first step, 2 h 16 min: 18.4% / 27.7 deg) and
-    gns_diagnostic_45 (cube drops, 8 of 8 with body-frame rollouts) load by name and roll out fresh scenes
+    rigid loss and three-step pushforward from the first step, 2 h 16 min: 18.4% / 27.7 deg),
+    gns_movi_a_canonical (budget + 15k three-step steps seeing each scene at its canonical heading,
+    48 min: 17.0% / 25.8 deg) and gns_diagnostic_45 (cube drops, 8 of 8 with body-frame rollouts) load by name and roll out fresh scenes
     of what they were trained on, far better than a broken model would."""
     from datagen.cli import main as datagen
     movi_a = ("gns_movi_a_long", "gns_movi_a_long2", "gns_movi_a_pf", "gns_movi_a_pf3", "gns_movi_a_coarse",
               "gns_movi_a_centre", "gns_movi_a_rigidloss", "gns_movi_a_coarse_pf3", "gns_movi_a_k3",
-              "gns_movi_a_budget")
+              "gns_movi_a_budget", "gns_movi_a_canonical")
     assert {*movi_a, "gns_diagnostic_45"} <= set(shipped_models())
     data = tmp_path / "movi"
     assert datagen(["toss", "--shapes", "beveled_cube,cylinder,sphere", "--scenes", "1", "--test", "6",
@@ -95,5 +96,7 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     assert cfg.features.centre_node and sim.centre_node
     sim, cfg = load_model(checkpoint_of("gns_movi_a_rigidloss"))
     assert cfg.train.rigid_loss == 1.0 and sim.centre_node and sim.inertial_prior == "linear"
+    sim, cfg = load_model(checkpoint_of("gns_movi_a_canonical"))
+    assert cfg.features.canonical_heading and sim.canonical_heading and sim.centre_node
     sim, cfg = load_model(checkpoint_of("gns_diagnostic_45"))
     assert cfg.augment.body_symmetry and cfg.augment.mirror and sim.layout.floor_z is not None
