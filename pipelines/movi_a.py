@@ -14,6 +14,8 @@ Presets (measured costs on a 2-core CPU in the README):
   budget 4000 training scenes, the best model's levers from the first step, 3 stages:
          ~2 h 15 min on one core; reproduces gns_movi_a_budget (18.4% / 27.7 deg on 400
          test scenes; pipelines/movi_a_recipes.py)
+  canonical    budget, then 15000 steps seeing each scene at its canonical heading: ~3 h on
+         one core; reproduces gns_movi_a_canonical (17.0% / 25.8 deg)
   budget_pf    the first 3 stages of the best model's chain, ~2.5 hours on one core;
          reproduces gns_movi_a_pf (19.6% / 29.1 deg), the budget model before session 11
   best   the whole chain, 8 stages, ~7 hours on one core; reproduces gns_movi_a_k3 (16.5% /
@@ -23,7 +25,7 @@ Presets (measured costs on a 2-core CPU in the README):
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
-The chains (budget, budget_pf, best) are scored as their models are, with free flight and symmetrized
+The chains (budget, canonical, budget_pf, best) are scored as their models are, with free flight and symmetrized
 rollouts. Their data are the README's data/movi_a_4000 (the same config and seed): a link
 OUT/data -> data/movi_a_4000 skips generating them again.
 """
@@ -38,11 +40,11 @@ from gns.evaluate import evaluate_run, write_json
 from gns.metrics import format_table
 from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
-from pipelines.movi_a_recipes import MOVI_A_BUDGET, MOVI_A_CHAIN, TINY_CHAIN, COMMON, stage_overrides
+from pipelines.movi_a_recipes import MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, TINY_CHAIN, COMMON, stage_overrides
 
 # Everything run() writes into --out: --fresh deletes a folder holding only these.
 OUTPUTS = ({"data", "run", "results.json", "report.md", "plots"}
-           | {f"run_{s.name}" for s in MOVI_A_CHAIN + MOVI_A_BUDGET + TINY_CHAIN})
+           | {f"run_{s.name}" for s in MOVI_A_CHAIN + MOVI_A_CANONICAL + TINY_CHAIN})
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
@@ -59,6 +61,7 @@ PRESETS = {
     "paper": dict(counts={"train": 9000, "valid": 500, "test": 500}, model="paper", steps=1_000_000, scene=[]),
     # chains of fine-tuning stages (pipelines/movi_a_recipes.py), on the README's data/movi_a_4000 scenes
     "budget": _chain_preset(MOVI_A_BUDGET),
+    "canonical": _chain_preset(MOVI_A_CANONICAL),
     "budget_pf": _chain_preset(MOVI_A_CHAIN[:3]),
     "best": _chain_preset(MOVI_A_CHAIN),
     "chain_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),

@@ -67,6 +67,14 @@ MOVI_A_BUDGET = (
     Stage("pushforward2", 18_966, PUSHFORWARD_STAGE, 2, "gns_movi_a_budget"),  # 35 min: 18.4% / 27.7 deg
 )
 
+# session 13: the budget model fine-tuned with the network seeing each scene at its canonical
+# heading (features.canonical_heading); a control fine-tuned beside it without: 17.9% / 27.2 deg
+MOVI_A_CANONICAL = MOVI_A_BUDGET + (
+    Stage("canonical", 15_000, ("train.lr_init=2e-4", "train.lr_decay_steps=7500", *PUSHFORWARD_3, *CENTRE, *RIGID,
+                                "features.canonical_heading=true"), 3,
+          "gns_movi_a_canonical"),                                             # 48 min: 17.0% / 25.8 deg
+)
+
 # a smoke test of the chaining for the test suite: the tiny model, a few steps, two levers added
 TINY_CHAIN = (
     Stage("a", 20, (), 0),
