@@ -172,6 +172,8 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--sleep", action="store_true",
                    help="hold resting objects still until another object touches them, as physics engines "
                         "deactivate bodies (docs/stability.md); off by default")
+    # the keys of gns.simulator's SYMMETRY_GROUPS and RANDOM_TURNS, written out so that --help
+    # does not import torch
     p.add_argument("--symmetrize", nargs="?", const="d2", default=False, choices=["d2", "d4", "d1", "c2", "c4", "r1", "r2", "r4"],
                    metavar="GROUP",
                    help="average each step's prediction over the floor's symmetries: d2 (the default when no GROUP "

@@ -67,7 +67,9 @@ class FeatureConfig:
     # the network sees each scene turned about z so that its mean horizontal velocity points
     # along +x, and its answer is turned back: exactly equivariant to turns about z at one network
     # call (rotation augmentation only teaches it approximately; averaging turned images, as
-    # --symmetrize c2 does, measured 1.6 points better at twice the cost: docs/accuracy.md, session 12)
+    # --symmetrize c2 does, measured 1.6 points better at twice the cost: docs/accuracy.md, session 12;
+    # fine-tuned with it, 1.25 points and 2.3 degrees better at one call on MOVi-A, no gain on real
+    # cubes: session 13)
     canonical_heading: bool = False
 
 

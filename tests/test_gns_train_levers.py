@@ -3,7 +3,6 @@ import math
 from dataclasses import replace
 
 import numpy as np
-
 import pytest
 import torch
 from gns_fixtures import FRAME_RATE, GRAVITY, cube_meshes, toss_scene, write_toss_dataset
