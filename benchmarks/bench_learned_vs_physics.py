@@ -25,7 +25,8 @@ PyBullet); accuracy is the MOVi-A metrics against the dataset (PyBullet's own sc
 PyBullet's error is 0 by construction). One thread throughout.
 
     python benchmarks/bench_learned_vs_physics.py --run gns_movi_a_long --data runs/data/movi_a_4000
-    python benchmarks/bench_learned_vs_physics.py --run RUN --data DIR --variants plain,free,free+bf16 --json out.json
+    python benchmarks/bench_learned_vs_physics.py --run RUN --data DIR --variants plain,free,free+bf16 --json out.json \
+        --plot out.png
     python benchmarks/bench_learned_vs_physics.py --run gns_movi_a_long2 --run gns_movi_a_coarse --data DIR \
         --variants free+bf16+compile,free+sym+bf16+compile
 """
@@ -151,6 +152,46 @@ def print_table(rows: list[dict]) -> None:
               f"{fmt(r['penetration_pct'], '.3f')} |")
 
 
+def plot_rows(rows: list[dict], runs: list[str], path: str) -> Path:
+    """Throughput against PyBullet's (x axis, log) and position / rotation error (two panels):
+    one colour per model, every point labelled with its rollout options, PyBullet's throughput
+    drawn as the line to reach. Lower right is better."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    from gns.plots import label_points, new_figure, save_figure
+    fig = new_figure((11, 4.6))
+    learned = [r for r in rows if r["variant"].startswith("GNS ")]
+    model, option = [], []   # "GNS [RUN ]OPTIONS": the run is named only when there are several
+    for r in learned:
+        name = r["variant"][len("GNS "):]
+        run = next((m for m in runs if name.startswith(f"{m} ")), None) if len(runs) > 1 else runs[0]
+        model.append(run)
+        option.append(name[len(run) + 1:] if len(runs) > 1 else name)
+    axes = fig.subplots(1, 2)
+    for ax, key, what in zip(axes, ("position_error_pct", "rotation_error_deg"),
+                             ("position error [% of size]", "rotation error [deg]")):
+        for k, run in enumerate(runs):
+            pts = [r for r, m in zip(learned, model) if m == run]
+            ax.scatter([r["x_pybullet"] for r in pts], [r[key] for r in pts], color=f"C{k}", s=40,
+                       label=Path(run).name, zorder=2)
+        ax.axvline(1.0, color="0.3", ls="--", lw=0.8, label="PyBullet's throughput")
+        ax.set_xscale("log")
+        ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}x"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xlabel("throughput, x PyBullet (batched, one thread; right is faster)")
+        ax.set_ylabel(what)
+        ax.grid(alpha=0.3, which="both")
+        ax.margins(y=0.2)
+        xs = [r["x_pybullet"] for r in learned]
+        ax.set_xlim(min(xs + [1.0]) / 1.6, max(xs + [1.0]) * 1.6)
+        label_points(ax, xs, [r[key] for r in learned], option, fontsize=6)
+    axes[0].legend(fontsize=7, loc="best")
+    fig.suptitle("learned rollouts against PyBullet on the same scenes (PyBullet's own error is 0)", fontsize=9)
+    fig.tight_layout()
+    return save_figure(fig, path, dpi=130)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", required=True, action="append",
@@ -162,6 +203,7 @@ def main(argv=None) -> int:
     p.add_argument("--variants", default="plain,free,bf16,free+bf16,compile,free+bf16+compile",
                    help="comma list of +-joined parts: " + ", ".join(KNOWN))
     p.add_argument("--json", help="also write the rows here")
+    p.add_argument("--plot", help="also draw the rows here (PNG): throughput against position and rotation error")
     a = p.parse_args(argv)
     variants = parse_variants(a.variants)
     torch.set_num_threads(1)
@@ -191,6 +233,8 @@ def main(argv=None) -> int:
     if a.json:
         Path(a.json).write_text(json.dumps({"run": a.run, "data": a.data, "split": a.split, "scenes": len(scenes),
                                             "repeats": a.repeats, "rows": rows}, indent=2, default=float) + "\n")
+    if a.plot:
+        print(f"plot: {plot_rows(rows, a.run, a.plot)}")
     return 0
 
 

@@ -71,6 +71,12 @@ class FeatureConfig:
     # fine-tuned with it, 1.25 points and 2.3 degrees better at one call on MOVi-A, no gain on real
     # cubes: session 13)
     canonical_heading: bool = False
+    # with canonical_heading: the turned scene also mirrored in y where that makes the x + z parts
+    # of its angular momentum positive, so that the network sees one of each mirror pair and the
+    # model is exactly equivariant to the floor's mirrors as well at one network call (the
+    # mirror images of --symmetrize d2 were worth ~0.8 points on top of c2 for the canonical
+    # model: docs/accuracy.md, session 13)
+    canonical_mirror: bool = False
 
 
 @dataclass
@@ -233,6 +239,8 @@ def validate(cfg: Config) -> None:
         (cfg.features.velocity_direction >= 0, "features.velocity_direction must be >= 0"),
         (cfg.features.mesh_vertices == 0 or cfg.features.mesh_vertices >= 4,
          "features.mesh_vertices must be 0 (every vertex) or >= 4"),
+        (cfg.features.canonical_heading or not cfg.features.canonical_mirror,
+         "features.canonical_mirror needs features.canonical_heading=true (the mirror is chosen in the turned frame)"),
         (cfg.augment.noise_std >= 0, "augment.noise_std must be >= 0"),
         (cfg.augment.vertex_noise >= 0, "augment.vertex_noise must be >= 0"),
         (cfg.augment.track_noise >= 0, "augment.track_noise must be >= 0"),

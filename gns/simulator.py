@@ -232,6 +232,17 @@ def z_turns(angle: torch.Tensor) -> torch.Tensor:
     return turn
 
 
+def mirror_signs(history: torch.Tensor, scene: torch.Tensor, count: int) -> torch.Tensor:
+    """(count,) +-1 per scene: the sign of the x plus z parts of its angular momentum about its
+    centre, sum of (x_t - centre) x (x_t - x_{t-1}) over its nodes, which a mirror in y flips
+    (+1 where it is 0). history (N, 3 frames, 3)."""
+    x, v = history[:, -1], history[:, -1] - history[:, -2]
+    nodes = torch.zeros(count, dtype=x.dtype, device=x.device).index_add_(0, scene, torch.ones_like(x[:, 0]))
+    centre = torch.zeros(count, 3, dtype=x.dtype, device=x.device).index_add_(0, scene, x) / nodes.clamp(min=1)[:, None]
+    spin = torch.zeros(count, 3, dtype=x.dtype, device=x.device).index_add_(0, scene, torch.cross(x - centre[scene], v, dim=1))
+    return torch.where(spin[:, 0] + spin[:, 2] < 0, -1.0, 1.0).to(x.dtype)
+
+
 def _listed(t: torch.Tensor | None) -> list | None:
     """A small tensor as a list, for comparisons and messages."""
     return None if t is None else [round(float(v), 12) for v in t.reshape(-1)]
@@ -263,6 +274,7 @@ class LearnedSimulator(nn.Module):
         self.mesh_vertices = int(getattr(features_cfg, "mesh_vertices", 0))
         self.centre_node = bool(getattr(features_cfg, "centre_node", False))
         self.canonical_heading = bool(getattr(features_cfg, "canonical_heading", False))
+        self.canonical_mirror = bool(getattr(features_cfg, "canonical_mirror", False))
         self.layout: FeatureLayout = make_layout(features_cfg, spec.floor_z, spec.materials_vary,
                                                  collisions=spec.collision_edges, gravity_step=self.gravity_step,
                                                  gravity_z_step=None if spec.gravity_per_frame is None
@@ -362,12 +374,25 @@ class LearnedSimulator(nn.Module):
         """forward with each scene turned to its canonical heading (features.canonical_heading):
         about z, so that the mean horizontal velocity of its nodes over the last frame points
         along +x; the acceleration is turned back in scene units (the target normaliser's x and
-        y statistics need not match). A scene at rest keeps its heading (atan2(0, 0) = 0)."""
+        y statistics need not match). A scene at rest keeps its heading (atan2(0, 0) = 0).
+
+        With features.canonical_mirror the turned scene is also mirrored in y where that makes
+        the x and z parts of its angular momentum about its centre (sum of r x v over its nodes)
+        add up positive: the one map left that keeps the heading, so the network sees one of each
+        mirror pair and the model is exactly equivariant to floor mirrors too. The body frame is
+        mirrored with it (x = R rest + p -> (M R M)(M rest) + M p), so the network still sees a
+        proper rotation, as in training."""
         scene = graph.node_scene
         count = int(scene.max()) + 1 if scene.numel() else 0
         step = (history[:, -1, :2] - history[:, -2, :2])
         velocity = torch.zeros(count, 2, dtype=history.dtype, device=history.device).index_add_(0, scene, step)
         turn = z_turns(-torch.atan2(velocity[:, 1], velocity[:, 0])[scene])
+        if self.canonical_mirror:
+            turned = torch.einsum("nij,ntj->nti", turn, history)
+            one = torch.ones_like(scene, dtype=history.dtype)
+            mirror = torch.stack([one, mirror_signs(turned, scene, count)[scene], one], 1)   # (N, 3): 1, +-1, 1
+            turn = turn * mirror[:, :, None]
+            graph = replace(graph, rest=graph.rest * mirror.to(graph.rest.dtype))
         nodes, edge_sets = self._inputs(torch.einsum("nij,ntj->nti", turn, history), graph)
         out = self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
         acc = torch.einsum("nji,nj->ni", turn, self.target_normalizer.inverse(out.to(history.dtype)))

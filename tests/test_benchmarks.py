@@ -71,14 +71,16 @@ def test_bench_learned_vs_physics_times_pybullet_and_each_variant_on_the_same_sc
     bench, data = learned_vs_physics(tmp_path, 3, 5, "beveled_cube,cylinder,sphere")
     model = Path(__file__).parent / "data" / "gns_movi_a_small.pt"
     assert bench.main(["--run", str(model), "--data", str(data), "--repeats", "1", "--variants", "plain,free+bf16",
-                       "--json", str(tmp_path / "b.json")]) == 0
+                       "--json", str(tmp_path / "b.json"), "--plot", str(tmp_path / "b.png")]) == 0
     rows = json.loads((tmp_path / "b.json").read_text())["rows"]
     assert [r["variant"] for r in rows] == ["PyBullet 240 Hz, 50 iterations", "GNS plain", "GNS free+bf16"]
     assert all(r["ms_per_simulated_second"] > 0 for r in rows)
     plain, fast = rows[1], rows[2]
     assert plain["network_share_pct"] == 100.0 and fast["network_share_pct"] < 100.0  # tosses start in the air
     assert abs(fast["position_error_pct"] - plain["position_error_pct"]) < 0.5 * plain["position_error_pct"]
-    assert "| GNS free+bf16 |" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "| GNS free+bf16 |" in out and f"plot: {tmp_path / 'b.png'}" in out
+    assert (tmp_path / "b.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_bench_learned_vs_physics_compares_several_models_in_the_same_rounds(tmp_path):
