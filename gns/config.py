@@ -73,9 +73,9 @@ class FeatureConfig:
     canonical_heading: bool = False
     # with canonical_heading: the turned scene also mirrored in y where that makes the x + z parts
     # of its angular momentum positive, so that the network sees one of each mirror pair and the
-    # model is exactly equivariant to the floor's mirrors as well at one network call (the
-    # mirror images of --symmetrize d2 were worth ~0.8 points on top of c2 for the canonical
-    # model: docs/accuracy.md, session 13)
+    # model is exactly equivariant to the floor's mirrors as well at one network call. Measured
+    # (docs/accuracy.md, session 14, two seeds): 0.3 points better at one call, 0.5 worse at four
+    # (the mirror images' second opinion is lost) and worse on validation: not used
     canonical_mirror: bool = False
 
 
