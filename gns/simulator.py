@@ -237,8 +237,8 @@ def mirror_signs(history: torch.Tensor, scene: torch.Tensor, count: int) -> torc
     centre, sum of (x_t - centre) x (x_t - x_{t-1}) over its nodes, which a mirror in y flips
     (+1 where it is 0). history (N, 3 frames, 3)."""
     x, v = history[:, -1], history[:, -1] - history[:, -2]
-    nodes = torch.zeros(count, dtype=x.dtype, device=x.device).index_add_(0, scene, torch.ones_like(x[:, 0]))
-    centre = torch.zeros(count, 3, dtype=x.dtype, device=x.device).index_add_(0, scene, x) / nodes.clamp(min=1)[:, None]
+    nodes = torch.bincount(scene, minlength=count).clamp(min=1).to(x.dtype)
+    centre = torch.zeros(count, 3, dtype=x.dtype, device=x.device).index_add_(0, scene, x) / nodes[:, None]
     spin = torch.zeros(count, 3, dtype=x.dtype, device=x.device).index_add_(0, scene, torch.cross(x - centre[scene], v, dim=1))
     return torch.where(spin[:, 0] + spin[:, 2] < 0, -1.0, 1.0).to(x.dtype)
 
@@ -387,13 +387,13 @@ class LearnedSimulator(nn.Module):
         step = (history[:, -1, :2] - history[:, -2, :2])
         velocity = torch.zeros(count, 2, dtype=history.dtype, device=history.device).index_add_(0, scene, step)
         turn = z_turns(-torch.atan2(velocity[:, 1], velocity[:, 0])[scene])
+        turned = torch.einsum("nij,ntj->nti", turn, history)
         if self.canonical_mirror:
-            turned = torch.einsum("nij,ntj->nti", turn, history)
             one = torch.ones_like(scene, dtype=history.dtype)
             mirror = torch.stack([one, mirror_signs(turned, scene, count)[scene], one], 1)   # (N, 3): 1, +-1, 1
-            turn = turn * mirror[:, :, None]
+            turn, turned = turn * mirror[:, :, None], turned * mirror[:, None, :]
             graph = replace(graph, rest=graph.rest * mirror.to(graph.rest.dtype))
-        nodes, edge_sets = self._inputs(torch.einsum("nij,ntj->nti", turn, history), graph)
+        nodes, edge_sets = self._inputs(turned, graph)
         out = self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
         acc = torch.einsum("nji,nj->ni", turn, self.target_normalizer.inverse(out.to(history.dtype)))
         return self.target_normalizer(acc).to(torch.float32)
