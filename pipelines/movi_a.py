@@ -18,6 +18,9 @@ Presets (measured costs on a 2-core CPU in the README):
          one core; reproduces gns_movi_a_canonical (17.0% / 25.8 deg)
   budget_pf    the first 3 stages of the best model's chain, ~2.5 hours on one core;
          reproduces gns_movi_a_pf (19.6% / 29.1 deg), the budget model before session 11
+  fast   the budget chain's schedule on a coarse network mesh (16 vertices) seeing each scene at
+         its canonical heading, rolled out at one network call: the model for speed
+         (docs/speed.md, session 15)
   best   the whole chain, 8 stages, ~7 hours on one core; reproduces gns_movi_a_k3 (16.5% /
          25.2 deg); stop it any time and rerun: finished stages are skipped
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
@@ -25,9 +28,10 @@ Presets (measured costs on a 2-core CPU in the README):
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
-The chains (budget, canonical, budget_pf, best) are scored as their models are, with free flight and symmetrized
-rollouts. Their data are the README's data/movi_a_4000 (the same config and seed): a link
-OUT/data -> data/movi_a_4000 skips generating them again.
+The chains (budget, canonical, budget_pf, best) are scored as their models are, with free flight
+and symmetrized rollouts (fast: free flight, one network call). Their data are the README's
+data/movi_a_4000 (the same config and seed): a link OUT/data -> data/movi_a_4000 skips
+generating them again.
 """
 from __future__ import annotations
 
@@ -40,19 +44,19 @@ from gns.evaluate import evaluate_run, write_json
 from gns.metrics import format_table
 from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
-from pipelines.movi_a_recipes import MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, TINY_CHAIN, COMMON, stage_overrides
+from pipelines.movi_a_recipes import MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST, TINY_CHAIN, COMMON, stage_overrides
 
 # Everything run() writes into --out: --fresh deletes a folder holding only these.
 OUTPUTS = ({"data", "run", "results.json", "report.md", "plots"}
-           | {f"run_{s.name}" for s in MOVI_A_CHAIN + MOVI_A_CANONICAL + TINY_CHAIN})
+           | {f"run_{s.name}" for s in MOVI_A_CHAIN + MOVI_A_CANONICAL + MOVI_A_FAST + TINY_CHAIN})
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
 
-def _chain_preset(chain) -> dict:
+def _chain_preset(chain, symmetrize: bool = True) -> dict:
     """A preset training `chain` on the 4000 MOVi-A scenes, scored as its models are."""
     return dict(counts={"train": 4000, "valid": 50, "test": 400}, model="cpu", chain=chain, common=COMMON, scene=[],
-                rollout=dict(free_flight=True, symmetrize=True, autocast="auto"))
+                rollout=dict(free_flight=True, symmetrize=symmetrize, autocast="auto"))
 
 
 PRESETS = {
@@ -64,6 +68,7 @@ PRESETS = {
     "canonical": _chain_preset(MOVI_A_CANONICAL),
     "budget_pf": _chain_preset(MOVI_A_CHAIN[:3]),
     "best": _chain_preset(MOVI_A_CHAIN),
+    "fast": _chain_preset(MOVI_A_FAST, symmetrize=False),
     "chain_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),
                        scene=["scene.frames=12"], rollout=dict(free_flight=True, symmetrize=True)),
     # MOVi-A proper has 3-10 objects a scene; these presets train with collision edges between them

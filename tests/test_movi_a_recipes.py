@@ -6,7 +6,7 @@ from gns.checkpoint import read_checkpoint
 from gns.config import build_config, config_differences
 from gns.evaluate import checkpoint_of
 from pipelines.common import CONFIGS, SETTINGS_FREE
-from pipelines.movi_a_recipes import COMMON, MOVI_A_CANONICAL, MOVI_A_CHAIN, stage_overrides
+from pipelines.movi_a_recipes import COMMON, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST, stage_overrides
 
 # how a stage may differ from the file it reproduces: where it starts from (a folder of this
 # pipeline, not the author's), bf16 where it measures faster (the files: bf16 on a CPU where it did)
@@ -21,7 +21,7 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
     assert shipped["step"] == stage.steps and shipped["seed"] == stage.seed
 
 
-@pytest.mark.parametrize("chain", [MOVI_A_CHAIN, MOVI_A_CANONICAL], ids=["best", "canonical"])
+@pytest.mark.parametrize("chain", [MOVI_A_CHAIN, MOVI_A_CANONICAL, MOVI_A_FAST], ids=["best", "canonical", "fast"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
