@@ -19,8 +19,8 @@ Presets (measured costs on a 2-core CPU in the README):
   budget_pf    the first 3 stages of the best model's chain, ~2.5 hours on one core;
          reproduces gns_movi_a_pf (19.6% / 29.1 deg), the budget model before session 11
   fast   the budget chain's schedule on a coarse network mesh (16 vertices) seeing each scene at
-         its canonical heading, rolled out at one network call: the model for speed
-         (docs/speed.md, session 15)
+         its canonical heading, rolled out at one network call: ~1 h 40 min on one core;
+         reproduces gns_movi_a_fast (24.5% / 32.0 deg at 1.1x PyBullet, docs/speed.md)
   best   the whole chain, 8 stages, ~7 hours on one core; reproduces gns_movi_a_k3 (16.5% /
          25.2 deg); stop it any time and rerun: finished stages are skipped
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
@@ -28,7 +28,7 @@ Presets (measured costs on a 2-core CPU in the README):
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
-The chains (budget, canonical, budget_pf, best) are scored as their models are, with free flight
+The chains (budget, canonical, budget_pf, best, fast) are scored as their models are, with free flight
 and symmetrized rollouts (fast: free flight, one network call). Their data are the README's
 data/movi_a_4000 (the same config and seed): a link OUT/data -> data/movi_a_4000 skips
 generating them again.
