@@ -63,9 +63,9 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     steps passing messages twice a step and 10k thrice: 16.5% / 25.2 deg), gns_movi_a_budget (centre node,
     rigid loss and three-step pushforward from the first step, 2 h 16 min: 18.4% / 27.7 deg),
     gns_movi_a_canonical (budget + 15k three-step steps seeing each scene at its canonical heading,
-    48 min: 17.0% / 25.8 deg), gns_movi_a_fast (16 network vertices and the canonical heading from the first
-    step, the budget chain's schedule: 24.5% / 32.0 deg at one call, 1.1x PyBullet) and gns_diagnostic_45 (cube drops, 8 of 8 with body-frame rollouts)
-    load by name and roll out fresh scenes of what they were trained on, far better than a broken
+    48 min: 17.0% / 25.8 deg), gns_movi_a_fast (16 network vertices and the canonical heading from the
+    first step, the budget chain's schedule: 24.5% / 32.0 deg at one call, 1.1x PyBullet) and
+    gns_diagnostic_45 (cube drops, 8 of 8 with body-frame rollouts) load by name and roll out fresh scenes of what they were trained on, far better than a broken
     model would."""
     from datagen.cli import main as datagen
     movi_a = ("gns_movi_a_long", "gns_movi_a_long2", "gns_movi_a_pf", "gns_movi_a_pf3", "gns_movi_a_coarse",
