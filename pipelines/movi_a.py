@@ -21,8 +21,9 @@ Presets (measured costs on a 2-core CPU in the README):
   fast   the budget chain's schedule on a coarse network mesh (16 vertices) seeing each scene at
          its canonical heading, rolled out at one network call: ~1 h 40 min on one core;
          reproduces gns_movi_a_fast (24.5% / 32.0 deg at 1.1x PyBullet, docs/speed.md)
-  best   the whole chain, 8 stages, ~7 hours on one core; reproduces gns_movi_a_k3 (16.5% /
-         25.2 deg); stop it any time and rerun: finished stages are skipped
+  best   the whole chain, 9 stages, ~9 1/2 hours on one core; its 8th stage reproduces
+         gns_movi_a_k3 (16.5% / 25.2 deg), its last gns_movi_a_k3_canonical (15.3% / 22.8 deg);
+         stop it any time and rerun: finished stages are skipped
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
@@ -44,11 +45,9 @@ from gns.evaluate import evaluate_run, write_json
 from gns.metrics import format_table
 from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
-from pipelines.movi_a_recipes import MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST, TINY_CHAIN, COMMON, stage_overrides
+from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST,
+                                     TINY_CHAIN, stage_overrides)
 
-# Everything run() writes into --out: --fresh deletes a folder holding only these.
-OUTPUTS = ({"data", "run", "results.json", "report.md", "plots"}
-           | {f"run_{s.name}" for s in MOVI_A_CHAIN + MOVI_A_CANONICAL + MOVI_A_FAST + TINY_CHAIN})
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
@@ -67,7 +66,7 @@ PRESETS = {
     "budget": _chain_preset(MOVI_A_BUDGET),
     "canonical": _chain_preset(MOVI_A_CANONICAL),
     "budget_pf": _chain_preset(MOVI_A_CHAIN[:3]),
-    "best": _chain_preset(MOVI_A_CHAIN),
+    "best": _chain_preset(MOVI_A_BEST),
     "fast": _chain_preset(MOVI_A_FAST, symmetrize=False),
     "chain_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),
                        scene=["scene.frames=12"], rollout=dict(free_flight=True, symmetrize=True)),
@@ -77,6 +76,10 @@ PRESETS = {
     "multi_small": dict(counts={"train": 400, "valid": 20, "test": 40}, model="cpu", steps=8000,
                         scene=['scene.objects="3-6"']),
 }
+
+# Everything run() writes into --out: --fresh deletes a folder holding only these.
+OUTPUTS = ({"data", "run", "results.json", "report.md", "plots"}
+           | {f"run_{s.name}" for p in PRESETS.values() for s in p.get("chain", ())})
 
 
 def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:

@@ -75,6 +75,15 @@ MOVI_A_CANONICAL = MOVI_A_BUDGET + (
           "gns_movi_a_canonical"),                                             # 48 min: 17.0% / 25.8 deg
 )
 
+# session 14: gns_movi_a_k3 fine-tuned with the canonical heading (the canonical stage's schedule,
+# K = 3): the most accurate model so far, ~9 core-hours of lineage (docs/accuracy.md, session 15);
+# score on 400 test scenes, free flight: 16.0% / 23.3 deg at one call, 15.3 / 22.8 symmetrized
+MOVI_A_BEST = MOVI_A_CHAIN + (
+    Stage("k3_canonical", 15_000, ("train.lr_init=2e-4", "train.lr_decay_steps=7500", *PUSHFORWARD_3, *CENTRE, *RIGID,
+                                   "model.processor_repeats=3", "features.canonical_heading=true"), 3,
+          "gns_movi_a_k3_canonical"),                                          # 149 min: 15.3% / 22.8 deg
+)
+
 # session 15: the budget chain's schedule for a model meant to be fast: the network sees 16 vertices a
 # mesh (features.mesh_vertices, docs/speed.md: 4x cheaper rollouts than the full mesh) and each
 # scene at its canonical heading from the first step (one network call is then about as accurate
