@@ -77,6 +77,12 @@ class FeatureConfig:
     # (docs/accuracy.md, session 14, two seeds): 0.3 points better at one call, 0.5 worse at four
     # (the mirror images' second opinion is lost) and worse on validation: not used
     canonical_mirror: bool = False
+    # a node feature (4): the offset from each node to where its object's full mesh is lowest (the
+    # centroid of the vertices within ~1% of the size of the lowest) and that point's height above
+    # the floor, clipped like the floor feature. A coarse network mesh (mesh_vertices) otherwise
+    # sees the floor only at its own vertices: the 16-vertex sphere's hull stops up to 13% of the
+    # size short of the full one PyBullet collides (docs/speed.md, session 15)
+    floor_support: bool = False
 
 
 @dataclass

@@ -87,7 +87,8 @@ class Batch:
         faces = None if g.faces is None else new_node[g.faces[keep[g.faces[:, 0]]]]
         graph = GraphBatch(EdgeSet(new_node[g.mesh_edges.senders[edges]], new_node[g.mesh_edges.receivers[edges]]),
                       g.rest[keep], g.material[keep], new_graph[g.node_graph[keep]], int(keep_graph.sum()),
-                      g.graph_scene[keep_graph] - lo, None, faces)
+                      g.graph_scene[keep_graph] - lo, None, faces,
+                      full_rest=None if g.full_rest is None else g.full_rest[keep_graph])
         future = None if self.future is None else self.future[keep]
         return Batch(self.history[keep], self.target[keep], graph, future)
 
@@ -203,7 +204,8 @@ class ObjectTracks:
         graph = self.graph(tracks, window_of)
         if body_symmetry:
             sym = self.library.random_symmetries(self.shape_ids[tracks], rng)      # (B, 3, 3)
-            graph = replace(graph, rest=torch.einsum("nij,nj->ni", sym[graph.node_graph], graph.rest))
+            graph = replace(graph, rest=torch.einsum("nij,nj->ni", sym[graph.node_graph], graph.rest),
+                            full_rest=None if graph.full_rest is None else graph.full_rest @ sym.transpose(1, 2))
             rot = rot @ sym.transpose(1, 2)[:, None]
         if mirror:
             flip = torch.from_numpy(rng.random(len(windows)) < 0.5)[window_of]     # (B,) per window
@@ -211,7 +213,8 @@ class ObjectTracks:
             m[flip, 0] = -1.0
             pos = pos * m[:, None]
             rot = rot * m[:, None, :, None] * m[:, None, None, :]
-            graph = replace(graph, rest=graph.rest * m[graph.node_graph])
+            graph = replace(graph, rest=graph.rest * m[graph.node_graph],
+                            full_rest=None if graph.full_rest is None else graph.full_rest * m[:, None])
         x = vertices_from_poses(graph, pos, rot)                  # (N, window, 3)
         if vertex_noise > 0:
             size = graph_sizes(graph)[graph.node_graph]           # (N,)

@@ -11,6 +11,9 @@ Feature groups (each normalised separately, each switchable in [features]):
         material       (N, 2)  friction, restitution; only if the data's materials vary
         rest_position  (N, 3)  scaled rest vertex in the body frame
         position       (N, 3)  x_t; absolute encoding only
+        support        (N, 4)  offset to the object's full-mesh low point, and its floor
+                               distance (floor_support; `floor_support`, computed by the
+                               simulator, which knows each object's pose)
   edge  relative       (E, 3)  d = x_r - x_s (receiver minus sender), and |d| (E, 1)
         rest_relative  (E, 3)  d^U = rest_r - rest_s, and |d^U| (E, 1)
   With the absolute encoding edges get one constant zero input (E, 1), unnormalised.
@@ -160,6 +163,10 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, colli
         # last, so that a model trained without it can be fine-tuned with it (gns.train widens
         # the node encoder's first layer by a zero column: the start computes what it did)
         node.append(("impact", 1))
+    if getattr(f, "floor_support", False):
+        if floor_z is None:
+            raise ConfigError("features.floor_support needs a dataset with a floor")
+        node.append(("support", 4))   # last, for the same reason as "impact"
     if not node:
         raise ConfigError("no node features are on: switch on features.velocity or features.rest_position")
     collision = (("collision_relative", 3), ("collision_relative_norm", 1)) if collisions else ()
@@ -196,6 +203,30 @@ def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
         elif name == "position":
             out[name] = x_t
     return {k: v.to(torch.float32) for k, v in out.items()}
+
+
+# the low point is the centroid of the full mesh's vertices weighted by exp(-height above the
+# lowest / (SUPPORT_SHARPNESS x size)): a face lying flat gives its centre, not whichever of its
+# corners is lowest by round-off, and the point moves continuously as the object tips
+SUPPORT_SHARPNESS = 0.01
+
+
+def floor_support(layout: FeatureLayout, x_t: torch.Tensor, graph: GraphBatch, rot: torch.Tensor,
+                  centre: torch.Tensor) -> torch.Tensor:
+    """The "support" node feature (N, 4) float64: per node, the offset from it to its object's
+    full-mesh low point (graph.full_rest placed at the pose rot (G, 3, 3), centre (G, 3)), and
+    that point's floor distance, clipped as the floor feature is."""
+    if graph.full_rest is None:
+        raise ValueError("features.floor_support needs graphs with full_rest (MeshLibrary(..., full_rest=True))")
+    world = graph.full_rest @ rot.transpose(1, 2) + centre[:, None]            # (G, V, 3), NaN rows: padding
+    z = torch.nan_to_num(world[..., 2], nan=torch.inf)
+    low = z.amin(dim=1)
+    size = (graph.full_rest.nan_to_num(0).amax(1) - graph.full_rest.nan_to_num(0).amin(1)).amax(1)
+    weight = torch.softmax(-(z - low[:, None]) / (SUPPORT_SHARPNESS * size[:, None]), dim=1)
+    point = (weight[..., None] * world.nan_to_num(0)).sum(1)                   # (G, 3)
+    floor = -layout.floor_clip if layout.floor_signed else 0.0
+    height = (low - layout.floor_z).clamp(floor, layout.floor_clip)
+    return torch.cat([point[graph.node_graph] - x_t, height[graph.node_graph, None]], dim=1)
 
 
 def impact_share(z_t: torch.Tensor, z_tm1: torch.Tensor, g_z: float) -> torch.Tensor:

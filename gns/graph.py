@@ -73,6 +73,10 @@ class GraphBatch:
     # body-frame symmetries of each graph's rest shape (G, K, 3, 3), padded; with their counts (G,)
     symmetries: torch.Tensor | None = None
     num_symmetries: torch.Tensor | None = None
+    # (G, V, 3) float64 each graph's full rest mesh, scaled, in its (possibly mapped) body frame,
+    # padded with NaN rows: what features.floor_support measures the floor against when the
+    # network sees a coarse mesh. Every map of `rest` (mirrors, body-frame symmetries) maps it too
+    full_rest: torch.Tensor | None = None
 
     @property
     def num_nodes(self) -> int:
@@ -145,6 +149,20 @@ def with_symmetries(graph: "GraphBatch") -> "GraphBatch":
     return replace(graph, symmetries=padded.to(graph.rest), num_symmetries=counts.to(graph.rest.device))
 
 
+def nan_padded(arrays: list[np.ndarray]) -> np.ndarray:
+    """Point sets (V_i, 3) -> (len, max V, 3), padded with NaN rows (GraphBatch.full_rest)."""
+    out = np.full((len(arrays), max(len(a) for a in arrays), 3), np.nan)
+    for i, a in enumerate(arrays):
+        out[i, :len(a)] = a
+    return out
+
+
+def cat_padded(parts: list[torch.Tensor]) -> torch.Tensor:
+    """(G_i, V_i, 3) tensors -> (sum G_i, max V_i, 3), NaN-padded."""
+    width = max(p.shape[1] for p in parts)
+    return torch.cat([torch.nn.functional.pad(p, (0, 0, 0, width - p.shape[1]), value=float("nan")) for p in parts])
+
+
 def ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """For counts (B,): the owner (sum counts,) of each element and its index within its owner."""
     owner = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
@@ -156,10 +174,15 @@ class MeshLibrary:
     """The dataset's rest meshes, stored once, from which batches of graphs are packed."""
 
     def __init__(self, meshes: dict[str, tuple[np.ndarray, np.ndarray]], max_vertices: int = 0,
-                 centre_node: bool = False):
+                 centre_node: bool = False, full_rest: bool = False):
         """max_vertices > 0: graphs of each mesh's coarse version (gns.coarse_mesh), as the
         network of a model trained with features.mesh_vertices sees them. centre_node: each
-        graph also has a node at its centre of mass joined to every vertex (centre_spokes)."""
+        graph also has a node at its centre of mass joined to every vertex (centre_spokes).
+        full_rest: packed graphs carry each object's full mesh too (GraphBatch.full_rest)."""
+        self._full = None
+        if full_rest:
+            full = [np.asarray(meshes[n][0], np.float64) for n in sorted(meshes)]
+            self._full = torch.from_numpy(nan_padded(full))
         meshes = network_meshes(meshes, max_vertices)
         self.names = sorted(meshes)
         self.index = {name: i for i, name in enumerate(self.names)}
@@ -218,8 +241,9 @@ class MeshLibrary:
         faces = self._faces[self._face_start[shape_ids][face_graph] + local_face] + node_offset[face_graph, None]
 
         material = torch.stack([friction, restitution], dim=1).to(torch.float32)[node_graph]
+        full = None if self._full is None else self._full[shape_ids] * scale.to(torch.float64)[:, None, None]
         return GraphBatch(EdgeSet(edges[:, 0].contiguous(), edges[:, 1].contiguous()), rest, material,
-                     node_graph, len(shape_ids), graph_scene, faces=faces)
+                          node_graph, len(shape_ids), graph_scene, faces=faces, full_rest=full)
 
 
 def candidate_pairs(graph: GraphBatch) -> tuple[torch.Tensor, torch.Tensor]:
@@ -349,7 +373,8 @@ def select_graphs(graph: GraphBatch, keep: torch.Tensor) -> tuple[GraphBatch, to
                    graph_scene=None if graph.graph_scene is None else graph.graph_scene[keep],
                    collision_edges=edges(graph.collision_edges), faces=faces,
                    symmetries=None if graph.symmetries is None else graph.symmetries[keep],
-                   num_symmetries=None if graph.num_symmetries is None else graph.num_symmetries[keep]), nodes
+                   num_symmetries=None if graph.num_symmetries is None else graph.num_symmetries[keep],
+                   full_rest=None if graph.full_rest is None else graph.full_rest[keep]), nodes
 
 
 def stack_graphs(graphs: list[GraphBatch]) -> GraphBatch:
@@ -383,7 +408,8 @@ def stack_graphs(graphs: list[GraphBatch]) -> GraphBatch:
         num_graphs=sum(g.num_graphs for g in graphs), graph_scene=scenes,
         collision_edges=edges([g.collision_edges for g in graphs]),
         faces=None if first.faces is None else torch.cat([g.faces + o for g, o in zip(graphs, node_offset)]),
-        symmetries=cat("symmetries"), num_symmetries=cat("num_symmetries"))
+        symmetries=cat("symmetries"), num_symmetries=cat("num_symmetries"),
+        full_rest=None if first.full_rest is None else cat_padded([g.full_rest for g in graphs]))
 
 
 def with_collision_edges(graph: GraphBatch, x: torch.Tensor, radius: float) -> GraphBatch:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import nn
 
-from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_collision_features,
+from gns.features import (HISTORY, FeatureLayout, Normalizer, floor_support, make_layout, raw_collision_features,
                           raw_edge_features, raw_node_features)
 from gns.config import INERTIAL_PRIORS
 from gns.contacts import surface_edges
@@ -125,6 +125,11 @@ def _packed_fit(a: torch.Tensor, b: torch.Tensor, node_graph: torch.Tensor, num_
     h = torch.zeros(num_graphs, 3, 3, dtype=a.dtype, device=a.device).index_add_(
         0, node_graph, p[:, :, None] * q[:, None, :])
     return ca, cb, p, h
+
+
+def _mapped_full(graph: GraphBatch, map_full) -> torch.Tensor | None:
+    """graph.full_rest mapped as its rest was (a mirror, a body-frame symmetry), if it has one."""
+    return None if graph.full_rest is None else map_full(graph.full_rest)
 
 
 def shape_match_packed(x: torch.Tensor, rest: torch.Tensor, node_graph: torch.Tensor,
@@ -275,6 +280,7 @@ class LearnedSimulator(nn.Module):
         self.centre_node = bool(getattr(features_cfg, "centre_node", False))
         self.canonical_heading = bool(getattr(features_cfg, "canonical_heading", False))
         self.canonical_mirror = bool(getattr(features_cfg, "canonical_mirror", False))
+        self.floor_support = bool(getattr(features_cfg, "floor_support", False))
         self.layout: FeatureLayout = make_layout(features_cfg, spec.floor_z, spec.materials_vary,
                                                  collisions=spec.collision_edges, gravity_step=self.gravity_step,
                                                  gravity_z_step=None if spec.gravity_per_frame is None
@@ -295,7 +301,7 @@ class LearnedSimulator(nn.Module):
     def mesh_library(self, meshes: dict) -> MeshLibrary:
         """The graphs of `meshes` as this model's network reads them: coarse meshes
         (features.mesh_vertices) and centre nodes (features.centre_node) as trained."""
-        return MeshLibrary(meshes, self.mesh_vertices, self.centre_node)
+        return MeshLibrary(meshes, self.mesh_vertices, self.centre_node, full_rest=self.floor_support)
 
     def distribute(self, wrapper: nn.Module | None) -> None:
         """Train the network through `wrapper` (a DistributedDataParallel of self.network, which
@@ -349,6 +355,9 @@ class LearnedSimulator(nn.Module):
         """
         acc = self.training
         raw_nodes = raw_node_features(self.layout, history, graph)
+        if self.floor_support:
+            rot, centre, _ = shape_match_packed(history[:, -1], graph.rest, graph.node_graph, graph.num_graphs)
+            raw_nodes["support"] = floor_support(self.layout, history[:, -1], graph, rot, centre).to(torch.float32)
         nodes = torch.cat([self.node_normalizers[n](raw_nodes[n], acc) for n, _ in self.layout.node_groups], -1)
         if self.layout.absolute:
             edges = torch.zeros(graph.mesh_edges.senders.shape[0], 1, device=history.device)
@@ -392,7 +401,8 @@ class LearnedSimulator(nn.Module):
             one = torch.ones_like(scene, dtype=history.dtype)
             mirror = torch.stack([one, mirror_signs(turned, scene, count)[scene], one], 1)   # (N, 3): 1, +-1, 1
             turn, turned = turn * mirror[:, :, None], turned * mirror[:, None, :]
-            graph = replace(graph, rest=graph.rest * mirror.to(graph.rest.dtype))
+            graph = replace(graph, rest=graph.rest * mirror.to(graph.rest.dtype), full_rest=_mapped_full(
+                graph, lambda full: full * per_graph(mirror.to(full.dtype), graph, "amin")[:, None]))
         nodes, edge_sets = self._inputs(turned, graph)
         out = self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
         acc = torch.einsum("nji,nj->ni", turn, self.target_normalizer.inverse(out.to(history.dtype)))
@@ -452,11 +462,12 @@ class LearnedSimulator(nn.Module):
         inputs, graphs, maps = [], [], []
         for k in range(frames):
             if syms is None:
-                rest, weight = graph.rest, 1.0
+                rest, full, weight = graph.rest, graph.full_rest, 1.0
             else:
                 # the same world vertices described in the k-th equivalent body frame (r -> S r):
                 # the answer may not hang on which one, so average over all of each object's group
                 rest = torch.einsum("nij,nj->ni", syms[graph.node_graph, k], graph.rest)
+                full = _mapped_full(graph, lambda f: f @ syms[:, k].transpose(1, 2))
                 counts = graph.num_symmetries[graph.node_graph]
                 weight = ((k < counts).to(history.dtype) / counts.to(history.dtype))[:, None]
             for m in floors:
@@ -464,7 +475,8 @@ class LearnedSimulator(nn.Module):
                 # the body frame is mapped too (x = R rest + p -> (g R g^T) (g rest) + g p): the
                 # network sees a proper rotation, as in training, and the average is exactly equivariant
                 inputs.append(history @ g.T)
-                graphs.append(replace(graph, rest=rest @ g.T, collision_edges=None))
+                graphs.append(replace(graph, rest=rest @ g.T, collision_edges=None,
+                                      full_rest=None if full is None else full @ g.T))
                 maps.append((g, weight))
         # images share network calls: per node, a call on 6400 nodes costs ~0.6x one on 1600;
         # calls stay under IMAGE_NODES nodes (24 body frames x 4 mirrors of a batch would not fit)

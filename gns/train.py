@@ -367,7 +367,8 @@ def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTrack
         full = Dataset(data_dir).load("train")
         scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
     try:
-        library = MeshLibrary(dataset.meshes, cfg.features.mesh_vertices, cfg.features.centre_node)
+        library = MeshLibrary(dataset.meshes, cfg.features.mesh_vertices, cfg.features.centre_node,
+                              full_rest=cfg.features.floor_support)
     except ValueError as e:
         raise DataError(f"{data_dir}: {e}") from None
     tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)
