@@ -11,9 +11,9 @@ Feature groups (each normalised separately, each switchable in [features]):
         material       (N, 2)  friction, restitution; only if the data's materials vary
         rest_position  (N, 3)  scaled rest vertex in the body frame
         position       (N, 3)  x_t; absolute encoding only
-        support        (N, 4)  offset to the object's full-mesh low point, and its floor
-                               distance (floor_support; `floor_support`, computed by the
-                               simulator, which knows each object's pose)
+        support        (N, 4)  offset to the object's full-mesh low point, and that point's
+                               floor distance (features.floor_support; made by the
+                               simulator, which shape-matches each object's pose first)
   edge  relative       (E, 3)  d = x_r - x_s (receiver minus sender), and |d| (E, 1)
         rest_relative  (E, 3)  d^U = rest_r - rest_s, and |d^U| (E, 1)
   With the absolute encoding edges get one constant zero input (E, 1), unnormalised.
