@@ -33,8 +33,8 @@ CONTACT = TrainConfig.contact_threshold  # |a - g| > CONTACT |g|: the step is in
 
 def one_step_errors(run, data, split: str = "test", limit: int | None = None, symmetrize: bool = False,
                     autocast: str = "none") -> dict:
-    """{"contact": {...}, "airborne": {...}, "contact_share_of_rotation_error": float} where each
-    part holds the mean position error (% of size) and rotation error (degrees) of one step,
+    """{"contact": {...}, "airborne": {...}, "contact_share_of_rotation_error": float, "by_shape":
+    {shape: {"contact": {...}, "airborne": {...}}}} where each part holds the mean position error (% of size) and rotation error (degrees) of one step,
     the 50/90/99th percentiles of the rotation error and the number of steps."""
     sim, saved = load_simulator(run, symmetrize=symmetrize, autocast=autocast)
     sim.eval()
@@ -62,17 +62,22 @@ def one_step_errors(run, data, split: str = "test", limit: int | None = None, sy
     width = np.asarray([object_width(float(sc.scale[n]), np.asarray(ds.meshes[sc.shape[n]][0]))
                         for sc in scenes for n in range(sc.num_objects)])  # tracks are numbered scene by scene
     pos = 100.0 * pos / width[None, :]
-    out = {}
-    for name, mask in (("contact", contact), ("airborne", ~contact)):
-        out[name] = {"steps": int(mask.sum()),
-                     "position_error_pct": float(pos[mask].mean()) if mask.any() else None,
-                     "rotation_error_deg": float(rot[mask].mean()) if mask.any() else None,
-                     "rotation_percentiles_50_90_99": np.percentile(rot[mask], [50, 90, 99]).tolist()
-                     if mask.any() else None,
-                     # the angle turned in one step, predicted over true (summed): below 1, the
-                     # model turns objects too little from the true history, a bias a rollout adds up
-                     "spin_ratio": float(turned[mask].sum() / max(true_turn[mask].sum(), 1e-300)) if mask.any() else None}
+
+    def stats(mask: np.ndarray) -> dict:
+        return {"steps": int(mask.sum()),
+                "position_error_pct": float(pos[mask].mean()) if mask.any() else None,
+                "rotation_error_deg": float(rot[mask].mean()) if mask.any() else None,
+                "rotation_percentiles_50_90_99": np.percentile(rot[mask], [50, 90, 99]).tolist()
+                if mask.any() else None,
+                # the angle turned in one step, predicted over true (summed): below 1, the
+                # model turns objects too little from the true history, a bias a rollout adds up
+                "spin_ratio": float(turned[mask].sum() / max(true_turn[mask].sum(), 1e-300)) if mask.any() else None}
+    out = {"contact": stats(contact), "airborne": stats(~contact)}
     out["contact_share_of_rotation_error"] = float(rot[contact].sum() / max(rot.sum(), 1e-300))
+    # per shape: whether a shape's rollout error starts in its contact steps or in flight
+    shape = np.asarray([sc.shape[n] for sc in scenes for n in range(sc.num_objects)])[None, :]
+    out["by_shape"] = {str(name): {"contact": stats(contact & (shape == name)), "airborne": stats(~contact & (shape == name))}
+                       for name in np.unique(shape)}
     out.update(run=str(run), data=str(data), split=split, num_tracks=int(tracks.num_tracks),
                frames_per_track=frames, symmetrize=symmetrize, autocast=autocast)
     return out
@@ -99,6 +104,11 @@ def main(argv=None) -> int:
                   f"{r['rotation_error_deg']:.3g} deg (50/90/99%: {p50:.3g} / {p90:.3g} / {p99:.3g}), "
                   f"spin ratio {r['spin_ratio']:.3f}")
     print(f"contact steps hold {100 * res['contact_share_of_rotation_error']:.0f}% of the one-step rotation error")
+    print("per shape, position % / rotation deg:      contact        airborne")
+    for name, parts in res["by_shape"].items():
+        cells = [f"{r['position_error_pct']:6.3g} / {r['rotation_error_deg']:<6.3g}" if r["steps"] else "       -       "
+                 for r in (parts["contact"], parts["airborne"])]
+        print(f"  {name:38s} {cells[0]}  {cells[1]}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(res, f, indent=1)

@@ -20,8 +20,11 @@ def test_every_step_is_counted_once_and_bounces_are_contact_steps(tmp_path, caps
     assert res["contact"]["steps"] > 0 and res["airborne"]["steps"] > 0
     assert 0.0 <= res["contact_share_of_rotation_error"] <= 1.0
     assert res["contact"]["rotation_error_deg"] >= 0 and res["airborne"]["position_error_pct"] >= 0
+    # the fixture has cubes only: its per-shape split is the whole
+    assert list(res["by_shape"]) == ["cube"] and res["by_shape"]["cube"]["contact"] == res["contact"]
     assert main(["--run", str(tmp_path / "run"), "--data", str(data), "--split", "valid", "--json", str(tmp_path / "o.json")]) == 0
-    assert "contact steps hold" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "contact steps hold" in out and "\n  cube " in out
     assert json.loads((tmp_path / "o.json").read_text())["split"] == "valid"
 
 
