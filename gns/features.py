@@ -221,7 +221,8 @@ def floor_support(layout: FeatureLayout, x_t: torch.Tensor, graph: GraphBatch, r
     world = graph.full_rest @ rot.transpose(1, 2) + centre[:, None]            # (G, V, 3), NaN rows: padding
     z = torch.nan_to_num(world[..., 2], nan=torch.inf)
     low = z.amin(dim=1)
-    size = (graph.full_rest.nan_to_num(0).amax(1) - graph.full_rest.nan_to_num(0).amin(1)).amax(1)
+    rest = graph.full_rest.nan_to_num(0)   # a padding row at 0 (the centre) widens no box
+    size = (rest.amax(1) - rest.amin(1)).amax(1)
     weight = torch.softmax(-(z - low[:, None]) / (SUPPORT_SHARPNESS * size[:, None]), dim=1)
     point = (weight[..., None] * world.nan_to_num(0)).sum(1)                   # (G, 3)
     floor = -layout.floor_clip if layout.floor_signed else 0.0

@@ -69,18 +69,17 @@ MOVI_A_BUDGET = (
 
 # session 13: the budget model fine-tuned with the network seeing each scene at its canonical
 # heading (features.canonical_heading); a control fine-tuned beside it without: 17.9% / 27.2 deg
+CANONICAL_STAGE = ("train.lr_init=2e-4", "train.lr_decay_steps=7500", *PUSHFORWARD_3, *CENTRE, *RIGID,
+                   "features.canonical_heading=true")
 MOVI_A_CANONICAL = MOVI_A_BUDGET + (
-    Stage("canonical", 15_000, ("train.lr_init=2e-4", "train.lr_decay_steps=7500", *PUSHFORWARD_3, *CENTRE, *RIGID,
-                                "features.canonical_heading=true"), 3,
-          "gns_movi_a_canonical"),                                             # 48 min: 17.0% / 25.8 deg
+    Stage("canonical", 15_000, CANONICAL_STAGE, 3, "gns_movi_a_canonical"),   # 48 min: 17.0% / 25.8 deg
 )
 
 # session 14: gns_movi_a_k3 fine-tuned with the canonical heading (the canonical stage's schedule,
 # K = 3): the most accurate model so far, ~9 core-hours of lineage (docs/accuracy.md, session 15);
 # score on 400 test scenes, free flight: 16.0% / 23.3 deg at one call, 15.3 / 22.8 symmetrized
 MOVI_A_BEST = MOVI_A_CHAIN + (
-    Stage("k3_canonical", 15_000, ("train.lr_init=2e-4", "train.lr_decay_steps=7500", *PUSHFORWARD_3, *CENTRE, *RIGID,
-                                   "model.processor_repeats=3", "features.canonical_heading=true"), 3,
+    Stage("k3_canonical", 15_000, (*CANONICAL_STAGE, "model.processor_repeats=3"), 3,
           "gns_movi_a_k3_canonical"),                                          # 149 min: 15.3% / 22.8 deg
 )
 
