@@ -10,6 +10,12 @@ their graphs from the same coarse meshes, so the model never sees the full one.
 
 The choice is deterministic (a function of the mesh alone): a checkpoint keeps `n`, not the
 indices, and rebuilds the same coarse mesh from the meshes it carries.
+
+One n for every shape under-serves round ones: 16 of a sphere's 62 vertices make a hull whose
+surface stops up to 13% of its size short of the one PyBullet collides, where a beveled cube's
+stops 2% short (docs/speed.md, session 15). With `features.mesh_support_gap = g`, a mesh gets
+more than n vertices, the fewest whose hull reaches within g x its size of the full mesh in
+every direction (`support_gap`): what each shape needs, not what the roundest one needs.
 """
 from __future__ import annotations
 
@@ -19,20 +25,59 @@ from scipy.spatial import ConvexHull
 MIN_VERTICES = 4  # a solid's hull needs 4 points not in one plane
 
 
-def farthest_points(vertices: np.ndarray, n: int) -> np.ndarray:
-    """Indices of n vertices, each the farthest from those chosen before it (sorted).
+def farthest_order(vertices: np.ndarray, n: int) -> np.ndarray:
+    """Indices of n vertices in the order chosen, each the farthest from those before it.
 
     Starts at the vertex farthest from the vertex mean; ties go to the lowest index, so the
-    choice depends on the mesh only.
+    choice depends on the mesh only. The first k of n are the choice for k (nested subsets).
     """
     v = np.asarray(vertices, np.float64)
     chosen = [int(np.argmax(np.linalg.norm(v - v.mean(0), axis=1)))]
     dist = np.linalg.norm(v - v[chosen[0]], axis=1)
-    for _ in range(n - 1):
+    for _ in range(min(n, len(v)) - 1):
         nxt = int(np.argmax(dist))
         chosen.append(nxt)
         dist = np.minimum(dist, np.linalg.norm(v - v[nxt], axis=1))
-    return np.sort(np.asarray(chosen, np.int64))
+    return np.asarray(chosen, np.int64)
+
+
+def farthest_points(vertices: np.ndarray, n: int) -> np.ndarray:
+    """Indices of n vertices, each the farthest from those chosen before it (sorted)."""
+    return np.sort(farthest_order(vertices, n))
+
+
+def _directions(count: int = 2000) -> np.ndarray:
+    """count unit vectors spread evenly over the sphere (a Fibonacci lattice: fixed, no randomness)."""
+    k = np.arange(count) + 0.5
+    z = 1.0 - 2.0 * k / count
+    r = np.sqrt(1.0 - z * z)
+    phi = np.pi * (1.0 + 5.0 ** 0.5) * k
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def support_gap(vertices: np.ndarray, subset: np.ndarray) -> float:
+    """How far the hull of vertices[subset] stops short of the hull of all vertices, at most over
+    2000 directions and the direction of every vertex from the centre, as a fraction of the
+    mesh's largest extent (the metrics' object size): with that direction down, how much of the
+    object the network's mesh does not reach. The gap peaks at a kink (where the subset's
+    nearest vertices tie), often towards a left-out vertex, which a lattice alone misses by its
+    spacing (1.7% of a cube's side for its corner)."""
+    v = np.asarray(vertices, np.float64)
+    radial = v - v.mean(0)
+    radial = radial[np.linalg.norm(radial, axis=1) > 0]
+    d = np.concatenate([_directions(), radial / np.linalg.norm(radial, axis=1, keepdims=True)])
+    gap = (v @ d.T).max(0) - (v[subset] @ d.T).max(0)
+    return float(gap.max() / np.ptp(v, axis=0).max())
+
+
+def vertices_for_gap(vertices: np.ndarray, n: int, gap: float) -> int:
+    """The fewest vertices, at least n, whose farthest-point hull is within gap (a fraction of
+    the size) of the full mesh in every direction; all of them if no fewer do."""
+    order = farthest_order(vertices, len(vertices))
+    for k in range(n, len(order)):
+        if support_gap(vertices, order[:k]) <= gap:
+            return k
+    return len(order)
 
 
 def coarsen(vertices: np.ndarray, faces: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -57,8 +102,11 @@ def coarsen(vertices: np.ndarray, faces: np.ndarray, n: int) -> tuple[np.ndarray
     return sub, tri
 
 
-def network_meshes(meshes: dict, n: int) -> dict:
-    """Every mesh of {name: (vertices, faces)} coarsened to n vertices (0 = unchanged)."""
+def network_meshes(meshes: dict, n: int, gap: float = 0.0) -> dict:
+    """Every mesh of {name: (vertices, faces)} coarsened to n vertices (0 = unchanged), or with
+    gap > 0 to the fewest (at least n) within gap of the full mesh (vertices_for_gap)."""
     if n <= 0:
         return meshes
+    if gap > 0:
+        return {name: coarsen(v, f, vertices_for_gap(v, n, gap)) for name, (v, f) in meshes.items()}
     return {name: coarsen(v, f, n) for name, (v, f) in meshes.items()}

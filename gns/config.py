@@ -53,6 +53,10 @@ class FeatureConfig:
     # > 0: the network sees this many vertices of each mesh (farthest-point subset joined by its
     # hull's edges, gns.coarse_mesh); shape matching and the scores keep the full mesh. 0 = all
     mesh_vertices: int = 0
+    # with mesh_vertices > 0: a mesh whose n-vertex hull stops more than this fraction of its size
+    # short of the full mesh in some direction gets the fewest more vertices that do not
+    # (gns.coarse_mesh.vertices_for_gap): round shapes need more of theirs than boxes do. 0 = off
+    mesh_support_gap: float = 0.0
     # a node at each object's centre of mass joined to all its vertices (gns.graph.centre_spokes):
     # every vertex two message-passing steps from every other, whatever the mesh
     centre_node: bool = False
@@ -245,6 +249,9 @@ def validate(cfg: Config) -> None:
         (cfg.features.velocity_direction >= 0, "features.velocity_direction must be >= 0"),
         (cfg.features.mesh_vertices == 0 or cfg.features.mesh_vertices >= 4,
          "features.mesh_vertices must be 0 (every vertex) or >= 4"),
+        (0 <= cfg.features.mesh_support_gap < 1, "features.mesh_support_gap must be in [0, 1) (a fraction of the size)"),
+        (cfg.features.mesh_support_gap == 0 or cfg.features.mesh_vertices > 0,
+         "features.mesh_support_gap needs features.mesh_vertices > 0 (the fewest vertices a mesh gets)"),
         (cfg.features.canonical_heading or not cfg.features.canonical_mirror,
          "features.canonical_mirror needs features.canonical_heading=true (the mirror is chosen in the turned frame)"),
         (cfg.augment.noise_std >= 0, "augment.noise_std must be >= 0"),

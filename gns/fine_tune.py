@@ -75,8 +75,8 @@ def _widened(state: dict, sim: LearnedSimulator, trained: ModelSpec) -> dict:
 
 # keys a fine-tuning run (train.init_from) may change: the weights keep their shapes (the
 # inertial prior changes what the output means, which fine-tuning then learns)
-FINE_TUNE_FREE = ("features.mesh_vertices", "features.centre_node", "model.processor_repeats",
-                  "features.impact_time", "features.edge_velocity", "model.inertial_prior",
+FINE_TUNE_FREE = ("features.mesh_vertices", "features.mesh_support_gap", "features.centre_node",
+                  "model.processor_repeats", "features.impact_time", "features.edge_velocity", "model.inertial_prior",
                   "features.canonical_heading", "features.canonical_mirror", "features.floor_support")
 # feature groups a fine-tuning run may add after the trained ones (_widened), per kind
 ADDABLE_GROUPS = {"node_features": ("impact", "support"), "edge_features": ("relative_velocity",)}

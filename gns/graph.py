@@ -174,16 +174,17 @@ class MeshLibrary:
     """The dataset's rest meshes, stored once, from which batches of graphs are packed."""
 
     def __init__(self, meshes: dict[str, tuple[np.ndarray, np.ndarray]], max_vertices: int = 0,
-                 centre_node: bool = False, full_rest: bool = False):
+                 centre_node: bool = False, full_rest: bool = False, support_gap: float = 0.0):
         """max_vertices > 0: graphs of each mesh's coarse version (gns.coarse_mesh), as the
-        network of a model trained with features.mesh_vertices sees them. centre_node: each
+        network of a model trained with features.mesh_vertices sees them; support_gap > 0 gives
+        a mesh more vertices where it needs them (features.mesh_support_gap). centre_node: each
         graph also has a node at its centre of mass joined to every vertex (centre_spokes).
         full_rest: packed graphs carry each object's full mesh too (GraphBatch.full_rest)."""
         self._full = None
         if full_rest:
             full = [np.asarray(meshes[n][0], np.float64) for n in sorted(meshes)]
             self._full = torch.from_numpy(nan_padded(full))
-        meshes = network_meshes(meshes, max_vertices)
+        meshes = network_meshes(meshes, max_vertices, support_gap)
         self.names = sorted(meshes)
         self.index = {name: i for i, name in enumerate(self.names)}
         verts = [np.asarray(meshes[n][0], np.float64) for n in self.names]

@@ -277,6 +277,7 @@ class LearnedSimulator(nn.Module):
             raise ValueError(f"model.inertial_prior must be one of {INERTIAL_PRIORS}, not {self.inertial_prior!r}")
         # the graphs this model reads: self.mesh_library(meshes)
         self.mesh_vertices = int(getattr(features_cfg, "mesh_vertices", 0))
+        self.mesh_support_gap = float(getattr(features_cfg, "mesh_support_gap", 0.0))
         self.centre_node = bool(getattr(features_cfg, "centre_node", False))
         self.canonical_heading = bool(getattr(features_cfg, "canonical_heading", False))
         self.canonical_mirror = bool(getattr(features_cfg, "canonical_mirror", False))
@@ -300,8 +301,10 @@ class LearnedSimulator(nn.Module):
 
     def mesh_library(self, meshes: dict) -> MeshLibrary:
         """The graphs of `meshes` as this model's network reads them: coarse meshes
-        (features.mesh_vertices) and centre nodes (features.centre_node) as trained."""
-        return MeshLibrary(meshes, self.mesh_vertices, self.centre_node, full_rest=self.floor_support)
+        (features.mesh_vertices, features.mesh_support_gap) and centre nodes (features.centre_node)
+        as trained."""
+        return MeshLibrary(meshes, self.mesh_vertices, self.centre_node, full_rest=self.floor_support,
+                           support_gap=self.mesh_support_gap)
 
     def distribute(self, wrapper: nn.Module | None) -> None:
         """Train the network through `wrapper` (a DistributedDataParallel of self.network, which
@@ -415,8 +418,9 @@ class LearnedSimulator(nn.Module):
         network mesh and time step; ValueError names the first difference."""
         for k, m in enumerate(members, 1):
             for what, mine, theirs in (("features", self.layout, m.layout),
-                                       ("network mesh (features.mesh_vertices, features.centre_node)",
-                                        (self.mesh_vertices, self.centre_node), (m.mesh_vertices, m.centre_node)),
+                                       ("network mesh (features.mesh_vertices, mesh_support_gap, centre_node)",
+                                        (self.mesh_vertices, self.mesh_support_gap, self.centre_node),
+                                        (m.mesh_vertices, m.mesh_support_gap, m.centre_node)),
                                        ("time step and gravity", _listed(self.gravity_per_frame),
                                         _listed(m.gravity_per_frame)),
                                        ("inertial prior (model.inertial_prior)", self.inertial_prior,

@@ -368,7 +368,7 @@ def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTrack
         scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
     try:
         library = MeshLibrary(dataset.meshes, cfg.features.mesh_vertices, cfg.features.centre_node,
-                              full_rest=cfg.features.floor_support)
+                              full_rest=cfg.features.floor_support, support_gap=cfg.features.mesh_support_gap)
     except ValueError as e:
         raise DataError(f"{data_dir}: {e}") from None
     tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)
@@ -613,9 +613,14 @@ def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: 
     processes = f" on {world.size} processes" if world.size > 1 else ""
     precision = f", network in {'bf16' if sim.autocast_used == 'bf16' else 'float32'} (autocast auto, measured)" \
         if cfg.train.autocast == "auto" else ""
+    meshes = ""
+    if cfg.features.mesh_vertices:
+        lib, centre = tracks.library, int(cfg.features.centre_node)
+        meshes = ", network meshes " + ", ".join(f"{name} {int(n) - centre}" for name, n in
+                                                 zip(lib.names, lib.num_vertices)) + " vertices"
     return (f"{'resuming' if resumed_from else 'training'} at step {step} of {cfg.train.steps}{processes}: "
             f"{tracks.num_windows} windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
-            f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}{precision}")
+            f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}{meshes}{precision}")
 
 
 def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, world: parallel.World,

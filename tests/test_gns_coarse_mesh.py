@@ -6,7 +6,7 @@ from gns_fixtures import write_toss_dataset
 
 import gns
 from datagen.shapes import get_shape
-from gns.coarse_mesh import coarsen, farthest_points, network_meshes
+from gns.coarse_mesh import coarsen, farthest_order, farthest_points, network_meshes, support_gap, vertices_for_gap
 from gns.config import ConfigError
 from gns.graph import MeshLibrary, mesh_edges
 from gns.simulator import shape_match_packed
@@ -87,3 +87,56 @@ def test_a_model_trained_coarse_rolls_out_coarse_and_keeps_the_full_mesh(tmp_pat
     with pytest.raises(CheckpointError, match="mesh_vertices"):
         train(data, tmp_path / "coarse", tiny("train.steps=8", "valid.every=0", "features.normalizer_steps=2"),
               resume=True, log=quiet)
+
+
+def test_the_support_gap_of_a_cube_without_a_corner_is_that_corner_s_distance():
+    cube = np.asarray(get_shape("cube").vertices, np.float64)
+    side = np.ptp(cube, axis=0).max()
+    assert support_gap(cube, np.arange(8)) == 0.0
+    # without the corner c, the hull's support along c's diagonal falls to the three corners next
+    # to it: side / sqrt(3) short, the most in any direction
+    corner = int(np.argmax(cube.sum(1)))
+    rest = np.array([i for i in range(8) if i != corner])
+    assert support_gap(cube, rest) == pytest.approx(1 / np.sqrt(3), rel=1e-9)
+    assert side == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("gap", [0.03, 0.05, 0.08])
+def test_a_round_mesh_gets_the_fewest_vertices_within_the_gap_and_a_box_no_more(gap):
+    sphere, beveled = get_shape("sphere"), get_shape("beveled_cube")
+    n = vertices_for_gap(sphere.vertices, 16, gap)
+    order = farthest_order(sphere.vertices, len(sphere.vertices))
+    assert 16 < n < len(sphere.vertices)
+    assert support_gap(sphere.vertices, order[:n]) <= gap < support_gap(sphere.vertices, order[:n - 1])
+    meshes = network_meshes({"sphere": (sphere.vertices, sphere.faces), "box": (beveled.vertices, beveled.faces)},
+                            16, gap)
+    assert len(meshes["sphere"][0]) == n
+    # the beveled cube's 16-vertex hull is already within 2% of its size: it keeps 16
+    assert support_gap(beveled.vertices, farthest_order(beveled.vertices, 16)) < 0.03
+    assert len(meshes["box"][0]) == 16
+    # a looser gap never asks for more vertices
+    assert vertices_for_gap(sphere.vertices, 16, 2 * gap) <= n
+
+
+def test_a_bad_mesh_support_gap_is_one_line():
+    with pytest.raises(ConfigError, match="features.mesh_support_gap"):
+        tiny("features.mesh_support_gap=-0.1", "features.mesh_vertices=6")
+    with pytest.raises(ConfigError, match="needs features.mesh_vertices"):
+        tiny("features.mesh_support_gap=0.05")
+
+
+@pytest.mark.filterwarnings("ignore:outside training")
+def test_a_fine_tune_may_give_meshes_vertices_by_gap_and_the_model_keeps_them(tmp_path):
+    data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
+    small = ("train.steps=4", "valid.every=0", "features.normalizer_steps=2")
+    train(data, tmp_path / "six", tiny(*small, "features.mesh_vertices=6"), log=quiet)
+    # six of a cube's corners leave its hull far short of two of them: a gap of 1% asks for all 8
+    train(data, tmp_path / "gap", tiny(*small, "features.mesh_vertices=6", "features.mesh_support_gap=0.01",
+                                       f"train.init_from={tmp_path / 'six'}"), log=quiet)
+    assert read_checkpoint(tmp_path / "gap" / "latest.pt")["config"]["features"]["mesh_support_gap"] == 0.01
+    model = gns.load(tmp_path / "gap")
+    out = model.rollout(["cube"], [[0.0, 0.0, 2.0]], [[1.0, 0.0, 0.0, 0.0]], velocities=[[1.0, 0.0, 0.0]], steps=3)
+    assert out.vertices.shape[1] == 8 and torch.isfinite(out.positions).all()
+    # two models reading different graphs cannot be averaged step by step
+    with pytest.raises(ValueError, match="mesh_support_gap"):
+        model.simulator.set_ensemble([gns.load(tmp_path / "six").simulator])
