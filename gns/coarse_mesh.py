@@ -107,6 +107,4 @@ def network_meshes(meshes: dict, n: int, gap: float = 0.0) -> dict:
     gap > 0 to the fewest (at least n) within gap of the full mesh (vertices_for_gap)."""
     if n <= 0:
         return meshes
-    if gap > 0:
-        return {name: coarsen(v, f, vertices_for_gap(v, n, gap)) for name, (v, f) in meshes.items()}
-    return {name: coarsen(v, f, n) for name, (v, f) in meshes.items()}
+    return {name: coarsen(v, f, vertices_for_gap(v, n, gap) if gap > 0 else n) for name, (v, f) in meshes.items()}
