@@ -97,6 +97,14 @@ MOVI_A_FAST = (
     Stage("fast_pf2", 20_000, FAST_PUSHFORWARD, 2, "gns_movi_a_fast"),         # 27 min: 24.5% / 32.0 deg
 )
 
+# session 17: the canonical model fine-tuned onto 32 network vertices a mesh (its canonical stage's
+# schedule): a middle point of the speed trade, 0.53x PyBullet at 21.3% / 29.7 deg at one network
+# call, where gns_movi_a_fast is 1.18x at 24.5 / 32.1 and gns_movi_a_canonical 0.26x at 18.2 / 26.2
+# (docs/speed.md, session 17; one benchmark run). Rolled out at one network call.
+MOVI_A_MID = MOVI_A_CANONICAL + (
+    Stage("mid32", 15_000, (*CANONICAL_STAGE, "features.mesh_vertices=32"), 6, "gns_movi_a_mid"),  # ~45 min
+)
+
 # a smoke test of the chaining for the test suite: the tiny model, a few steps, two levers added
 TINY_CHAIN = (
     Stage("a", 20, (), 0),

@@ -6,14 +6,14 @@ from gns.checkpoint import read_checkpoint
 from gns.config import build_config, config_differences
 from gns.evaluate import checkpoint_of
 from pipelines.common import CONFIGS, SETTINGS_FREE
-from pipelines.movi_a_recipes import COMMON, MOVI_A_BEST, MOVI_A_CANONICAL, MOVI_A_FAST, stage_overrides
+from pipelines.movi_a_recipes import COMMON, MOVI_A_BEST, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_MID, stage_overrides
 
 # how a stage may differ from the file it reproduces: where it starts from (a folder of this
 # pipeline, not the author's), bf16 where it measures faster (the files: bf16 on a CPU where it did)
 FREE = SETTINGS_FREE + ("train.init_from", "train.autocast")
 
 
-@pytest.mark.parametrize("stage", [s for s in MOVI_A_BEST + MOVI_A_CANONICAL + MOVI_A_FAST if s.ships_as], ids=lambda s: s.name)
+@pytest.mark.parametrize("stage", [s for s in MOVI_A_BEST + MOVI_A_MID + MOVI_A_FAST if s.ships_as], ids=lambda s: s.name)
 def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
     shipped = read_checkpoint(checkpoint_of(stage.ships_as))
     cfg = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(stage, "x.pt", 0))
@@ -21,7 +21,7 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
     assert shipped["step"] == stage.steps and shipped["seed"] == stage.seed
 
 
-@pytest.mark.parametrize("chain", [MOVI_A_BEST, MOVI_A_CANONICAL, MOVI_A_FAST], ids=["best", "canonical", "fast"])
+@pytest.mark.parametrize("chain", [MOVI_A_BEST, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_MID], ids=["best", "canonical", "fast", "mid"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
