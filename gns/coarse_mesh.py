@@ -62,20 +62,32 @@ def support_gap(vertices: np.ndarray, subset: np.ndarray) -> float:
     object the network's mesh does not reach. The gap peaks at a kink (where the subset's
     nearest vertices tie), often towards a left-out vertex, which a lattice alone misses by its
     spacing (1.7% of a cube's side for its corner)."""
-    v = np.asarray(vertices, np.float64)
-    radial = v - v.mean(0)
-    radial = radial[np.linalg.norm(radial, axis=1) > 0]
-    d = np.concatenate([_directions(), radial / np.linalg.norm(radial, axis=1, keepdims=True)])
-    gap = (v @ d.T).max(0) - (v[subset] @ d.T).max(0)
-    return float(gap.max() / np.ptp(v, axis=0).max())
+    return _Support(vertices).gap(subset)
+
+
+class _Support:
+    """A mesh's vertices projected on the support directions once, for the gap of any subset."""
+
+    def __init__(self, vertices: np.ndarray):
+        v = np.asarray(vertices, np.float64)
+        radial = v - v.mean(0)
+        radial = radial[np.linalg.norm(radial, axis=1) > 0]
+        d = np.concatenate([_directions(), radial / np.linalg.norm(radial, axis=1, keepdims=True)])
+        self.projected = v @ d.T
+        self.full = self.projected.max(0)
+        self.size = np.ptp(v, axis=0).max()
+
+    def gap(self, subset: np.ndarray) -> float:
+        return float((self.full - self.projected[subset].max(0)).max() / self.size)
 
 
 def vertices_for_gap(vertices: np.ndarray, n: int, gap: float) -> int:
     """The fewest vertices, at least n, whose farthest-point hull is within gap (a fraction of
     the size) of the full mesh in every direction; all of them if no fewer do."""
     order = farthest_order(vertices, len(vertices))
+    support = _Support(vertices)
     for k in range(n, len(order)):
-        if support_gap(vertices, order[:k]) <= gap:
+        if support.gap(order[:k]) <= gap:
             return k
     return len(order)
 

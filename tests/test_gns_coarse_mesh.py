@@ -67,10 +67,18 @@ def test_a_typo_in_mesh_vertices_is_one_line():
         tiny("features.mesh_vertices=2")
 
 
+# a few steps of the tiny model on a few single-cube tosses
+SMALL = ("train.steps=4", "valid.every=0", "features.normalizer_steps=2")
+
+
+def toss_out(model):
+    return model.rollout(["cube"], [[0.0, 0.0, 2.0]], [[1.0, 0.0, 0.0, 0.0]], velocities=[[1.0, 0.0, 0.0]], steps=3)
+
+
 @pytest.mark.filterwarnings("ignore:outside training")
 def test_a_model_trained_coarse_rolls_out_coarse_and_keeps_the_full_mesh(tmp_path):
     data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
-    small = ("train.steps=4", "valid.every=0", "features.normalizer_steps=2")
+    small = SMALL
     train(data, tmp_path / "full", tiny(*small), log=quiet)
     # fine-tuning may change the network's mesh (the weights do not depend on it) ...
     train(data, tmp_path / "coarse", tiny(*small, "features.mesh_vertices=6",
@@ -81,7 +89,7 @@ def test_a_model_trained_coarse_rolls_out_coarse_and_keeps_the_full_mesh(tmp_pat
     assert model.simulator.mesh_vertices == 6
     # ... the model keeps the full mesh, and builds its graphs from the coarse one
     assert len(model.meshes["cube"][0]) == 8
-    out = model.rollout(["cube"], [[0.0, 0.0, 2.0]], [[1.0, 0.0, 0.0, 0.0]], velocities=[[1.0, 0.0, 0.0]], steps=3)
+    out = toss_out(model)
     assert out.vertices.shape[1] == 6 and torch.isfinite(out.positions).all()
     # resuming is not fine-tuning: the graphs of a resumed run must be those it trained on
     with pytest.raises(CheckpointError, match="mesh_vertices"):
@@ -128,14 +136,14 @@ def test_a_bad_mesh_support_gap_is_one_line():
 @pytest.mark.filterwarnings("ignore:outside training")
 def test_a_fine_tune_may_give_meshes_vertices_by_gap_and_the_model_keeps_them(tmp_path):
     data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
-    small = ("train.steps=4", "valid.every=0", "features.normalizer_steps=2")
+    small = SMALL
     train(data, tmp_path / "six", tiny(*small, "features.mesh_vertices=6"), log=quiet)
     # six of a cube's corners leave its hull far short of two of them: a gap of 1% asks for all 8
     train(data, tmp_path / "gap", tiny(*small, "features.mesh_vertices=6", "features.mesh_support_gap=0.01",
                                        f"train.init_from={tmp_path / 'six'}"), log=quiet)
     assert read_checkpoint(tmp_path / "gap" / "latest.pt")["config"]["features"]["mesh_support_gap"] == 0.01
     model = gns.load(tmp_path / "gap")
-    out = model.rollout(["cube"], [[0.0, 0.0, 2.0]], [[1.0, 0.0, 0.0, 0.0]], velocities=[[1.0, 0.0, 0.0]], steps=3)
+    out = toss_out(model)
     assert out.vertices.shape[1] == 8 and torch.isfinite(out.positions).all()
     # two models reading different graphs cannot be averaged step by step
     with pytest.raises(ValueError, match="mesh_support_gap"):
