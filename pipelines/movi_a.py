@@ -16,6 +16,8 @@ Presets (measured costs on a 2-core CPU in the README):
          test scenes; pipelines/movi_a_recipes.py)
   canonical    budget, then 15000 steps seeing each scene at its canonical heading: ~3 h on
          one core; reproduces gns_movi_a_canonical (17.0% / 25.8 deg)
+  heading      the budget chain with the network seeing each scene at its canonical heading
+         from the first step: ~2 h 15 min on one core (docs/accuracy.md, session 18)
   budget_pf    the first 3 stages of the best model's chain, ~2.5 hours on one core;
          reproduces gns_movi_a_pf (19.6% / 29.1 deg), the budget model before session 11
   fast   the budget chain's schedule on a coarse network mesh (16 vertices) seeing each scene at
@@ -31,7 +33,7 @@ Presets (measured costs on a 2-core CPU in the README):
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
-The chains (budget, canonical, budget_pf, best, fast, mid) are scored as their models are, with free
+The chains (budget, canonical, heading, budget_pf, best, fast, mid) are scored as their models are, with free
 flight and symmetrized rollouts (fast, mid: free flight, one network call). Their data are the README's
 data/movi_a_4000 (the same config and seed): a link OUT/data -> data/movi_a_4000 skips
 generating them again.
@@ -48,7 +50,7 @@ from gns.metrics import format_table
 from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST,
-                                     MOVI_A_MID, TINY_CHAIN, stage_overrides)
+                                     MOVI_A_HEADING, MOVI_A_MID, TINY_CHAIN, stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
@@ -67,6 +69,7 @@ PRESETS = {
     # chains of fine-tuning stages (pipelines/movi_a_recipes.py), on the README's data/movi_a_4000 scenes
     "budget": _chain_preset(MOVI_A_BUDGET),
     "canonical": _chain_preset(MOVI_A_CANONICAL),
+    "heading": _chain_preset(MOVI_A_HEADING),
     "budget_pf": _chain_preset(MOVI_A_CHAIN[:3]),
     "best": _chain_preset(MOVI_A_BEST),
     "fast": _chain_preset(MOVI_A_FAST, symmetrize=False),

@@ -3,10 +3,11 @@ claim to reproduce: a typo or a drifted value would otherwise show only hours in
 import pytest
 
 from gns.checkpoint import read_checkpoint
-from gns.config import build_config, config_differences
+from gns.config import build_config, config_differences, config_to_dict
 from gns.evaluate import checkpoint_of
 from pipelines.common import CONFIGS, SETTINGS_FREE
-from pipelines.movi_a_recipes import COMMON, MOVI_A_BEST, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_MID, stage_overrides
+from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_HEADING,
+                                     MOVI_A_MID, stage_overrides)
 
 # how a stage may differ from the file it reproduces: where it starts from (a folder of this
 # pipeline, not the author's), bf16 where it measures faster (the files: bf16 on a CPU where it did)
@@ -21,7 +22,8 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
     assert shipped["step"] == stage.steps and shipped["seed"] == stage.seed
 
 
-@pytest.mark.parametrize("chain", [MOVI_A_BEST, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_MID], ids=["best", "canonical", "fast", "mid"])
+@pytest.mark.parametrize("chain", [MOVI_A_BEST, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_MID, MOVI_A_HEADING],
+                         ids=["best", "canonical", "fast", "mid", "heading"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
@@ -30,6 +32,16 @@ def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
         assert (cfg.train.init_from or None) == previous
         previous = f"run_{stage.name}/latest.pt"
     assert all(kv in stage_overrides(chain[0], None, 0) for kv in COMMON)
+
+
+def test_the_heading_chain_is_the_budget_chain_with_the_heading_on_from_the_first_step():
+    """The A/B of docs/accuracy.md (session 18) compares it with `budget`: only the heading may differ."""
+    assert len(MOVI_A_HEADING) == len(MOVI_A_BUDGET)
+    for heading, budget in zip(MOVI_A_HEADING, MOVI_A_BUDGET):
+        a = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(heading, None, 0))
+        b = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(budget, None, 0))
+        assert a.features.canonical_heading and not b.features.canonical_heading
+        assert config_differences(config_to_dict(b), a, ignore=("features.canonical_heading",)) == []
 
 
 def test_fresh_may_delete_the_run_folder_of_every_chain_stage():
