@@ -87,6 +87,12 @@ class FeatureConfig:
     # sees the floor only at its own vertices: the 16-vertex sphere's hull stops up to 13% of the
     # size short of the full one PyBullet collides (docs/speed.md, session 15)
     floor_support: bool = False
+    # each object described in the one of its mesh's equivalent body frames (gns.graph.mesh_symmetries:
+    # 24 for a cube) in which its pose is closest to the identity, chosen at every step from its
+    # last frame (after the canonical heading's turn, with it): the network sees 1/24 of a cube's
+    # orientations, and its answer cannot hang on which frame labels the object (the rest
+    # features otherwise do; averaging over all frames, --body-frames, costs 24 calls)
+    canonical_body_frame: bool = False
 
 
 @dataclass

@@ -43,7 +43,7 @@ import torch
 from datagen.shards import Dataset, DataError, Scene
 from gns.features import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
-from gns.graph import EdgeSet, GraphBatch, MeshLibrary, ragged_arange, graph_sizes
+from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_sizes, mapped_symmetries, ragged_arange
 from gns.spec import Floor, ModelSpec, SpecError
 
 
@@ -88,6 +88,8 @@ class Batch:
         graph = GraphBatch(EdgeSet(new_node[g.mesh_edges.senders[edges]], new_node[g.mesh_edges.receivers[edges]]),
                       g.rest[keep], g.material[keep], new_graph[g.node_graph[keep]], int(keep_graph.sum()),
                       g.graph_scene[keep_graph] - lo, None, faces,
+                      symmetries=None if g.symmetries is None else g.symmetries[keep_graph],
+                      num_symmetries=None if g.num_symmetries is None else g.num_symmetries[keep_graph],
                       full_rest=None if g.full_rest is None else g.full_rest[keep_graph])
         future = None if self.future is None else self.future[keep]
         return Batch(self.history[keep], self.target[keep], graph, future)
@@ -214,7 +216,8 @@ class ObjectTracks:
             pos = pos * m[:, None]
             rot = rot * m[:, None, :, None] * m[:, None, None, :]
             graph = replace(graph, rest=graph.rest * m[graph.node_graph],
-                            full_rest=None if graph.full_rest is None else graph.full_rest * m[:, None])
+                            full_rest=None if graph.full_rest is None else graph.full_rest * m[:, None],
+                            symmetries=mapped_symmetries(graph, torch.diag_embed(m)))
         x = vertices_from_poses(graph, pos, rot)                  # (N, window, 3)
         if vertex_noise > 0:
             size = graph_sizes(graph)[graph.node_graph]           # (N,)

@@ -140,6 +140,16 @@ def padded_groups(groups: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]
     return torch.from_numpy(padded), torch.tensor(counts)
 
 
+def mapped_symmetries(graph: "GraphBatch", g: torch.Tensor) -> torch.Tensor | None:
+    """The symmetry groups of graph's rest shapes once rest is mapped r -> g r (g (3, 3) for all
+    graphs or (G, 3, 3) per graph, orthogonal): g S g^T. None if graph carries none."""
+    if graph.symmetries is None:
+        return None
+    g = g.to(graph.symmetries)
+    g = g[:, None] if g.dim() == 3 else g
+    return g @ graph.symmetries @ g.transpose(-1, -2)
+
+
 def with_symmetries(graph: "GraphBatch") -> "GraphBatch":
     """A copy of graph carrying each graph's body-frame symmetry group (mesh_symmetries of its
     rest shape), for predictions averaged over them (LearnedSimulator.body_frames)."""
@@ -243,8 +253,10 @@ class MeshLibrary:
 
         material = torch.stack([friction, restitution], dim=1).to(torch.float32)[node_graph]
         full = None if self._full is None else self._full[shape_ids] * scale.to(torch.float64)[:, None, None]
+        ids = shape_ids.cpu()
         return GraphBatch(EdgeSet(edges[:, 0].contiguous(), edges[:, 1].contiguous()), rest, material,
-                          node_graph, len(shape_ids), graph_scene, faces=faces, full_rest=full)
+                          node_graph, len(shape_ids), graph_scene, faces=faces, full_rest=full,
+                          symmetries=self._symmetries[ids].to(rest), num_symmetries=self.num_symmetries[ids].to(rest.device))
 
 
 def candidate_pairs(graph: GraphBatch) -> tuple[torch.Tensor, torch.Tensor]:

@@ -18,8 +18,8 @@ from gns.features import (HISTORY, FeatureLayout, Normalizer, floor_support, mak
                           raw_edge_features, raw_node_features)
 from gns.config import INERTIAL_PRIORS
 from gns.contacts import surface_edges
-from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collision_edges, per_graph, select_graphs, stack_graphs,
-                       with_symmetries)
+from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collision_edges, mapped_symmetries, per_graph,
+                       select_graphs, stack_graphs, with_symmetries)
 from gns.network import EncodeProcessDecode
 from gns.precision import resolve_autocast
 from gns.spec import ModelSpec
@@ -125,6 +125,26 @@ def _packed_fit(a: torch.Tensor, b: torch.Tensor, node_graph: torch.Tensor, num_
     h = torch.zeros(num_graphs, 3, 3, dtype=a.dtype, device=a.device).index_add_(
         0, node_graph, p[:, :, None] * q[:, None, :])
     return ca, cb, p, h
+
+
+def canonical_body_frame(x: torch.Tensor, graph: GraphBatch) -> GraphBatch:
+    """graph with each object's rest shape described in the equivalent body frame (one of its
+    symmetries S: r -> S r, pose R -> R S^T) whose pose at positions x (N, 3) is closest to the
+    identity (largest trace of R S^T; ties to the first). The world vertices are unchanged, so
+    this only relabels what the rest features say; the choice is a discrete one, made without
+    gradient (features.canonical_body_frame)."""
+    if graph.symmetries is None:
+        graph = with_symmetries(graph)
+    syms, counts = graph.symmetries, graph.num_symmetries
+    with torch.no_grad():
+        rot, _, _ = shape_match_packed(x.detach(), graph.rest.detach(), graph.node_graph, graph.num_graphs)
+        score = torch.einsum("gij,gkij->gk", rot, syms.to(rot.dtype))
+        padding = torch.arange(syms.shape[1], device=score.device)[None] >= counts.to(score.device)[:, None]
+        pick = score.masked_fill(padding, -torch.inf).argmax(1)
+    s = syms[torch.arange(graph.num_graphs, device=pick.device), pick].to(graph.rest.dtype)   # (G, 3, 3)
+    # S G S^T = G: the groups stay as they are
+    return replace(graph, rest=torch.einsum("nij,nj->ni", s[graph.node_graph], graph.rest),
+                   full_rest=_mapped_full(graph, lambda full: full @ s.transpose(1, 2).to(full.dtype)))
 
 
 def _mapped_full(graph: GraphBatch, map_full) -> torch.Tensor | None:
@@ -281,6 +301,7 @@ class LearnedSimulator(nn.Module):
         self.centre_node = bool(getattr(features_cfg, "centre_node", False))
         self.canonical_heading = bool(getattr(features_cfg, "canonical_heading", False))
         self.canonical_mirror = bool(getattr(features_cfg, "canonical_mirror", False))
+        self.canonical_body_frame = bool(getattr(features_cfg, "canonical_body_frame", False))
         self.floor_support = bool(getattr(features_cfg, "floor_support", False))
         self.layout: FeatureLayout = make_layout(features_cfg, spec.floor_z, spec.materials_vary,
                                                  collisions=spec.collision_edges, gravity_step=self.gravity_step,
@@ -357,6 +378,8 @@ class LearnedSimulator(nn.Module):
         Normalisers accumulate statistics while the module is in training mode.
         """
         acc = self.training
+        if self.canonical_body_frame:
+            graph = canonical_body_frame(history[:, -1], graph)
         raw_nodes = raw_node_features(self.layout, history, graph)
         if self.floor_support:
             rot, centre, _ = shape_match_packed(history[:, -1], graph.rest, graph.node_graph, graph.num_graphs)
@@ -405,7 +428,8 @@ class LearnedSimulator(nn.Module):
             mirror = torch.stack([one, mirror_signs(turned, scene, count)[scene], one], 1)   # (N, 3): 1, +-1, 1
             turn, turned = turn * mirror[:, :, None], turned * mirror[:, None, :]
             graph = replace(graph, rest=graph.rest * mirror.to(graph.rest.dtype), full_rest=_mapped_full(
-                graph, lambda full: full * per_graph(mirror.to(full.dtype), graph, "amin")[:, None]))
+                graph, lambda full: full * per_graph(mirror.to(full.dtype), graph, "amin")[:, None]),
+                symmetries=mapped_symmetries(graph, torch.diag_embed(per_graph(mirror, graph, "amin"))))
         nodes, edge_sets = self._inputs(turned, graph)
         out = self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
         acc = torch.einsum("nji,nj->ni", turn, self.target_normalizer.inverse(out.to(history.dtype)))
@@ -480,7 +504,8 @@ class LearnedSimulator(nn.Module):
                 # network sees a proper rotation, as in training, and the average is exactly equivariant
                 inputs.append(history @ g.T)
                 graphs.append(replace(graph, rest=rest @ g.T, collision_edges=None,
-                                      full_rest=None if full is None else full @ g.T))
+                                      full_rest=None if full is None else full @ g.T,
+                                      symmetries=mapped_symmetries(graph, g)))
                 maps.append((g, weight))
         # images share network calls: per node, a call on 6400 nodes costs ~0.6x one on 1600;
         # calls stay under IMAGE_NODES nodes (24 body frames x 4 mirrors of a batch would not fit)
