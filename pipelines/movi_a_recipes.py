@@ -75,10 +75,13 @@ MOVI_A_CANONICAL = MOVI_A_BUDGET + (
     Stage("canonical", 15_000, CANONICAL_STAGE, 3, "gns_movi_a_canonical"),   # 48 min: 17.0% / 25.8 deg
 )
 
-# session 18: the budget chain with the canonical heading from the first step (session 17 measured its
-# first stage at 18.3% / 27.7 deg, where the budget chain ends; scores in docs/accuracy.md, session 18)
+# session 18: the budget chain with the canonical heading from the first step; its second stage ships as
+# gns_movi_a_heading (77 + 57 minutes on one core beside another training: 17.5% / 26.7 deg symmetrized,
+# where the three-stage budget model ends at 18.4 / 27.7); the third is not measured yet
 HEADING = ("features.canonical_heading=true",)
-MOVI_A_HEADING = tuple(Stage(f"heading_{s.name}", s.steps, (*s.settings, *HEADING), s.seed) for s in MOVI_A_BUDGET)
+MOVI_A_HEADING = tuple(Stage(f"heading_{s.name}", s.steps, (*s.settings, *HEADING), s.seed,
+                             "gns_movi_a_heading" if s.name == "pushforward" else "")
+                       for s in MOVI_A_BUDGET)
 
 # session 14: gns_movi_a_k3 fine-tuned with the canonical heading (the canonical stage's schedule,
 # K = 3): the most accurate model so far, ~9 core-hours of lineage (docs/accuracy.md, session 15);

@@ -67,14 +67,16 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     first step, the budget chain's schedule: 24.5% / 32.0 deg at one call, 1.1x PyBullet),
     gns_movi_a_k3_canonical (k3 + 15k three-step steps at K = 3 seeing each scene at its canonical
     heading: 16.0% / 23.3 deg at one call, 15.3 / 22.8 symmetrized), gns_movi_a_mid (canonical + 15k
-    steps on 32 network vertices: 21.3% / 29.8 deg at one call, 0.53x PyBullet) and gns_diagnostic_45 (cube
+    steps on 32 network vertices: 21.3% / 29.8 deg at one call, 0.53x PyBullet), gns_movi_a_heading (the
+    budget chain's first two stages with the canonical heading from the first step: 17.5% / 26.7 deg
+    symmetrized) and gns_diagnostic_45 (cube
     drops, 8 of 8 with body-frame rollouts) load by name and roll out fresh scenes of what they
     were trained on, far better than a broken model would."""
     from datagen.cli import main as datagen
     movi_a = ("gns_movi_a_long", "gns_movi_a_long2", "gns_movi_a_pf", "gns_movi_a_pf3", "gns_movi_a_coarse",
               "gns_movi_a_centre", "gns_movi_a_rigidloss", "gns_movi_a_coarse_pf3", "gns_movi_a_k3",
               "gns_movi_a_budget", "gns_movi_a_canonical", "gns_movi_a_fast", "gns_movi_a_k3_canonical",
-              "gns_movi_a_mid")
+              "gns_movi_a_mid", "gns_movi_a_heading")
     assert {*movi_a, "gns_diagnostic_45"} <= set(shipped_models())
     data = tmp_path / "movi"
     assert datagen(["toss", "--shapes", "beveled_cube,cylinder,sphere", "--scenes", "1", "--test", "6",
