@@ -17,7 +17,8 @@ Presets (measured costs on a 2-core CPU in the README):
   canonical    budget, then 15000 steps seeing each scene at its canonical heading: ~3 h on
          one core; reproduces gns_movi_a_canonical (17.0% / 25.8 deg)
   heading      the budget chain with the network seeing each scene at its canonical heading
-         from the first step: ~2 h 15 min on one core (docs/accuracy.md, session 18)
+         from the first step: ~2.5 h on one core; its second stage reproduces
+         gns_movi_a_heading (17.5% / 26.7 deg; docs/accuracy.md, session 18)
   budget_pf    the first 3 stages of the best model's chain, ~2.5 hours on one core;
          reproduces gns_movi_a_pf (19.6% / 29.1 deg), the budget model before session 11
   fast   the budget chain's schedule on a coarse network mesh (16 vertices) seeing each scene at
