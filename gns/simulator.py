@@ -127,24 +127,25 @@ def _packed_fit(a: torch.Tensor, b: torch.Tensor, node_graph: torch.Tensor, num_
     return ca, cb, p, h
 
 
-def canonical_body_frame(x: torch.Tensor, graph: GraphBatch) -> GraphBatch:
+def canonical_body_frame(x: torch.Tensor, graph: GraphBatch, rot: torch.Tensor) -> tuple[GraphBatch, torch.Tensor]:
     """graph with each object's rest shape described in the equivalent body frame (one of its
-    symmetries S: r -> S r, pose R -> R S^T) whose pose at positions x (N, 3) is closest to the
-    identity (largest trace of R S^T; ties to the first). The world vertices are unchanged, so
-    this only relabels what the rest features say; the choice is a discrete one, made without
-    gradient (features.canonical_body_frame)."""
+    symmetries S: r -> S r, pose R -> R S^T) whose pose is closest to the identity (largest trace
+    of R S^T; ties to the first), and those poses (G, 3, 3). rot: each object's pose R at
+    positions x (N, 3) (shape_match_packed). The world vertices are unchanged, so this only
+    relabels what the rest features say; the choice is a discrete one, made without gradient
+    (features.canonical_body_frame)."""
     if graph.symmetries is None:
         graph = with_symmetries(graph)
     syms, counts = graph.symmetries, graph.num_symmetries
     with torch.no_grad():
-        rot, _, _ = shape_match_packed(x.detach(), graph.rest.detach(), graph.node_graph, graph.num_graphs)
-        score = torch.einsum("gij,gkij->gk", rot, syms.to(rot.dtype))
+        score = torch.einsum("gij,gkij->gk", rot.detach(), syms.to(rot.dtype))
         padding = torch.arange(syms.shape[1], device=score.device)[None] >= counts.to(score.device)[:, None]
         pick = score.masked_fill(padding, -torch.inf).argmax(1)
     s = syms[torch.arange(graph.num_graphs, device=pick.device), pick].to(graph.rest.dtype)   # (G, 3, 3)
     # S G S^T = G: the groups stay as they are
-    return replace(graph, rest=torch.einsum("nij,nj->ni", s[graph.node_graph], graph.rest),
-                   full_rest=_mapped_full(graph, lambda full: full @ s.transpose(1, 2).to(full.dtype)))
+    graph = replace(graph, rest=torch.einsum("nij,nj->ni", s[graph.node_graph], graph.rest),
+                    full_rest=_mapped_full(graph, lambda full: full @ s.transpose(1, 2).to(full.dtype)))
+    return graph, rot @ s.transpose(1, 2).to(rot.dtype)
 
 
 def _mapped_full(graph: GraphBatch, map_full) -> torch.Tensor | None:
@@ -378,11 +379,13 @@ class LearnedSimulator(nn.Module):
         Normalisers accumulate statistics while the module is in training mode.
         """
         acc = self.training
-        if self.canonical_body_frame:
-            graph = canonical_body_frame(history[:, -1], graph)
+        if self.floor_support or self.canonical_body_frame:
+            # one shape match for both: relabelling the body frame turns the pose, not the centre
+            rot, centre, _ = shape_match_packed(history[:, -1], graph.rest, graph.node_graph, graph.num_graphs)
+            if self.canonical_body_frame:
+                graph, rot = canonical_body_frame(history[:, -1], graph, rot)
         raw_nodes = raw_node_features(self.layout, history, graph)
         if self.floor_support:
-            rot, centre, _ = shape_match_packed(history[:, -1], graph.rest, graph.node_graph, graph.num_graphs)
             raw_nodes["support"] = floor_support(self.layout, history[:, -1], graph, rot, centre).to(torch.float32)
         nodes = torch.cat([self.node_normalizers[n](raw_nodes[n], acc) for n, _ in self.layout.node_groups], -1)
         if self.layout.absolute:
@@ -427,9 +430,10 @@ class LearnedSimulator(nn.Module):
             one = torch.ones_like(scene, dtype=history.dtype)
             mirror = torch.stack([one, mirror_signs(turned, scene, count)[scene], one], 1)   # (N, 3): 1, +-1, 1
             turn, turned = turn * mirror[:, :, None], turned * mirror[:, None, :]
+            per_object = per_graph(mirror, graph, "amin")                                   # (G, 3)
             graph = replace(graph, rest=graph.rest * mirror.to(graph.rest.dtype), full_rest=_mapped_full(
-                graph, lambda full: full * per_graph(mirror.to(full.dtype), graph, "amin")[:, None]),
-                symmetries=mapped_symmetries(graph, torch.diag_embed(per_graph(mirror, graph, "amin"))))
+                graph, lambda full: full * per_object.to(full.dtype)[:, None]),
+                symmetries=mapped_symmetries(graph, torch.diag_embed(per_object)))
         nodes, edge_sets = self._inputs(turned, graph)
         out = self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
         acc = torch.einsum("nji,nj->ni", turn, self.target_normalizer.inverse(out.to(history.dtype)))

@@ -78,10 +78,9 @@ def toss_out(model):
 @pytest.mark.filterwarnings("ignore:outside training")
 def test_a_model_trained_coarse_rolls_out_coarse_and_keeps_the_full_mesh(tmp_path):
     data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
-    small = SMALL
-    train(data, tmp_path / "full", tiny(*small), log=quiet)
+    train(data, tmp_path / "full", tiny(*SMALL), log=quiet)
     # fine-tuning may change the network's mesh (the weights do not depend on it) ...
-    train(data, tmp_path / "coarse", tiny(*small, "features.mesh_vertices=6",
+    train(data, tmp_path / "coarse", tiny(*SMALL, "features.mesh_vertices=6",
                                           f"train.init_from={tmp_path / 'full'}"), log=quiet)
     ckpt = read_checkpoint(tmp_path / "coarse" / "latest.pt")
     assert ckpt["config"]["features"]["mesh_vertices"] == 6
@@ -136,10 +135,9 @@ def test_a_bad_mesh_support_gap_is_one_line():
 @pytest.mark.filterwarnings("ignore:outside training")
 def test_a_fine_tune_may_give_meshes_vertices_by_gap_and_the_model_keeps_them(tmp_path):
     data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
-    small = SMALL
-    train(data, tmp_path / "six", tiny(*small, "features.mesh_vertices=6"), log=quiet)
+    train(data, tmp_path / "six", tiny(*SMALL, "features.mesh_vertices=6"), log=quiet)
     # six of a cube's corners leave its hull far short of two of them: a gap of 1% asks for all 8
-    train(data, tmp_path / "gap", tiny(*small, "features.mesh_vertices=6", "features.mesh_support_gap=0.01",
+    train(data, tmp_path / "gap", tiny(*SMALL, "features.mesh_vertices=6", "features.mesh_support_gap=0.01",
                                        f"train.init_from={tmp_path / 'six'}"), log=quiet)
     assert read_checkpoint(tmp_path / "gap" / "latest.pt")["config"]["features"]["mesh_support_gap"] == 0.01
     model = gns.load(tmp_path / "gap")

@@ -347,8 +347,9 @@ def test_a_canonical_body_frame_makes_the_answer_independent_of_which_equivalent
     turn = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     one = replace(b.graph, symmetries=b.graph.symmetries)
     x = b.graph.rest @ turn.T
-    chosen = canonical_body_frame(x, one)
+    chosen, pose = canonical_body_frame(x, one, shape_match_packed(x, one.rest, one.node_graph, one.num_graphs)[0])
     rot, _, _ = shape_match_packed(x, chosen.rest, one.node_graph, one.num_graphs)
+    assert torch.allclose(pose, rot, atol=1e-9)
     angle = torch.rad2deg(torch.acos(((rot.diagonal(dim1=1, dim2=2).sum(1) - 1) / 2).clamp(-1, 1)))
     assert torch.allclose(angle, torch.full_like(angle, 10.0), atol=1e-6)
     assert torch.allclose(rot @ chosen.rest[one.node_graph == 0].T, (b.graph.rest[one.node_graph == 0] @ turn.T).T)
