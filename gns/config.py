@@ -60,6 +60,10 @@ class FeatureConfig:
     # a node at each object's centre of mass joined to all its vertices (gns.graph.centre_spokes):
     # every vertex two message-passing steps from every other, whatever the mesh
     centre_node: bool = False
+    # with centre_node: false leaves each object's graph only its spokes, no surface edges. The
+    # graph stays 2 steps across, with 2n edges instead of 2n + ~6n: a cheaper network call for
+    # the fast end of the speed trade (docs/speed.md, session 19)
+    surface_edges: bool = True
     # a node feature: the share of the next step each vertex would spend below the floor if the
     # object flew on ballistically (0: no impact within the step, 1: already below). The time of
     # impact is a ratio of height to speed, which the network's ReLU MLPs only approximate
@@ -258,6 +262,8 @@ def validate(cfg: Config) -> None:
         (0 <= cfg.features.mesh_support_gap < 1, "features.mesh_support_gap must be in [0, 1) (a fraction of the size)"),
         (cfg.features.mesh_support_gap == 0 or cfg.features.mesh_vertices > 0,
          "features.mesh_support_gap needs features.mesh_vertices > 0 (the fewest vertices a mesh gets)"),
+        (cfg.features.surface_edges or cfg.features.centre_node,
+         "features.surface_edges=false needs features.centre_node=true (the spokes are then the only edges)"),
         (cfg.features.canonical_heading or not cfg.features.canonical_mirror,
          "features.canonical_mirror needs features.canonical_heading=true (the mirror is chosen in the turned frame)"),
         (cfg.augment.noise_std >= 0, "augment.noise_std must be >= 0"),

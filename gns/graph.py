@@ -180,15 +180,27 @@ def ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return owner, torch.arange(int(counts.sum()), device=counts.device) - starts[owner]
 
 
+def graph_settings(features_cfg) -> dict:
+    """MeshLibrary's keyword arguments for the graphs a network trained with `features_cfg` reads:
+    coarse meshes (features.mesh_vertices, mesh_support_gap), centre nodes and spokes
+    (centre_node, surface_edges), full meshes where features.floor_support needs them."""
+    get = lambda key, default: getattr(features_cfg, key, default)
+    return dict(max_vertices=int(get("mesh_vertices", 0)), centre_node=bool(get("centre_node", False)),
+                full_rest=bool(get("floor_support", False)), support_gap=float(get("mesh_support_gap", 0.0)),
+                surface_edges=bool(get("surface_edges", True)))
+
+
 class MeshLibrary:
     """The dataset's rest meshes, stored once, from which batches of graphs are packed."""
 
     def __init__(self, meshes: dict[str, tuple[np.ndarray, np.ndarray]], max_vertices: int = 0,
-                 centre_node: bool = False, full_rest: bool = False, support_gap: float = 0.0):
+                 centre_node: bool = False, full_rest: bool = False, support_gap: float = 0.0,
+                 surface_edges: bool = True):
         """max_vertices > 0: graphs of each mesh's coarse version (gns.coarse_mesh), as the
         network of a model trained with features.mesh_vertices sees them; support_gap > 0 gives
         a mesh more vertices where it needs them (features.mesh_support_gap). centre_node: each
-        graph also has a node at its centre of mass joined to every vertex (centre_spokes).
+        graph also has a node at its centre of mass joined to every vertex (centre_spokes);
+        surface_edges=False (with centre_node) keeps only those spokes.
         full_rest: packed graphs carry each object's full mesh too (GraphBatch.full_rest)."""
         self._full = None
         if full_rest:
@@ -199,8 +211,11 @@ class MeshLibrary:
         self.index = {name: i for i, name in enumerate(self.names)}
         verts = [np.asarray(meshes[n][0], np.float64) for n in self.names]
         edges = [mesh_edges(meshes[n][1]) for n in self.names]
+        if not (centre_node or surface_edges):
+            raise ValueError("a graph without surface edges needs a centre node (features.centre_node)")
         if centre_node:
-            edges = [np.concatenate([e, centre_spokes(len(v))]) for v, e in zip(verts, edges)]
+            edges = [np.concatenate([e if surface_edges else e[:0], centre_spokes(len(v))])
+                     for v, e in zip(verts, edges)]
             verts = [np.concatenate([v, np.zeros((1, 3))]) for v in verts]
         for name, v, e in zip(self.names, verts, edges):
             if len(e) and e.max() >= len(v):

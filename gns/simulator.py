@@ -18,7 +18,7 @@ from gns.features import (HISTORY, FeatureLayout, Normalizer, floor_support, mak
                           raw_edge_features, raw_node_features)
 from gns.config import INERTIAL_PRIORS
 from gns.contacts import surface_edges
-from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collision_edges, mapped_symmetries, per_graph,
+from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, graph_settings, candidate_pairs, collision_edges, mapped_symmetries, per_graph,
                        select_graphs, stack_graphs, with_symmetries)
 from gns.network import EncodeProcessDecode
 from gns.precision import resolve_autocast
@@ -300,6 +300,8 @@ class LearnedSimulator(nn.Module):
         self.mesh_vertices = int(getattr(features_cfg, "mesh_vertices", 0))
         self.mesh_support_gap = float(getattr(features_cfg, "mesh_support_gap", 0.0))
         self.centre_node = bool(getattr(features_cfg, "centre_node", False))
+        self.mesh_surface_edges = bool(getattr(features_cfg, "surface_edges", True))
+        self._graph_settings = graph_settings(features_cfg)
         self.canonical_heading = bool(getattr(features_cfg, "canonical_heading", False))
         self.canonical_mirror = bool(getattr(features_cfg, "canonical_mirror", False))
         self.canonical_body_frame = bool(getattr(features_cfg, "canonical_body_frame", False))
@@ -325,8 +327,7 @@ class LearnedSimulator(nn.Module):
         """The graphs of `meshes` as this model's network reads them: coarse meshes
         (features.mesh_vertices, features.mesh_support_gap) and centre nodes (features.centre_node)
         as trained."""
-        return MeshLibrary(meshes, self.mesh_vertices, self.centre_node, full_rest=self.floor_support,
-                           support_gap=self.mesh_support_gap)
+        return MeshLibrary(meshes, **self._graph_settings)
 
     def distribute(self, wrapper: nn.Module | None) -> None:
         """Train the network through `wrapper` (a DistributedDataParallel of self.network, which
@@ -446,9 +447,11 @@ class LearnedSimulator(nn.Module):
         network mesh and time step; ValueError names the first difference."""
         for k, m in enumerate(members, 1):
             for what, mine, theirs in (("features", self.layout, m.layout),
-                                       ("network mesh (features.mesh_vertices, mesh_support_gap, centre_node)",
-                                        (self.mesh_vertices, self.mesh_support_gap, self.centre_node),
-                                        (m.mesh_vertices, m.mesh_support_gap, m.centre_node)),
+                                       ("network mesh (features.mesh_vertices, mesh_support_gap, centre_node, "
+                                        "surface_edges)",
+                                        (self.mesh_vertices, self.mesh_support_gap, self.centre_node,
+                                         self.mesh_surface_edges),
+                                        (m.mesh_vertices, m.mesh_support_gap, m.centre_node, m.mesh_surface_edges)),
                                        ("time step and gravity", _listed(self.gravity_per_frame),
                                         _listed(m.gravity_per_frame)),
                                        ("inertial prior (model.inertial_prior)", self.inertial_prior,

@@ -33,7 +33,7 @@ from datagen.shards import Dataset, DataError
 from gns import parallel
 from gns.config import Config, ConfigError, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
-from gns.graph import GraphBatch, MeshLibrary, graph_sizes
+from gns.graph import GraphBatch, MeshLibrary, graph_settings, graph_sizes
 from gns.features import HISTORY
 from gns.simulator import LearnedSimulator, shape_match_packed
 from gns.spec import ModelSpec
@@ -367,8 +367,7 @@ def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTrack
         full = Dataset(data_dir).load("train")
         scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
     try:
-        library = MeshLibrary(dataset.meshes, cfg.features.mesh_vertices, cfg.features.centre_node,
-                              full_rest=cfg.features.floor_support, support_gap=cfg.features.mesh_support_gap)
+        library = MeshLibrary(dataset.meshes, **graph_settings(cfg.features))
     except ValueError as e:
         raise DataError(f"{data_dir}: {e}") from None
     tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)

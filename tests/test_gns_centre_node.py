@@ -100,3 +100,42 @@ def test_fine_tuning_may_repeat_the_processor_more_often_resuming_may_not(tmp_pa
     with pytest.raises(CheckpointError, match="message_passing_steps"):
         train(data, tmp_path / "l3", tiny(*small, "model.message_passing_steps=3", f"train.init_from={tmp_path / 'k1'}"),
               log=quiet)
+
+
+@pytest.mark.parametrize("shape", ["sphere", "beveled_cube"])
+def test_spokes_only_graphs_keep_the_centre_and_drop_every_surface_edge(shape):
+    mesh = get_shape(shape)
+    centred = MeshLibrary({"m": (mesh.vertices, mesh.faces)}, centre_node=True)
+    spokes = MeshLibrary({"m": (mesh.vertices, mesh.faces)}, centre_node=True, surface_edges=False)
+    args = (torch.tensor([1.4]), torch.tensor([0.4]), torch.tensor([0.3]))
+    g1, g2 = centred.pack(centred.shape_ids(["m"]), *args), spokes.pack(spokes.shape_ids(["m"]), *args)
+    n = len(mesh.vertices)
+    # the same nodes, 2 steps across, and only the 2n spokes: a fraction of the edges the network works on
+    assert g2.num_nodes == g1.num_nodes == n + 1 and _hops(g2).max() == 2
+    assert torch.equal(g2.rest, g1.rest) and torch.equal(g2.faces, g1.faces)
+    s, r = g2.mesh_edges.senders, g2.mesh_edges.receivers
+    assert s.numel() == 2 * n and bool(((s == n) ^ (r == n)).all())
+    assert g1.mesh_edges.senders.numel() > 3 * s.numel()
+    with pytest.raises(ValueError, match="centre node"):
+        MeshLibrary({"m": (mesh.vertices, mesh.faces)}, surface_edges=False)
+
+
+@pytest.mark.filterwarnings("ignore:outside training")
+def test_a_centred_model_is_fine_tuned_onto_spokes_only_and_keeps_them(tmp_path):
+    from gns.config import ConfigError
+    data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
+    small = ("train.steps=4", "valid.every=0", "features.normalizer_steps=2", "features.centre_node=true")
+    train(data, tmp_path / "centre", tiny(*small), log=quiet)
+    train(data, tmp_path / "spokes", tiny(*small, "features.surface_edges=false",
+                                          f"train.init_from={tmp_path / 'centre'}"), log=quiet)
+    assert read_checkpoint(tmp_path / "spokes" / "latest.pt")["config"]["features"]["surface_edges"] is False
+    model = gns.load(tmp_path / "spokes")
+    out = model.rollout(["cube"], [[0.0, 0.0, 2.0]], [[1.0, 0.0, 0.0, 0.0]], velocities=[[1.0, 0.0, 0.0]], steps=3)
+    assert out.vertices.shape[1] == 9 and torch.isfinite(out.positions).all()
+    with pytest.raises(CheckpointError, match="surface_edges"):
+        train(data, tmp_path / "spokes", tiny(*small, "train.steps=8"), resume=True, log=quiet)
+    with pytest.raises(ValueError, match="surface_edges"):
+        model.simulator.set_ensemble([gns.load(tmp_path / "centre").simulator])
+    # spokes need a centre: one clear line, before any training
+    with pytest.raises(ConfigError, match="surface_edges=false needs features.centre_node"):
+        train(data, tmp_path / "bad", tiny("train.steps=4", "features.surface_edges=false"), log=quiet)
