@@ -75,12 +75,12 @@ MOVI_A_CANONICAL = MOVI_A_BUDGET + (
     Stage("canonical", 15_000, CANONICAL_STAGE, 3, "gns_movi_a_canonical"),   # 48 min: 17.0% / 25.8 deg
 )
 
-# session 18: the budget chain with the canonical heading from the first step; its second stage ships as
-# gns_movi_a_heading (77 + 57 minutes on one core beside another training: 17.5% / 26.7 deg symmetrized,
-# where the three-stage budget model ends at 18.4 / 27.7); the third is not measured yet
+# sessions 18-19: the budget chain with the canonical heading from the first step (77 + 57 + 41 minutes
+# on one core beside another training); its last stage ships as gns_movi_a_heading: 16.2% / 25.6 deg
+# symmetrized, where the budget model ends at 18.4 / 27.7 (after two stages: 17.5 / 26.7, session 18)
 HEADING = ("features.canonical_heading=true",)
 MOVI_A_HEADING = tuple(Stage(f"heading_{s.name}", s.steps, (*s.settings, *HEADING), s.seed,
-                             "gns_movi_a_heading" if s.name == "pushforward" else "")
+                             "gns_movi_a_heading" if s.name == "pushforward2" else "")
                        for s in MOVI_A_BUDGET)
 
 # session 14: gns_movi_a_k3 fine-tuned with the canonical heading (the canonical stage's schedule,
@@ -111,6 +111,13 @@ MOVI_A_FAST = (
 # (docs/speed.md, session 17; one benchmark run). Rolled out at one network call.
 MOVI_A_MID = MOVI_A_CANONICAL + (
     Stage("mid32", 15_000, (*CANONICAL_STAGE, "features.mesh_vertices=32"), 6, "gns_movi_a_mid"),  # ~45 min
+)
+
+# session 19: the canonical model fine-tuned onto spokes-only graphs (features.surface_edges=false: each
+# vertex joined to the centre node only; its canonical stage's schedule): 2.3x cheaper rollouts than
+# gns_movi_a_canonical for 0.6 points and 1.3 degrees at one network call (docs/speed.md, session 19)
+MOVI_A_SPOKES = MOVI_A_CANONICAL + (
+    Stage("spokes", 15_000, (*CANONICAL_STAGE, "features.surface_edges=false"), 7, "gns_movi_a_spokes"),  # 20 min
 )
 
 # a smoke test of the chaining for the test suite: the tiny model, a few steps, two levers added

@@ -68,7 +68,7 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     gns_movi_a_k3_canonical (k3 + 15k three-step steps at K = 3 seeing each scene at its canonical
     heading: 16.0% / 23.3 deg at one call, 15.3 / 22.8 symmetrized), gns_movi_a_mid (canonical + 15k
     steps on 32 network vertices: 21.3% / 29.8 deg at one call, 0.53x PyBullet), gns_movi_a_heading (the
-    budget chain's first two stages with the canonical heading from the first step: 17.5% / 26.7 deg
+    budget chain with the canonical heading from the first step: 16.2% / 25.6 deg
     symmetrized) and gns_diagnostic_45 (cube
     drops, 8 of 8 with body-frame rollouts) load by name and roll out fresh scenes of what they
     were trained on, far better than a broken model would."""
