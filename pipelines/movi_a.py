@@ -26,6 +26,11 @@ Presets (measured costs on a 2-core CPU in the README):
          reproduces gns_movi_a_fast (24.5% / 32.0 deg at 1.1x PyBullet, docs/speed.md)
   mid    canonical + a stage on a coarser network mesh (32 vertices), rolled out at one network
          call: ~4 h on one core; reproduces gns_movi_a_mid (21.3% / 29.8 deg at 0.53x PyBullet)
+  spokes canonical + a stage on spokes-only graphs (features.surface_edges=false: every vertex
+         joined to the centre node only), one network call: ~3 h 20 min on one core; reproduces
+         gns_movi_a_spokes (18.7% / 27.4 deg at 2.6x the canonical model's throughput)
+  mid_spokes   mid + a stage on spokes-only graphs: ~4 h 15 min on one core; reproduces
+         gns_movi_a_mid_spokes (22.5% / 30.8 deg at about PyBullet's throughput)
   best   the whole chain, 9 stages, ~9 1/2 hours on one core; its 8th stage reproduces
          gns_movi_a_k3 (16.5% / 25.2 deg), its last gns_movi_a_k3_canonical (15.3% / 22.8 deg);
          stop it any time and rerun: finished stages are skipped
@@ -34,8 +39,8 @@ Presets (measured costs on a 2-core CPU in the README):
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
-The chains (budget, canonical, heading, budget_pf, best, fast, mid) are scored as their models are, with free
-flight and symmetrized rollouts (fast, mid: free flight, one network call). Their data are the README's
+The chains (budget, canonical, heading, budget_pf, best, fast, mid, spokes, mid_spokes) are scored as their
+models are, with free flight and symmetrized rollouts (fast, mid, spokes, mid_spokes: free flight, one network call). Their data are the README's
 data/movi_a_4000 (the same config and seed): a link OUT/data -> data/movi_a_4000 skips
 generating them again.
 """
@@ -51,7 +56,8 @@ from gns.metrics import format_table
 from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST,
-                                     MOVI_A_HEADING, MOVI_A_MID, TINY_CHAIN, stage_overrides)
+                                     MOVI_A_HEADING, MOVI_A_MID, MOVI_A_MID_SPOKES, MOVI_A_SPOKES, TINY_CHAIN,
+                                     stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
@@ -75,6 +81,8 @@ PRESETS = {
     "best": _chain_preset(MOVI_A_BEST),
     "fast": _chain_preset(MOVI_A_FAST, symmetrize=False),
     "mid": _chain_preset(MOVI_A_MID, symmetrize=False),
+    "spokes": _chain_preset(MOVI_A_SPOKES, symmetrize=False),
+    "mid_spokes": _chain_preset(MOVI_A_MID_SPOKES, symmetrize=False),
     "chain_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),
                        scene=["scene.frames=12"], rollout=dict(free_flight=True, symmetrize=True)),
     # MOVi-A proper has 3-10 objects a scene; these presets train with collision edges between them

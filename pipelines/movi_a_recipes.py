@@ -114,10 +114,16 @@ MOVI_A_MID = MOVI_A_CANONICAL + (
 )
 
 # session 19: the canonical model fine-tuned onto spokes-only graphs (features.surface_edges=false: each
-# vertex joined to the centre node only; its canonical stage's schedule): 2.3x cheaper rollouts than
-# gns_movi_a_canonical for 0.6 points and 1.3 degrees at one network call (docs/speed.md, session 19)
+# vertex joined to the centre node only; its canonical stage's schedule): 2.6x cheaper rollouts than
+# gns_movi_a_canonical for 0.5 points and 1.1 degrees at one network call (docs/speed.md, session 19)
 MOVI_A_SPOKES = MOVI_A_CANONICAL + (
     Stage("spokes", 15_000, (*CANONICAL_STAGE, "features.surface_edges=false"), 7, "gns_movi_a_spokes"),  # 20 min
+)
+# and gns_movi_a_mid the same way: about PyBullet's throughput at 22.5% / 30.8 deg (gns_movi_a_mid: 21.3 /
+# 29.8 at half of it)
+MOVI_A_MID_SPOKES = MOVI_A_MID + (
+    Stage("mid32_spokes", 15_000, (*CANONICAL_STAGE, "features.mesh_vertices=32", "features.surface_edges=false"), 8,
+          "gns_movi_a_mid_spokes"),                                            # 15 min
 )
 
 # a smoke test of the chaining for the test suite: the tiny model, a few steps, two levers added
