@@ -83,6 +83,12 @@ MOVI_A_HEADING = tuple(Stage(f"heading_{s.name}", s.steps, (*s.settings, *HEADIN
                              "gns_movi_a_heading" if s.name == "pushforward2" else "")
                        for s in MOVI_A_BUDGET)
 
+# session 19: the heading chain plus a fourth stage with the canonical fine-tune's schedule (32 minutes on one
+# core beside another training; 3 h 25 min in all): 15.6% / 24.9 deg symmetrized, 16.9 / 25.5 at one call
+MOVI_A_HEADING4 = MOVI_A_HEADING + (
+    Stage("heading_canonical", 15_000, CANONICAL_STAGE, 3, "gns_movi_a_heading4"),
+)
+
 # session 14: gns_movi_a_k3 fine-tuned with the canonical heading (the canonical stage's schedule,
 # K = 3): the most accurate model so far, ~9 core-hours of lineage (docs/accuracy.md, session 15);
 # score on 400 test scenes, free flight: 16.0% / 23.3 deg at one call, 15.3 / 22.8 symmetrized
