@@ -18,8 +18,8 @@ from gns.features import (HISTORY, FeatureLayout, Normalizer, floor_support, mak
                           raw_edge_features, raw_node_features)
 from gns.config import INERTIAL_PRIORS
 from gns.contacts import surface_edges
-from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, graph_settings, candidate_pairs, collision_edges, mapped_symmetries, per_graph,
-                       select_graphs, stack_graphs, with_symmetries)
+from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collision_edges, graph_settings,
+                       mapped_symmetries, per_graph, select_graphs, stack_graphs, with_symmetries)
 from gns.network import EncodeProcessDecode
 from gns.precision import resolve_autocast
 from gns.spec import ModelSpec
@@ -300,7 +300,6 @@ class LearnedSimulator(nn.Module):
         self.mesh_vertices = int(getattr(features_cfg, "mesh_vertices", 0))
         self.mesh_support_gap = float(getattr(features_cfg, "mesh_support_gap", 0.0))
         self.centre_node = bool(getattr(features_cfg, "centre_node", False))
-        self.mesh_surface_edges = bool(getattr(features_cfg, "surface_edges", True))
         self._graph_settings = graph_settings(features_cfg)
         self.canonical_heading = bool(getattr(features_cfg, "canonical_heading", False))
         self.canonical_mirror = bool(getattr(features_cfg, "canonical_mirror", False))
@@ -324,9 +323,7 @@ class LearnedSimulator(nn.Module):
             processor_repeats=model_cfg.processor_repeats, collision_edge_in=self.layout.collision_size)
 
     def mesh_library(self, meshes: dict) -> MeshLibrary:
-        """The graphs of `meshes` as this model's network reads them: coarse meshes
-        (features.mesh_vertices, features.mesh_support_gap) and centre nodes (features.centre_node)
-        as trained."""
+        """The graphs of `meshes` as this model's network reads them, as trained (graph_settings)."""
         return MeshLibrary(meshes, **self._graph_settings)
 
     def distribute(self, wrapper: nn.Module | None) -> None:
@@ -448,10 +445,7 @@ class LearnedSimulator(nn.Module):
         for k, m in enumerate(members, 1):
             for what, mine, theirs in (("features", self.layout, m.layout),
                                        ("network mesh (features.mesh_vertices, mesh_support_gap, centre_node, "
-                                        "surface_edges)",
-                                        (self.mesh_vertices, self.mesh_support_gap, self.centre_node,
-                                         self.mesh_surface_edges),
-                                        (m.mesh_vertices, m.mesh_support_gap, m.centre_node, m.mesh_surface_edges)),
+                                        "surface_edges)", self._graph_settings, m._graph_settings),
                                        ("time step and gravity", _listed(self.gravity_per_frame),
                                         _listed(m.gravity_per_frame)),
                                        ("inertial prior (model.inertial_prior)", self.inertial_prior,
