@@ -100,6 +100,14 @@ def training_ids(split: dict, n: int, seed: int) -> list[int]:
     return [i for g in pool for i in g][:n]
 
 
+def held_out_pool(split: dict, n: int, seed: int) -> list[int]:
+    """The training pool's tosses outside the n training tosses of a seed, as whole duplicate
+    groups: a group of which one copy trains is left out entirely. More held-out tosses for
+    choosing between models than the valid split alone (docs/accuracy.md, session 19)."""
+    train = set(training_ids(split, n, seed))
+    return sorted(i for g in split["pool"] if not train & set(g) for i in g)
+
+
 def overlaps(external: dict[int, np.ndarray], source: dict[int, np.ndarray]) -> dict[int, list[int]]:
     """External tosses that are (possibly rotated) copies of source tosses: {external id: [ids]}."""
     by_length: dict[int, list[int]] = {}

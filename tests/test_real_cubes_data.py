@@ -8,7 +8,8 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from datagen.contactnets import read_toss
-from pipelines.real_cubes_data import duplicate_groups, make_split, overlaps, read_tosses, same_toss, training_ids
+from pipelines.real_cubes_data import (duplicate_groups, held_out_pool, make_split, overlaps, read_tosses, same_toss,
+                                      training_ids)
 
 SRC = Path(__file__).parent / "data" / "contactnets"
 IDS = (55, 229, 274)
@@ -60,6 +61,19 @@ def test_split_keeps_copies_on_one_side_for_any_seed():
         small, large = training_ids(split, 8, 1), training_ids(split, 16, 1)
         assert large[:8] == small and len(set(large)) == 16  # nested subsets
     assert make_split(groups, 9, 5) == make_split(groups, 9, 5)  # fixed seed: the same split every time
+
+
+def test_the_held_out_pool_shares_no_toss_or_copy_with_training():
+    groups = [[i] for i in range(40)] + [[100 + k, 200 + k] for k in range(10)]
+    split = make_split(groups, n_test=9, n_valid=5, seed=3)
+    size = sum(map(len, split["pool"]))
+    for n in (8, 17, 30):
+        train, rest = set(training_ids(split, n, 0)), held_out_pool(split, n, 0)
+        assert not train & set(rest) and not set(rest) & {*split["test"], *split["valid"]}
+        # whole groups: a copy of a training toss is neither held out nor left in
+        assert all(bool(train & set(g)) != bool(set(rest) & set(g)) for g in split["pool"])
+        assert len(rest) <= size - n
+    assert held_out_pool(split, size, 0) == []
 
 
 def test_copies_are_found_in_files_and_against_an_external_folder(tmp_path, real):
