@@ -21,6 +21,8 @@ Presets (measured costs on a 2-core CPU in the README):
          gns_movi_a_heading (16.2% / 25.6 deg; docs/accuracy.md, sessions 18-19)
   heading4     heading + a stage with the canonical fine-tune's schedule: ~3 h 25 min on one
          core; reproduces gns_movi_a_heading4 (15.6% / 24.9 deg)
+  heading_k2   heading4 + a stage passing messages twice a step (K = 2): ~4 h 15 min on one
+         core; reproduces gns_movi_a_heading_k2 (15.2% / 24.0 deg)
   budget_pf    the first 3 stages of the best model's chain, ~2.5 hours on one core;
          reproduces gns_movi_a_pf (19.6% / 29.1 deg), the budget model before session 11
   fast   the budget chain's schedule on a coarse network mesh (16 vertices) seeing each scene at
@@ -41,7 +43,7 @@ Presets (measured costs on a 2-core CPU in the README):
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
-The chains (budget, canonical, heading, heading4, budget_pf, best, fast, mid, spokes, mid_spokes) are scored as their
+The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, fast, mid, spokes, mid_spokes) are scored as their
 models are, with free flight and symmetrized rollouts (fast, mid, spokes, mid_spokes: free flight, one network call). Their data are the README's
 data/movi_a_4000 (the same config and seed): a link OUT/data -> data/movi_a_4000 skips
 generating them again.
@@ -58,7 +60,8 @@ from gns.metrics import format_table
 from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST,
-                                     MOVI_A_HEADING, MOVI_A_HEADING4, MOVI_A_MID, MOVI_A_MID_SPOKES, MOVI_A_SPOKES, TINY_CHAIN,
+                                     MOVI_A_HEADING, MOVI_A_HEADING4, MOVI_A_HEADING_K2,
+                                     MOVI_A_MID, MOVI_A_MID_SPOKES, MOVI_A_SPOKES, TINY_CHAIN,
                                      stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
@@ -80,6 +83,7 @@ PRESETS = {
     "canonical": _chain_preset(MOVI_A_CANONICAL),
     "heading": _chain_preset(MOVI_A_HEADING),
     "heading4": _chain_preset(MOVI_A_HEADING4),
+    "heading_k2": _chain_preset(MOVI_A_HEADING_K2),
     "budget_pf": _chain_preset(MOVI_A_CHAIN[:3]),
     "best": _chain_preset(MOVI_A_BEST),
     "fast": _chain_preset(MOVI_A_FAST, symmetrize=False),

@@ -89,6 +89,13 @@ MOVI_A_HEADING4 = MOVI_A_HEADING + (
     Stage("heading_canonical", 15_000, CANONICAL_STAGE, 3, "gns_movi_a_heading4"),
 )
 
+# and the best chain's K = 2 stage on top (45 minutes; ~4 h 15 min in all): 15.2% / 24.0 deg symmetrized,
+# 16.5 / 24.9 at one call; the most accurate in position so far (docs/accuracy.md, session 19)
+MOVI_A_HEADING_K2 = MOVI_A_HEADING4 + (
+    Stage("heading_k2", 12_500, ("train.lr_init=2e-4", "train.lr_decay_steps=10000", *PUSHFORWARD_3, *CENTRE, *RIGID,
+                                 *HEADING, "model.processor_repeats=2"), 11, "gns_movi_a_heading_k2"),
+)
+
 # session 14: gns_movi_a_k3 fine-tuned with the canonical heading (the canonical stage's schedule,
 # K = 3): the most accurate model so far, ~9 core-hours of lineage (docs/accuracy.md, session 15);
 # score on 400 test scenes, free flight: 16.0% / 23.3 deg at one call, 15.3 / 22.8 symmetrized

@@ -7,14 +7,15 @@ from gns.config import build_config, config_differences, config_to_dict
 from gns.evaluate import checkpoint_of
 from pipelines.common import CONFIGS, SETTINGS_FREE
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_HEADING,
-                                     MOVI_A_HEADING4, MOVI_A_MID, MOVI_A_MID_SPOKES, MOVI_A_SPOKES, stage_overrides)
+                                     MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPOKES, MOVI_A_SPOKES,
+                                     stage_overrides)
 
 # how a stage may differ from the file it reproduces: where it starts from (a folder of this
 # pipeline, not the author's), bf16 where it measures faster (the files: bf16 on a CPU where it did)
 FREE = SETTINGS_FREE + ("train.init_from", "train.autocast")
 
 
-@pytest.mark.parametrize("stage", [s for s in MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST + MOVI_A_HEADING4
+@pytest.mark.parametrize("stage", [s for s in MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST + MOVI_A_HEADING_K2
                                    if s.ships_as], ids=lambda s: s.name)
 def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
     shipped = read_checkpoint(checkpoint_of(stage.ships_as))
@@ -24,8 +25,9 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
 
 
 @pytest.mark.parametrize("chain", [MOVI_A_BEST, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_MID, MOVI_A_HEADING,
-                                   MOVI_A_SPOKES, MOVI_A_MID_SPOKES, MOVI_A_HEADING4],
-                         ids=["best", "canonical", "fast", "mid", "heading", "spokes", "mid_spokes", "heading4"])
+                                   MOVI_A_SPOKES, MOVI_A_MID_SPOKES, MOVI_A_HEADING4, MOVI_A_HEADING_K2],
+                         ids=["best", "canonical", "fast", "mid", "heading", "spokes", "mid_spokes", "heading4",
+                              "heading_k2"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
