@@ -297,9 +297,6 @@ class LearnedSimulator(nn.Module):
         if self.inertial_prior not in INERTIAL_PRIORS:
             raise ValueError(f"model.inertial_prior must be one of {INERTIAL_PRIORS}, not {self.inertial_prior!r}")
         # the graphs this model reads: self.mesh_library(meshes)
-        self.mesh_vertices = int(getattr(features_cfg, "mesh_vertices", 0))
-        self.mesh_support_gap = float(getattr(features_cfg, "mesh_support_gap", 0.0))
-        self.centre_node = bool(getattr(features_cfg, "centre_node", False))
         self._graph_settings = graph_settings(features_cfg)
         self.canonical_heading = bool(getattr(features_cfg, "canonical_heading", False))
         self.canonical_mirror = bool(getattr(features_cfg, "canonical_mirror", False))
@@ -321,6 +318,14 @@ class LearnedSimulator(nn.Module):
             hidden=model_cfg.hidden_size, hidden_layers=model_cfg.hidden_layers,
             message_passing_steps=model_cfg.message_passing_steps,
             processor_repeats=model_cfg.processor_repeats, collision_edge_in=self.layout.collision_size)
+
+    @property
+    def mesh_vertices(self) -> int:
+        return self._graph_settings["max_vertices"]
+
+    @property
+    def centre_node(self) -> bool:
+        return self._graph_settings["centre_node"]
 
     def mesh_library(self, meshes: dict) -> MeshLibrary:
         """The graphs of `meshes` as this model's network reads them, as trained (graph_settings)."""

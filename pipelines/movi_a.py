@@ -43,10 +43,10 @@ Presets (measured costs on a 2-core CPU in the README):
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
-The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, fast, mid, spokes, mid_spokes) are scored as their
-models are, with free flight and symmetrized rollouts (fast, mid, spokes, mid_spokes: free flight, one network call). Their data are the README's
-data/movi_a_4000 (the same config and seed): a link OUT/data -> data/movi_a_4000 skips
-generating them again.
+The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, fast, mid, spokes,
+mid_spokes) are scored as their models are, with free flight and symmetrized rollouts (fast, mid,
+spokes, mid_spokes: free flight, one network call). Their data are the README's data/movi_a_4000
+(the same config and seed): a link OUT/data -> data/movi_a_4000 skips generating them again.
 """
 from __future__ import annotations
 
@@ -60,9 +60,8 @@ from gns.metrics import format_table
 from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST,
-                                     MOVI_A_HEADING, MOVI_A_HEADING4, MOVI_A_HEADING_K2,
-                                     MOVI_A_MID, MOVI_A_MID_SPOKES, MOVI_A_SPOKES, TINY_CHAIN,
-                                     stage_overrides)
+                                     MOVI_A_HEADING, MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPOKES,
+                                     MOVI_A_SPOKES, TINY_CHAIN, stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"

@@ -15,8 +15,10 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
 FREE = SETTINGS_FREE + ("train.init_from", "train.autocast")
 
 
-@pytest.mark.parametrize("stage", [s for s in MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST + MOVI_A_HEADING_K2
-                                   if s.ships_as], ids=lambda s: s.name)
+SHIPPING = MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST + MOVI_A_HEADING_K2
+
+
+@pytest.mark.parametrize("stage", [s for s in SHIPPING if s.ships_as], ids=lambda s: s.name)
 def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
     shipped = read_checkpoint(checkpoint_of(stage.ships_as))
     cfg = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(stage, "x.pt", 0))

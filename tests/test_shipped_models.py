@@ -32,8 +32,7 @@ def test_the_256_toss_models_roll_out_real_tosses_within_their_measured_error(tm
     # These 3 tosses are among the model's 256 training tosses (the only real ones in the repo),
     # so this checks the shipped file works as trained, not held-out accuracy (8.1% / 7.5 deg and,
     # with the rigid loss, 7.6% / 7.2 deg, with the floor feature too 7.1 / 7.1, on the 96 test
-    # tosses, docs/accuracy.md); a broken or
-    # mismatched model is far off either way.
+    # tosses, docs/accuracy.md); a broken or mismatched model is far off either way.
     assert results["position_error_pct"] < 30 and results["rotation_error_deg"] < 30
     assert results["penetration_pct"] < 5
 
@@ -70,19 +69,19 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     first step, the budget chain's schedule: 24.5% / 32.0 deg at one call, 1.1x PyBullet),
     gns_movi_a_k3_canonical (k3 + 15k three-step steps at K = 3 seeing each scene at its canonical
     heading: 16.0% / 23.3 deg at one call, 15.3 / 22.8 symmetrized), gns_movi_a_mid (canonical + 15k
-    steps on 32 network vertices: 21.3% / 29.8 deg at one call, 0.53x PyBullet), gns_movi_a_heading (the
-    budget chain with the canonical heading from the first step: 16.2% / 25.6 deg
-    symmetrized; gns_movi_a_heading4 with a fourth stage: 15.6 / 24.9; gns_movi_a_heading_k2 with a
-    fifth at K = 2: 15.2 / 24.0), gns_movi_a_spokes and gns_movi_a_mid_spokes (canonical and mid + 15k steps on
-    spokes-only graphs: 18.8% / 27.5 and 22.5 / 30.8 deg at one call) and gns_diagnostic_45 (cube
+    steps on 32 network vertices: 21.3% / 29.8 deg at one call, 0.53x PyBullet), gns_movi_a_heading
+    (the budget chain with the canonical heading from the first step: 16.2% / 25.6 deg symmetrized;
+    gns_movi_a_heading4 with a fourth stage: 15.6 / 24.9; gns_movi_a_heading_k2 with a fifth at
+    K = 2: 15.2 / 24.0), gns_movi_a_spokes and gns_movi_a_mid_spokes (canonical and mid + 15k steps
+    on spokes-only graphs: 18.7% / 27.4 and 22.5 / 30.8 deg at one call) and gns_diagnostic_45 (cube
     drops, 8 of 8 with body-frame rollouts) load by name and roll out fresh scenes of what they
     were trained on, far better than a broken model would."""
     from datagen.cli import main as datagen
     movi_a = ("gns_movi_a_long", "gns_movi_a_long2", "gns_movi_a_pf", "gns_movi_a_pf3", "gns_movi_a_coarse",
               "gns_movi_a_centre", "gns_movi_a_rigidloss", "gns_movi_a_coarse_pf3", "gns_movi_a_k3",
               "gns_movi_a_budget", "gns_movi_a_canonical", "gns_movi_a_fast", "gns_movi_a_k3_canonical",
-              "gns_movi_a_mid", "gns_movi_a_heading", "gns_movi_a_spokes", "gns_movi_a_mid_spokes", "gns_movi_a_heading4",
-              "gns_movi_a_heading_k2")
+              "gns_movi_a_mid", "gns_movi_a_heading", "gns_movi_a_heading4", "gns_movi_a_heading_k2",
+              "gns_movi_a_spokes", "gns_movi_a_mid_spokes")
     assert {*movi_a, "gns_diagnostic_45"} <= set(shipped_models())
     data = tmp_path / "movi"
     assert datagen(["toss", "--shapes", "beveled_cube,cylinder,sphere", "--scenes", "1", "--test", "6",
