@@ -139,6 +139,16 @@ MOVI_A_MID_SPOKES = MOVI_A_MID + (
           "gns_movi_a_mid_spokes"),                                            # 15 min
 )
 
+# session 20: the heading chain's four stages (MOVI_A_HEADING4) on spokes-only graphs from the first step
+# (features.surface_edges=false: training steps ~2x cheaper, rollouts ~2.5x), on the full network mesh and
+# on 32 network vertices a mesh (the mid models' graph, trained from the start instead of fine-tuned onto)
+SPOKES = ("features.surface_edges=false",)
+MOVI_A_SPOKES_CHAIN = tuple(Stage(f"spokes_{s.name}", s.steps, (*s.settings, *SPOKES), s.seed)
+                            for s in MOVI_A_HEADING4)
+MOVI_A_MID_SPOKES_CHAIN = tuple(Stage(f"mid_spokes_{s.name}", s.steps,
+                                      (*s.settings, "features.mesh_vertices=32", *SPOKES), s.seed)
+                                for s in MOVI_A_HEADING4)
+
 # a smoke test of the chaining for the test suite: the tiny model, a few steps, two levers added
 TINY_CHAIN = (
     Stage("a", 20, (), 0),

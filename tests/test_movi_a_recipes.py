@@ -7,8 +7,8 @@ from gns.config import build_config, config_differences, config_to_dict
 from gns.evaluate import checkpoint_of
 from pipelines.common import CONFIGS, SETTINGS_FREE
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_HEADING,
-                                     MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPOKES, MOVI_A_SPOKES,
-                                     stage_overrides)
+                                     MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPOKES,
+                                     MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, stage_overrides)
 
 # how a stage may differ from the file it reproduces: where it starts from (a folder of this
 # pipeline, not the author's), bf16 where it measures faster (the files: bf16 on a CPU where it did)
@@ -27,9 +27,10 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
 
 
 @pytest.mark.parametrize("chain", [MOVI_A_BEST, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_MID, MOVI_A_HEADING,
-                                   MOVI_A_SPOKES, MOVI_A_MID_SPOKES, MOVI_A_HEADING4, MOVI_A_HEADING_K2],
+                                   MOVI_A_SPOKES, MOVI_A_MID_SPOKES, MOVI_A_HEADING4, MOVI_A_HEADING_K2,
+                                   MOVI_A_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN],
                          ids=["best", "canonical", "fast", "mid", "heading", "spokes", "mid_spokes", "heading4",
-                              "heading_k2"])
+                              "heading_k2", "spokes_chain", "mid_spokes_chain"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
@@ -40,14 +41,19 @@ def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     assert all(kv in stage_overrides(chain[0], None, 0) for kv in COMMON)
 
 
-def test_the_heading_chain_is_the_budget_chain_with_the_heading_on_from_the_first_step():
-    """The A/B of docs/accuracy.md (session 18) compares it with `budget`: only the heading may differ."""
-    assert len(MOVI_A_HEADING) == len(MOVI_A_BUDGET)
-    for heading, budget in zip(MOVI_A_HEADING, MOVI_A_BUDGET):
-        a = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(heading, None, 0))
-        b = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(budget, None, 0))
-        assert a.features.canonical_heading and not b.features.canonical_heading
-        assert config_differences(config_to_dict(b), a, ignore=("features.canonical_heading",)) == []
+@pytest.mark.parametrize("chain, control, differ", [
+    (MOVI_A_HEADING, MOVI_A_BUDGET, ("features.canonical_heading",)),
+    (MOVI_A_SPOKES_CHAIN, MOVI_A_HEADING4, ("features.surface_edges",)),
+    (MOVI_A_MID_SPOKES_CHAIN, MOVI_A_HEADING4, ("features.surface_edges", "features.mesh_vertices")),
+], ids=["heading", "spokes_chain", "mid_spokes_chain"])
+def test_a_chain_compared_with_its_control_differs_only_in_its_lever(chain, control, differ):
+    """The A/Bs of docs/accuracy.md compare these chains stage by stage (the heading chain with
+    `budget`, session 18; the spokes chains with `heading4`, session 20): only the lever may differ."""
+    assert len(chain) == len(control)
+    for stage, base in zip(chain, control):
+        a = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(stage, None, 0))
+        b = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(base, None, 0))
+        assert {d.split()[0] for d in config_differences(config_to_dict(b), a)} == set(differ)
 
 
 def test_fresh_may_delete_the_run_folder_of_every_chain_stage():
