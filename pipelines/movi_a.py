@@ -60,9 +60,10 @@ from gns.metrics import format_table
 from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST,
-                                     MOVI_A_FAST_SPOKES_CHAIN, MOVI_A_HEADING, MOVI_A_HEADING4, MOVI_A_HEADING_K2,
-                                     MOVI_A_MID, MOVI_A_MID_SPOKES, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES,
-                                     MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_K2, TINY_CHAIN, stage_overrides)
+                                     MOVI_A_HEADING, MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPOKES,
+                                     MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_K2,
+                                     TINY_CHAIN,
+                                     stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
@@ -93,7 +94,6 @@ PRESETS = {
     "spokes_chain": _chain_preset(MOVI_A_SPOKES_CHAIN, symmetrize=False),
     "mid_spokes_chain": _chain_preset(MOVI_A_MID_SPOKES_CHAIN, symmetrize=False),
     "spokes_k2": _chain_preset(MOVI_A_SPOKES_K2, symmetrize=False),
-    "fast_spokes_chain": _chain_preset(MOVI_A_FAST_SPOKES_CHAIN, symmetrize=False),
     "chain_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),
                        scene=["scene.frames=12"], rollout=dict(free_flight=True, symmetrize=True)),
     # MOVi-A proper has 3-10 objects a scene; these presets train with collision edges between them

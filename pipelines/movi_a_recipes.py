@@ -148,10 +148,6 @@ MOVI_A_SPOKES_CHAIN = tuple(Stage(f"spokes_{s.name}", s.steps, (*s.settings, *SP
 MOVI_A_MID_SPOKES_CHAIN = tuple(Stage(f"mid_spokes_{s.name}", s.steps,
                                       (*s.settings, "features.mesh_vertices=32", *SPOKES), s.seed)
                                 for s in MOVI_A_HEADING4)
-# and on 16 (the fast model's graph, with a centre node this time)
-MOVI_A_FAST_SPOKES_CHAIN = tuple(Stage(f"fast_spokes_{s.name}", s.steps,
-                                       (*s.settings, "features.mesh_vertices=16", *SPOKES), s.seed)
-                                 for s in MOVI_A_HEADING4)
 # and the heading_k2 chain's K = 2 stage on top, on spokes too
 MOVI_A_SPOKES_K2 = MOVI_A_SPOKES_CHAIN + (
     Stage("spokes_heading_k2", MOVI_A_HEADING_K2[-1].steps, (*MOVI_A_HEADING_K2[-1].settings, *SPOKES),
