@@ -141,12 +141,15 @@ MOVI_A_MID_SPOKES = MOVI_A_MID + (
 
 # session 20: the heading chain's four stages (MOVI_A_HEADING4) on spokes-only graphs from the first step
 # (features.surface_edges=false: training steps ~2x cheaper, rollouts ~2.5x), on the full network mesh and
-# on 32 network vertices a mesh (the mid models' graph, trained from the start instead of fine-tuned onto)
+# on 32 network vertices a mesh (the mid models' graph, trained from the start instead of fine-tuned onto:
+# 31 + 17 + 16 + 12 minutes on one core beside another training, 22.0% / 29.6 deg at one call where
+# gns_movi_a_mid_spokes, ~4 h 15 min of lineage, has 22.5 / 30.8; docs/speed.md, session 20)
 SPOKES = ("features.surface_edges=false",)
 MOVI_A_SPOKES_CHAIN = tuple(Stage(f"spokes_{s.name}", s.steps, (*s.settings, *SPOKES), s.seed)
                             for s in MOVI_A_HEADING4)
 MOVI_A_MID_SPOKES_CHAIN = tuple(Stage(f"mid_spokes_{s.name}", s.steps,
-                                      (*s.settings, "features.mesh_vertices=32", *SPOKES), s.seed)
+                                      (*s.settings, "features.mesh_vertices=32", *SPOKES), s.seed,
+                                      "gns_movi_a_mid_spokes_chain" if s is MOVI_A_HEADING4[-1] else "")
                                 for s in MOVI_A_HEADING4)
 # and the heading_k2 chain's K = 2 stage on top, on spokes too
 MOVI_A_SPOKES_K2 = MOVI_A_SPOKES_CHAIN + (
