@@ -35,6 +35,11 @@ Presets (measured costs on a 2-core CPU in the README):
          gns_movi_a_spokes (18.7% / 27.4 deg at 2.6x the canonical model's throughput)
   mid_spokes   mid + a stage on spokes-only graphs: ~4 h 15 min on one core; reproduces
          gns_movi_a_mid_spokes (22.5% / 30.8 deg at about PyBullet's throughput)
+  spokes_chain heading4's four stages on spokes-only graphs from the first step: ~1 h 45 min on
+         one core (19.2% / 27.6 deg at one call; not shipped, docs/accuracy.md session 20)
+  mid_spokes_chain   the same on 32 network vertices: ~1 h 17 min; reproduces
+         gns_movi_a_mid_spokes_chain (21.9% / 29.5 deg at about PyBullet's throughput)
+  spokes_k2    spokes_chain + heading_k2's K = 2 stage on spokes-only graphs
   best   the whole chain, 9 stages, ~9 1/2 hours on one core; its 8th stage reproduces
          gns_movi_a_k3 (16.5% / 25.2 deg), its last gns_movi_a_k3_canonical (15.3% / 22.8 deg);
          stop it any time and rerun: finished stages are skipped
@@ -44,8 +49,8 @@ Presets (measured costs on a 2-core CPU in the README):
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, fast, mid, spokes,
-mid_spokes) are scored as their models are, with free flight and symmetrized rollouts (fast, mid,
-spokes, mid_spokes: free flight, one network call). Their data are the README's data/movi_a_4000
+mid_spokes and the three *spokes_chain/spokes_k2*) are scored as their models are, with free flight
+and symmetrized rollouts (fast, mid and every spokes chain: free flight, one network call). Their data are the README's data/movi_a_4000
 (the same config and seed): a link OUT/data -> data/movi_a_4000 skips generating them again.
 """
 from __future__ import annotations
@@ -62,8 +67,7 @@ from pipelines.common import guarded, data_stage, done, remove_output, say, trai
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST,
                                      MOVI_A_HEADING, MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPOKES,
                                      MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_K2,
-                                     TINY_CHAIN,
-                                     stage_overrides)
+                                     TINY_CHAIN, stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
