@@ -64,6 +64,10 @@ class FeatureConfig:
     # graph stays 2 steps across, with 2n edges instead of 2n + ~6n: a cheaper network call for
     # the fast end of the speed trade (docs/speed.md, session 19)
     surface_edges: bool = True
+    # with surface_edges=false: comma-separated mesh names that keep their surface edges all the same.
+    # Spokes cost flat-faced shapes little and the sphere most (docs/accuracy.md, session 20), so a
+    # scene's graph can keep edges only where its shapes need them. "" = none
+    surface_edge_shapes: str = ""
     # a node feature: the share of the next step each vertex would spend below the floor if the
     # object flew on ballistically (0: no impact within the step, 1: already below). The time of
     # impact is a ratio of height to speed, which the network's ReLU MLPs only approximate
@@ -264,6 +268,8 @@ def validate(cfg: Config) -> None:
          "features.mesh_support_gap needs features.mesh_vertices > 0 (the fewest vertices a mesh gets)"),
         (cfg.features.surface_edges or cfg.features.centre_node,
          "features.surface_edges=false needs features.centre_node=true (the spokes are then the only edges)"),
+        (not cfg.features.surface_edge_shapes.strip(",") or not cfg.features.surface_edges,
+         "features.surface_edge_shapes needs features.surface_edges=false (every mesh keeps its edges otherwise)"),
         (cfg.features.canonical_heading or not cfg.features.canonical_mirror,
          "features.canonical_mirror needs features.canonical_heading=true (the mirror is chosen in the turned frame)"),
         (cfg.augment.noise_std >= 0, "augment.noise_std must be >= 0"),

@@ -187,7 +187,8 @@ def graph_settings(features_cfg) -> dict:
     get = lambda key, default: getattr(features_cfg, key, default)
     return dict(max_vertices=int(get("mesh_vertices", 0)), centre_node=bool(get("centre_node", False)),
                 full_rest=bool(get("floor_support", False)), support_gap=float(get("mesh_support_gap", 0.0)),
-                surface_edges=bool(get("surface_edges", True)))
+                surface_edges=bool(get("surface_edges", True)),
+                keep_surface=tuple(sorted({n.strip() for n in str(get("surface_edge_shapes", "")).split(",")} - {""})))
 
 
 class MeshLibrary:
@@ -195,12 +196,13 @@ class MeshLibrary:
 
     def __init__(self, meshes: dict[str, tuple[np.ndarray, np.ndarray]], max_vertices: int = 0,
                  centre_node: bool = False, full_rest: bool = False, support_gap: float = 0.0,
-                 surface_edges: bool = True):
+                 surface_edges: bool = True, keep_surface: tuple = ()):
         """max_vertices > 0: graphs of each mesh's coarse version (gns.coarse_mesh), as the
         network of a model trained with features.mesh_vertices sees them; support_gap > 0 gives
         a mesh more vertices where it needs them (features.mesh_support_gap). centre_node: each
         graph also has a node at its centre of mass joined to every vertex (centre_spokes);
-        surface_edges=False (with centre_node) keeps only those spokes.
+        surface_edges=False (with centre_node) keeps only those spokes, except on the meshes named
+        in keep_surface.
         full_rest: packed graphs carry each object's full mesh too (GraphBatch.full_rest)."""
         self._full = None
         if full_rest:
@@ -213,9 +215,13 @@ class MeshLibrary:
         edges = [mesh_edges(meshes[n][1]) for n in self.names]
         if not (centre_node or surface_edges):
             raise ValueError("a graph without surface edges needs a centre node (features.centre_node)")
+        unknown = sorted(set(keep_surface) - set(self.names))
+        if unknown:
+            raise ValueError(f"features.surface_edge_shapes names {', '.join(map(repr, unknown))}, not a mesh of "
+                             f"this dataset (its meshes: {', '.join(self.names)})")
         if centre_node:
-            edges = [np.concatenate([e if surface_edges else e[:0], centre_spokes(len(v))])
-                     for v, e in zip(verts, edges)]
+            edges = [np.concatenate([e if surface_edges or name in keep_surface else e[:0], centre_spokes(len(v))])
+                     for name, v, e in zip(self.names, verts, edges)]
             verts = [np.concatenate([v, np.zeros((1, 3))]) for v in verts]
         for name, v, e in zip(self.names, verts, edges):
             if len(e) and e.max() >= len(v):

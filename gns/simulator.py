@@ -450,7 +450,7 @@ class LearnedSimulator(nn.Module):
         for k, m in enumerate(members, 1):
             for what, mine, theirs in (("features", self.layout, m.layout),
                                        ("network mesh (features.mesh_vertices, mesh_support_gap, centre_node, "
-                                        "surface_edges)", self._graph_settings, m._graph_settings),
+                                        "surface_edges, surface_edge_shapes)", self._graph_settings, m._graph_settings),
                                        ("time step and gravity", _listed(self.gravity_per_frame),
                                         _listed(m.gravity_per_frame)),
                                        ("inertial prior (model.inertial_prior)", self.inertial_prior,
