@@ -202,7 +202,8 @@ class MeshLibrary:
         a mesh more vertices where it needs them (features.mesh_support_gap). centre_node: each
         graph also has a node at its centre of mass joined to every vertex (centre_spokes);
         surface_edges=False (with centre_node) keeps only those spokes, except on the meshes named
-        in keep_surface.
+        in keep_surface (names absent here are ignored: a model trained on spheres and cubes may
+        roll out cubes alone; training checks the names against its data).
         full_rest: packed graphs carry each object's full mesh too (GraphBatch.full_rest)."""
         self._full = None
         if full_rest:
@@ -215,10 +216,6 @@ class MeshLibrary:
         edges = [mesh_edges(meshes[n][1]) for n in self.names]
         if not (centre_node or surface_edges):
             raise ValueError("a graph without surface edges needs a centre node (features.centre_node)")
-        unknown = sorted(set(keep_surface) - set(self.names))
-        if unknown:
-            raise ValueError(f"features.surface_edge_shapes names {', '.join(map(repr, unknown))}, not a mesh of "
-                             f"this dataset (its meshes: {', '.join(self.names)})")
         if centre_node:
             edges = [np.concatenate([e if surface_edges or name in keep_surface else e[:0], centre_spokes(len(v))])
                      for name, v, e in zip(self.names, verts, edges)]

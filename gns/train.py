@@ -366,8 +366,13 @@ def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTrack
         # of frames 0 .. k-1 gives them all (as many windows as at stride 1)
         full = Dataset(data_dir).load("train")
         scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
+    settings = graph_settings(cfg.features)
+    unknown = sorted(set(settings["keep_surface"]) - set(dataset.meshes))
+    if unknown:
+        raise ConfigError(f"features.surface_edge_shapes names {', '.join(map(repr, unknown))}, not a mesh of "
+                          f"{data_dir} (its meshes: {', '.join(sorted(dataset.meshes))})")
     try:
-        library = MeshLibrary(dataset.meshes, **graph_settings(cfg.features))
+        library = MeshLibrary(dataset.meshes, **settings)
     except ValueError as e:
         raise DataError(f"{data_dir}: {e}") from None
     tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)

@@ -157,7 +157,19 @@ def test_spokes_only_graphs_keep_the_surface_edges_of_the_meshes_named():
         expected = full.num_edges[i] if name == "sphere" else 2 * n
         assert mixed.num_edges[i] == expected and spokes.num_edges[i] == 2 * n
     assert full.num_edges[full.index["sphere"]] > 3 * 2 * len(meshes["sphere"][0])   # surface edges kept: ~8n
-    with pytest.raises(ValueError, match="surface_edge_shapes names 'ball', not a mesh of this dataset"):
-        MeshLibrary(meshes, centre_node=True, surface_edges=False, keep_surface=("ball",))
+    # a name absent from a library's meshes changes nothing there (a sphere-and-cube model rolls out cubes)
+    absent = MeshLibrary(meshes, centre_node=True, surface_edges=False, keep_surface=("ball",))
+    assert torch.equal(absent.num_edges, spokes.num_edges)
     with pytest.raises(ConfigError, match="surface_edge_shapes needs features.surface_edges=false"):
         build_config(overrides=["features.centre_node=true", "features.surface_edge_shapes=sphere"])
+
+
+@pytest.mark.filterwarnings("ignore:outside training")
+def test_training_refuses_a_surface_edge_shape_its_data_lacks(tmp_path):
+    from gns.config import ConfigError
+    data = write_toss_dataset(tmp_path / "data", train=2, valid=1, frames=8)
+    with pytest.raises(ConfigError, match="surface_edge_shapes names 'ball', not a mesh of"):
+        train(data, tmp_path / "run", tiny("train.steps=2", "valid.every=0", "features.centre_node=true",
+                                           "features.surface_edges=false", "features.surface_edge_shapes=ball"),
+              log=quiet)
+    assert not (tmp_path / "run" / "latest.pt").exists()
