@@ -268,7 +268,7 @@ def validate(cfg: Config) -> None:
          "features.mesh_support_gap needs features.mesh_vertices > 0 (the fewest vertices a mesh gets)"),
         (cfg.features.surface_edges or cfg.features.centre_node,
          "features.surface_edges=false needs features.centre_node=true (the spokes are then the only edges)"),
-        (not cfg.features.surface_edge_shapes.strip(",") or not cfg.features.surface_edges,
+        (not any(n.strip() for n in cfg.features.surface_edge_shapes.split(",")) or not cfg.features.surface_edges,
          "features.surface_edge_shapes needs features.surface_edges=false (every mesh keeps its edges otherwise)"),
         (cfg.features.canonical_heading or not cfg.features.canonical_mirror,
          "features.canonical_mirror needs features.canonical_heading=true (the mirror is chosen in the turned frame)"),

@@ -50,8 +50,9 @@ Presets (measured costs on a 2-core CPU in the README):
   chain_tiny   smoke test of a chain: two stages of the tiny model
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, fast, mid, spokes,
 mid_spokes, spokes_chain, mid_spokes_chain, spokes_k2) are scored as their models are, with free
-flight and symmetrized rollouts (fast, mid and every spokes chain: free flight, one network call). Their data are the README's data/movi_a_4000
-(the same config and seed): a link OUT/data -> data/movi_a_4000 skips generating them again.
+flight and symmetrized rollouts (fast, mid and every spokes chain: free flight, one network call).
+Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
+data/movi_a_4000 skips generating them again.
 """
 from __future__ import annotations
 

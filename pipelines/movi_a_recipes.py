@@ -31,6 +31,13 @@ class Stage:
     ships_as: str = ""     # the shipped model it reproduces (gns/models/<name>.pt), if any
 
 
+def variant(chain: tuple, prefix: str, settings: tuple, ships_as: str = "") -> tuple:
+    """`chain` with `settings` added to every stage (run folders `prefix`_<name>, the same steps and
+    seeds): an A/B of one lever over a whole chain; its last stage ships as `ships_as`, if given."""
+    return tuple(Stage(f"{prefix}_{s.name}", s.steps, (*s.settings, *settings), s.seed,
+                       ships_as if s is chain[-1] else "") for s in chain)
+
+
 PUSHFORWARD_3 = ("train.unroll_steps=3",)
 CENTRE = ("features.centre_node=true",)
 RIGID = ("train.rigid_loss=1",)
@@ -79,9 +86,7 @@ MOVI_A_CANONICAL = MOVI_A_BUDGET + (
 # on one core beside another training); its last stage ships as gns_movi_a_heading: 16.2% / 25.6 deg
 # symmetrized, where the budget model ends at 18.4 / 27.7 (after two stages: 17.5 / 26.7, session 18)
 HEADING = ("features.canonical_heading=true",)
-MOVI_A_HEADING = tuple(Stage(f"heading_{s.name}", s.steps, (*s.settings, *HEADING), s.seed,
-                             "gns_movi_a_heading" if s.name == "pushforward2" else "")
-                       for s in MOVI_A_BUDGET)
+MOVI_A_HEADING = variant(MOVI_A_BUDGET, "heading", HEADING, "gns_movi_a_heading")
 
 # session 19: the heading chain plus a fourth stage with the canonical fine-tune's schedule (32 minutes on one
 # core beside another training; 3 h 25 min in all): 15.6% / 24.9 deg symmetrized, 16.9 / 25.5 at one call
@@ -145,17 +150,11 @@ MOVI_A_MID_SPOKES = MOVI_A_MID + (
 # 31 + 17 + 16 + 12 minutes on one core beside another training, 22.0% / 29.6 deg at one call where
 # gns_movi_a_mid_spokes, ~4 h 15 min of lineage, has 22.5 / 30.8; docs/speed.md, session 20)
 SPOKES = ("features.surface_edges=false",)
-MOVI_A_SPOKES_CHAIN = tuple(Stage(f"spokes_{s.name}", s.steps, (*s.settings, *SPOKES), s.seed)
-                            for s in MOVI_A_HEADING4)
-MOVI_A_MID_SPOKES_CHAIN = tuple(Stage(f"mid_spokes_{s.name}", s.steps,
-                                      (*s.settings, "features.mesh_vertices=32", *SPOKES), s.seed,
-                                      "gns_movi_a_mid_spokes_chain" if s is MOVI_A_HEADING4[-1] else "")
-                                for s in MOVI_A_HEADING4)
-# and the heading_k2 chain's K = 2 stage on top, on spokes too
-MOVI_A_SPOKES_K2 = MOVI_A_SPOKES_CHAIN + (
-    Stage("spokes_heading_k2", MOVI_A_HEADING_K2[-1].steps, (*MOVI_A_HEADING_K2[-1].settings, *SPOKES),
-          MOVI_A_HEADING_K2[-1].seed),
-)
+MOVI_A_SPOKES_CHAIN = variant(MOVI_A_HEADING4, "spokes", SPOKES)
+MOVI_A_MID_SPOKES_CHAIN = variant(MOVI_A_HEADING4, "mid_spokes", ("features.mesh_vertices=32", *SPOKES),
+                                  "gns_movi_a_mid_spokes_chain")
+# and the heading_k2 chain's K = 2 stage on top, on spokes too (its first four stages are the spokes chain's)
+MOVI_A_SPOKES_K2 = variant(MOVI_A_HEADING_K2, "spokes", SPOKES)
 
 # a smoke test of the chaining for the test suite: the tiny model, a few steps, two levers added
 TINY_CHAIN = (
