@@ -40,6 +40,9 @@ Presets (measured costs on a 2-core CPU in the README):
   mid_spokes_chain   the same on 32 network vertices: ~1 h 17 min; reproduces
          gns_movi_a_mid_spokes_chain (21.9% / 29.5 deg at about PyBullet's throughput)
   spokes_k2    spokes_chain + heading_k2's K = 2 stage on spokes-only graphs
+  sphere_edges_chain      spokes_chain with the sphere's surface edges kept
+         (features.surface_edge_shapes=sphere): spokes-only graphs for the cubes and cylinders
+  mid_sphere_edges_chain  the same on 32 network vertices
   best   the whole chain, 9 stages, ~9 1/2 hours on one core; its 8th stage reproduces
          gns_movi_a_k3 (16.5% / 25.2 deg), its last gns_movi_a_k3_canonical (15.3% / 22.8 deg);
          stop it any time and rerun: finished stages are skipped
@@ -49,8 +52,9 @@ Presets (measured costs on a 2-core CPU in the README):
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, fast, mid, spokes,
-mid_spokes, spokes_chain, mid_spokes_chain, spokes_k2) are scored as their models are, with free
-flight and symmetrized rollouts (fast, mid and every spokes chain: free flight, one network call).
+mid_spokes, spokes_chain, mid_spokes_chain, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
+are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
+spokes chain: free flight, one network call).
 Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
 data/movi_a_4000 skips generating them again.
 """
@@ -67,8 +71,8 @@ from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST,
                                      MOVI_A_HEADING, MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPOKES,
-                                     MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_K2,
-                                     TINY_CHAIN, stage_overrides)
+                                     MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPHERE_EDGES_CHAIN,
+                                     MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_K2, TINY_CHAIN, stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
@@ -99,6 +103,8 @@ PRESETS = {
     "spokes_chain": _chain_preset(MOVI_A_SPOKES_CHAIN, symmetrize=False),
     "mid_spokes_chain": _chain_preset(MOVI_A_MID_SPOKES_CHAIN, symmetrize=False),
     "spokes_k2": _chain_preset(MOVI_A_SPOKES_K2, symmetrize=False),
+    "sphere_edges_chain": _chain_preset(MOVI_A_SPHERE_EDGES_CHAIN, symmetrize=False),
+    "mid_sphere_edges_chain": _chain_preset(MOVI_A_MID_SPHERE_EDGES_CHAIN, symmetrize=False),
     "chain_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),
                        scene=["scene.frames=12"], rollout=dict(free_flight=True, symmetrize=True)),
     # MOVi-A proper has 3-10 objects a scene; these presets train with collision edges between them

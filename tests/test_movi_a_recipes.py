@@ -7,9 +7,9 @@ from gns.config import build_config, config_differences, config_to_dict
 from gns.evaluate import checkpoint_of
 from pipelines.common import CONFIGS, SETTINGS_FREE
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_HEADING,
-                                     MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPOKES,
-                                     MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_K2,
-                                     stage_overrides)
+                                     MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPHERE_EDGES_CHAIN,
+                                     MOVI_A_MID_SPOKES, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPHERE_EDGES_CHAIN,
+                                     MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_K2, stage_overrides)
 
 # how a stage may differ from the file it reproduces: where it starts from (a folder of this
 # pipeline, not the author's), bf16 where it measures faster (the files: bf16 on a CPU where it did)
@@ -30,9 +30,11 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
 
 @pytest.mark.parametrize("chain", [MOVI_A_BEST, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_MID, MOVI_A_HEADING,
                                    MOVI_A_SPOKES, MOVI_A_MID_SPOKES, MOVI_A_HEADING4, MOVI_A_HEADING_K2,
-                                   MOVI_A_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES_K2],
+                                   MOVI_A_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES_K2,
+                                   MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPHERE_EDGES_CHAIN],
                          ids=["best", "canonical", "fast", "mid", "heading", "spokes", "mid_spokes", "heading4",
-                              "heading_k2", "spokes_chain", "mid_spokes_chain", "spokes_k2"])
+                              "heading_k2", "spokes_chain", "mid_spokes_chain", "spokes_k2", "sphere_edges_chain",
+                              "mid_sphere_edges_chain"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
@@ -48,10 +50,13 @@ def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     (MOVI_A_SPOKES_CHAIN, MOVI_A_HEADING4, ("features.surface_edges",)),
     (MOVI_A_MID_SPOKES_CHAIN, MOVI_A_HEADING4, ("features.surface_edges", "features.mesh_vertices")),
     (MOVI_A_SPOKES_K2, MOVI_A_HEADING_K2, ("features.surface_edges",)),
-], ids=["heading", "spokes_chain", "mid_spokes_chain", "spokes_k2"])
+    (MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES_CHAIN, ("features.surface_edge_shapes",)),
+    (MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPOKES_CHAIN, ("features.surface_edge_shapes",)),
+], ids=["heading", "spokes_chain", "mid_spokes_chain", "spokes_k2", "sphere_edges_chain", "mid_sphere_edges_chain"])
 def test_a_chain_compared_with_its_control_differs_only_in_its_lever(chain, control, differ):
     """The A/Bs of docs/accuracy.md compare these chains stage by stage (the heading chain with
-    `budget`, session 18; the spokes chains with `heading4`, session 20): only the lever may differ."""
+    `budget`, session 18; the spokes chains with `heading4`, session 20; the sphere-edges chains with
+    the spokes chains, session 21): only the lever may differ."""
     assert len(chain) == len(control)
     for stage, base in zip(chain, control):
         a = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(stage, None, 0))
