@@ -24,7 +24,6 @@ stages are skipped. Presets (docs/real_cubes.md has their measured costs):
 """
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -38,7 +37,8 @@ from gns.evaluate import evaluate_run, write_json
 from gns.checkpoint import read_checkpoint
 from pipelines.common import Costs, done, guarded, remove_output, say, train_stage, trained_step
 from pipelines.real_cubes_baselines import available_engines, baselines_stage
-from pipelines.real_cubes_data import duplicate_groups, import_stage, make_split, overlaps, read_tosses, training_ids
+from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_split, overlaps, read_tosses, real_cubes_parser,
+                                      training_ids)
 from pipelines.real_cubes_report import fit_summary, make_plots, report, summary
 
 # Everything run() writes into --out: --fresh deletes a folder holding only these.
@@ -273,11 +273,7 @@ def collect(preset, p, src, split, evals, base, external, ext_evals, costs) -> d
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m pipelines.real_cubes", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--src", type=Path, required=True, help="ContactNets data folder (tosses_processed/N.pt)")
-    ap.add_argument("--preset", choices=sorted(PRESETS), default="quick")
-    ap.add_argument("--out", type=Path, help="output folder (default runs/real_cubes_<preset>)")
+    ap = real_cubes_parser("real_cubes", __doc__, PRESETS, "quick")
     ap.add_argument("--test-dir", type=Path, help="a further folder of N.pt tosses to score everything on")
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
     a = ap.parse_args(argv)

@@ -19,7 +19,6 @@ the trained models as small files (gns export) named gns_real_cubes_n<N>.pt.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +29,8 @@ from gns.checkpoint import export_model, read_checkpoint
 from pipelines.common import Costs, done, guarded, say, train_stage
 from pipelines.engine_pretrain import synthetic_stage
 from pipelines.real_cubes_baselines import available_engines, baselines_stage
-from pipelines.real_cubes_data import duplicate_groups, import_stage, make_split, read_tosses, training_ids
+from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_split, read_tosses, real_cubes_parser,
+                                      training_ids)
 from pipelines.real_cubes_report import ENGINE_LABELS, metric_cells, summary
 
 # The real-cube training settings of pipelines/real_cubes.py (batch 32, lr 1e-3, input noise 0.001
@@ -208,11 +208,7 @@ def report(out: Path, results: dict) -> Path:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m pipelines.real_cubes_accuracy", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--src", type=Path, required=True, help="ContactNets data folder (tosses_processed/N.pt)")
-    ap.add_argument("--preset", choices=sorted(PRESETS), default="accuracy")
-    ap.add_argument("--out", type=Path, help="output folder (default runs/real_cubes_<preset>)")
+    ap = real_cubes_parser("real_cubes_accuracy", __doc__, PRESETS, "accuracy")
     ap.add_argument("--export", type=Path, help="also write the trained models here (gns export)")
     a = ap.parse_args(argv)
     return guarded(lambda: run(a.preset, a.src, a.out or Path("runs") / f"real_cubes_{a.preset}", a.export))

@@ -12,7 +12,6 @@ one warning line (or, asked for by name here, one error line).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -25,7 +24,8 @@ from datagen.shards import Dataset, DataError
 from gns.evaluate import evaluate_baseline, write_json
 from gns.metrics import METRICS
 from pipelines.common import Costs, guarded, say
-from pipelines.real_cubes_data import duplicate_groups, import_stage, make_split, read_tosses, training_ids
+from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_split, read_tosses, real_cubes_parser,
+                                      training_ids)
 from pipelines.real_cubes_report import ENGINE_LABELS, fit_summary, fits_table, number, summary
 
 ENGINES = ("pybullet", "mujoco")
@@ -168,9 +168,7 @@ def run(src: Path, out: Path, sizes: list[int], engines: list[str], budget: int,
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m pipelines.real_cubes_baselines", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--src", type=Path, required=True, help="ContactNets data folder (tosses_processed/N.pt)")
+    ap = real_cubes_parser("real_cubes_baselines", __doc__)
     ap.add_argument("--out", type=Path, default=Path("runs/real_cubes_baselines"))
     ap.add_argument("--sizes", type=int, nargs="+", default=[16, 64, 256], help="training set sizes")
     ap.add_argument("--engines", nargs="+", choices=ENGINES, default=list(ENGINES))

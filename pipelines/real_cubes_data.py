@@ -2,11 +2,12 @@
 test, valid and a training pool with rotated copies of a toss (the data hold 22 such pairs)
 always on the same side, nested training subsets of the pool, and a dataset per split.
 
-Used by pipelines/real_cubes.py, real_cubes_baselines.py and real_cubes_accuracy.py, so all
-three score the same test tosses.
+Used by pipelines/real_cubes.py, real_cubes_baselines.py, real_cubes_accuracy.py and
+real_cubes_ensemble.py, so all four score the same test tosses (and share one command line).
 """
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,19 @@ from datagen.shards import Dataset, DataError
 
 SPLIT_SEED = 2022
 DUPLICATE_TOL = 1e-6   # half-widths; the known rotated copies agree to 1e-15
+
+
+def real_cubes_parser(module: str, doc: str, presets: dict | None = None, default: str | None = None,
+                      out: str = "real_cubes") -> argparse.ArgumentParser:
+    """The command line the real-cube pipelines share: --src, and with presets --preset and --out
+    (default runs/<out>_<preset>)."""
+    ap = argparse.ArgumentParser(prog=f"python -m pipelines.{module}", description=doc,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--src", type=Path, required=True, help="ContactNets data folder (tosses_processed/N.pt)")
+    if presets is not None:
+        ap.add_argument("--preset", choices=sorted(presets), default=default)
+        ap.add_argument("--out", type=Path, help=f"output folder (default runs/{out}_<preset>)")
+    return ap
 
 
 def read_tosses(src: Path) -> dict[int, np.ndarray]:

@@ -16,7 +16,6 @@ members as small files named gns_real_cubes_n<N>_e_<recipe><seed>.pt.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +26,8 @@ from gns.checkpoint import export_model
 from pipelines.common import Costs, done, guarded, say, train_stage, trained_step
 from pipelines.engine_pretrain import synthetic_stage
 from pipelines.real_cubes_baselines import available_engines, baselines_stage
-from pipelines.real_cubes_data import duplicate_groups, import_stage, make_split, read_tosses, training_ids
+from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_split, read_tosses, real_cubes_parser,
+                                      training_ids)
 from pipelines.real_cubes_report import metric_cells, summary
 
 # The 16-toss recipe of docs/accuracy.md (session 4's floor feature), as the shipped members were trained.
@@ -138,11 +138,7 @@ def report(out: Path, results: dict) -> Path:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m pipelines.real_cubes_ensemble", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--src", type=Path, required=True, help="ContactNets data folder (tosses_processed/N.pt)")
-    ap.add_argument("--preset", choices=sorted(PRESETS), default="accuracy")
-    ap.add_argument("--out", type=Path, help="output folder (default runs/real_cubes_ensemble_<preset>)")
+    ap = real_cubes_parser("real_cubes_ensemble", __doc__, PRESETS, "accuracy", out="real_cubes_ensemble")
     ap.add_argument("--export", type=Path, help="also write the trained members here (gns export)")
     a = ap.parse_args(argv)
     out = a.out or Path("runs") / f"real_cubes_ensemble_{a.preset}"
