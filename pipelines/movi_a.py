@@ -41,8 +41,10 @@ Presets (measured costs on a 2-core CPU in the README):
          gns_movi_a_mid_spokes_chain (21.9% / 29.5 deg at about PyBullet's throughput)
   spokes_k2    spokes_chain + heading_k2's K = 2 stage on spokes-only graphs
   sphere_edges_chain      spokes_chain with the sphere's surface edges kept
-         (features.surface_edge_shapes=sphere): spokes-only graphs for the cubes and cylinders
-  mid_sphere_edges_chain  the same on 32 network vertices
+         (features.surface_edge_shapes=sphere): spokes-only graphs for the cubes and cylinders;
+         its first stage, 56 min, scored 22.9% / 31.6 deg against the spokes' 20.7 / 29.0 (not a
+         lever, docs/accuracy.md session 21)
+  mid_sphere_edges_chain  the same on 32 network vertices (first stage level with the spokes')
   best   the whole chain, 9 stages, ~9 1/2 hours on one core; its 8th stage reproduces
          gns_movi_a_k3 (16.5% / 25.2 deg), its last gns_movi_a_k3_canonical (15.3% / 22.8 deg);
          stop it any time and rerun: finished stages are skipped
