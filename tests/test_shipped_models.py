@@ -52,6 +52,24 @@ def test_the_16_toss_ensemble_is_shipped_and_rolls_out_as_one_model(tmp_path):
     assert results["position_error_pct"] < 30 and results["rotation_error_deg"] < 30
 
 
+def test_the_256_toss_floor_ensemble_is_shipped_and_averages_its_members(tmp_path):
+    """gns_real_cubes_n256_floor (seed 1) with seeds 0, 2 and 3 of its settings: averaged every step,
+    6.69% / 6.93 deg on the 96 test tosses against 7.14 / 7.09 for the first alone (docs/accuracy.md,
+    session 21)."""
+    from datagen.contactnets import import_contactnets
+    first, *others = ["gns_real_cubes_n256_floor"] + [f"gns_real_cubes_n256_floor_s{s}" for s in (0, 2, 3)]
+    assert set(others) <= set(shipped_models())
+    data = tmp_path / "cubes"
+    import_contactnets(CUBES, data, progress=False)
+    kw = dict(symmetrize=True, at_data_rate=True, progress=False)
+    alone, pred_alone, *_ = evaluate_run(first, data, "test", **kw)
+    results, pred, true, _ = evaluate_run(first, data, "test", ensemble=others, **kw)
+    assert results["num_scenes"] == 3 and results["ensemble"] == others
+    assert results["position_error_pct"] < 30 and results["rotation_error_deg"] < 30
+    moved = max(float(abs(a.positions - b.positions).max()) for a, b in zip(pred, pred_alone))
+    assert moved > 1e-4   # the members' predictions are averaged, not the first's alone
+
+
 def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, capsys):
     """gns_movi_a_long (MOVi-A, 120k steps: 29.1% / 38.4 deg on its 100 test scenes, README),
     gns_movi_a_long2 (bf16 + compile, signed floor clipped at 1.5, 96k + 60k steps: 26.3% / 36.0 deg),
