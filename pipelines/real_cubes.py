@@ -37,8 +37,8 @@ from gns.evaluate import evaluate_run, write_json
 from gns.checkpoint import read_checkpoint
 from pipelines.common import Costs, done, guarded, remove_output, say, train_stage, trained_step
 from pipelines.real_cubes_baselines import available_engines, baselines_stage
-from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_split, overlaps, read_tosses, real_cubes_parser,
-                                      training_ids)
+from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_split, overlaps, read_tosses,
+                                      real_cubes_parser, training_ids)
 from pipelines.real_cubes_report import fit_summary, make_plots, report, summary
 
 # Everything run() writes into --out: --fresh deletes a folder holding only these.

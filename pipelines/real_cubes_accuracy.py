@@ -7,9 +7,9 @@ The split, the training subsets and the test tosses are those of pipelines/real_
 settings that measured best (docs/accuracy.md: a time step of 8 recorded frames, 54 ms, with
 windows at every phase; rollouts averaged over the floor's mirror symmetries; at 16 tosses the
 cube's symmetries as augmentation, at 256 the loss on the shape-matched step and the floor seen
-from farther), and both engines
-are identified on the same tosses (pipelines/real_cubes_baselines.py). Everything is scored on
-the same test tosses at every recorded frame (the GNS's poses interpolated between its steps).
+from farther), and both engines are identified on the same tosses
+(pipelines/real_cubes_baselines.py). Everything is scored on the same test tosses at every
+recorded frame (the GNS's poses interpolated between its steps).
 A GNS with a time step of k frames starts from frames 0, k and 2k: it sees the truth up to frame
 2k, where the engines see frames 0-2. So the engines are also scored starting from frame 2k
 (their state estimated on frames 0..2k), and the report gives each engine's better score.

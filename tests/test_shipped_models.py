@@ -62,8 +62,8 @@ def test_the_256_toss_floor_ensemble_is_shipped_and_averages_its_members(tmp_pat
     data = tmp_path / "cubes"
     import_contactnets(CUBES, data, progress=False)
     kw = dict(symmetrize=True, at_data_rate=True, progress=False)
-    alone, pred_alone, *_ = evaluate_run(first, data, "test", **kw)
-    results, pred, true, _ = evaluate_run(first, data, "test", ensemble=others, **kw)
+    _, pred_alone, *_ = evaluate_run(first, data, "test", **kw)
+    results, pred, *_ = evaluate_run(first, data, "test", ensemble=others, **kw)
     assert results["num_scenes"] == 3 and results["ensemble"] == others
     assert results["position_error_pct"] < 30 and results["rotation_error_deg"] < 30
     moved = max(float(abs(a.positions - b.positions).max()) for a, b in zip(pred, pred_alone))
