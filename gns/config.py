@@ -249,6 +249,12 @@ def build_config(base: dict | None = None, path: str | Path | None = None,
     return cfg
 
 
+def mesh_names(text: str) -> tuple[str, ...]:
+    """The mesh names of a comma-separated setting (features.surface_edge_shapes), sorted; "" or
+    ", ," name none."""
+    return tuple(sorted({n.strip() for n in str(text).split(",")} - {""}))
+
+
 def validate(cfg: Config) -> None:
     checks = [
         (cfg.features.encoding in ("relative", "absolute"), "features.encoding must be 'relative' or 'absolute'"),
@@ -268,7 +274,7 @@ def validate(cfg: Config) -> None:
          "features.mesh_support_gap needs features.mesh_vertices > 0 (the fewest vertices a mesh gets)"),
         (cfg.features.surface_edges or cfg.features.centre_node,
          "features.surface_edges=false needs features.centre_node=true (the spokes are then the only edges)"),
-        (not any(n.strip() for n in cfg.features.surface_edge_shapes.split(",")) or not cfg.features.surface_edges,
+        (not mesh_names(cfg.features.surface_edge_shapes) or not cfg.features.surface_edges,
          "features.surface_edge_shapes needs features.surface_edges=false (every mesh keeps its edges otherwise)"),
         (cfg.features.canonical_heading or not cfg.features.canonical_mirror,
          "features.canonical_mirror needs features.canonical_heading=true (the mirror is chosen in the turned frame)"),

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from gns.coarse_mesh import network_meshes
+from gns.config import mesh_names
 
 
 def mesh_edges(faces: np.ndarray) -> np.ndarray:
@@ -188,7 +189,7 @@ def graph_settings(features_cfg) -> dict:
     return dict(max_vertices=int(get("mesh_vertices", 0)), centre_node=bool(get("centre_node", False)),
                 full_rest=bool(get("floor_support", False)), support_gap=float(get("mesh_support_gap", 0.0)),
                 surface_edges=bool(get("surface_edges", True)),
-                keep_surface=tuple(sorted({n.strip() for n in str(get("surface_edge_shapes", "")).split(",")} - {""})))
+                keep_surface=mesh_names(get("surface_edge_shapes", "")))
 
 
 class MeshLibrary:
