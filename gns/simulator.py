@@ -444,13 +444,19 @@ class LearnedSimulator(nn.Module):
 
     def set_ensemble(self, members: Sequence["LearnedSimulator"]) -> None:
         """Average every step's predicted acceleration with these models' (an ensemble: runs
-        trained apart, e.g. other seeds; each carries its own normalisers and speed settings).
-        They must read the same graphs and inputs: the same features, floor, collision edges,
-        network mesh and time step; ValueError names the first difference."""
+        trained apart, e.g. other seeds or other recipes; each carries its own normalisers and
+        speed settings and computes its own node and edge features from the shared graphs).
+        They must read the same graphs: the same network mesh, floor, collision edges, time step
+        and inertial prior; ValueError names the first difference. Node and edge features may
+        differ (e.g. the floor seen from farther): free flight then waits until every member's
+        floor feature is clear (free_flight_clip)."""
         for k, m in enumerate(members, 1):
-            for what, mine, theirs in (("features", self.layout, m.layout),
-                                       ("network mesh (features.mesh_vertices, mesh_support_gap, centre_node, "
+            for what, mine, theirs in (("network mesh (features.mesh_vertices, mesh_support_gap, centre_node, "
                                         "surface_edges, surface_edge_shapes)", self._graph_settings, m._graph_settings),
+                                       ("floor height", self.layout.floor_z, m.layout.floor_z),
+                                       ("collision edges (features and radius)",
+                                        (self.layout.collision_groups, self.layout.collision_radius),
+                                        (m.layout.collision_groups, m.layout.collision_radius)),
                                        ("time step and gravity", _listed(self.gravity_per_frame),
                                         _listed(m.gravity_per_frame)),
                                        ("inertial prior (model.inertial_prior)", self.inertial_prior,
@@ -459,6 +465,12 @@ class LearnedSimulator(nn.Module):
                     raise ValueError(f"ensemble member {k} differs from the model in its {what}: "
                                      f"{theirs} there, {mine} in the model")
         self.__dict__["_members"] = list(members)
+
+    @property
+    def free_flight_clip(self) -> float:
+        """How far above the floor an object must stay to be in free flight: the largest floor
+        clip of this model and its ensemble members (beyond it no member's network sees the floor)."""
+        return max([self.layout.floor_clip] + [m.layout.floor_clip for m in self.__dict__.get("_members") or ()])
 
     def predict_acceleration(self, history: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2: this model's
@@ -584,7 +596,7 @@ class LearnedSimulator(nn.Module):
         x = frames[-1]
         free = torch.ones(graph.num_graphs, dtype=torch.bool, device=x.device)
         if self.layout.floor_z is not None:
-            clear = self.layout.floor_z + self.layout.floor_clip
+            clear = self.layout.floor_z + self.free_flight_clip
             free &= (per_graph(x[:, 2], graph, "amin") >= clear) & (per_graph(ballistic[:, 2], graph, "amin") >= clear)
         if self.layout.collisions:
             if contacts is not None and len(contacts.senders):

@@ -355,7 +355,7 @@ def test_a_canonical_body_frame_makes_the_answer_independent_of_which_equivalent
     assert torch.allclose(rot @ chosen.rest[one.node_graph == 0].T, (b.graph.rest[one.node_graph == 0] @ turn.T).T)
 
 
-def test_an_ensemble_averages_its_members_predictions_and_refuses_a_member_reading_other_inputs(tmp_path):
+def test_an_ensemble_averages_its_members_predictions_and_refuses_a_member_reading_other_graphs(tmp_path):
     sim, b = sim_and_batch(tmp_path)
     other, _ = sim_and_batch(tmp_path / "other")   # a second build draws other initial weights
     a, o = sim.predict_acceleration(b.history, b.graph), other.predict_acceleration(b.history, b.graph)
@@ -370,9 +370,20 @@ def test_an_ensemble_averages_its_members_predictions_and_refuses_a_member_readi
     coarse, _ = sim_and_batch(tmp_path / "coarse", "features.mesh_vertices=4")
     with pytest.raises(ValueError, match="member 1 differs .* network mesh"):
         sim.set_ensemble([coarse])
-    no_floor, _ = sim_and_batch(tmp_path / "nofloor", "features.floor_distance=false")
-    with pytest.raises(ValueError, match="member 1 differs .* features"):
-        sim.set_ensemble([no_floor])
+    # other node features over the same graphs (the floor seen from farther): each member
+    # computes its own, and free flight waits until the farthest-seeing member's floor is clear
+    far, _ = sim_and_batch(tmp_path / "far", "features.floor_clip=1.5", "features.floor_signed=true")
+    f = far.predict_acceleration(b.history, b.graph)
+    sim.symmetrize = False
+    assert sim.free_flight_clip == sim.layout.floor_clip == 0.5
+    sim.set_ensemble([far])
+    torch.testing.assert_close(sim.predict_acceleration(b.history, b.graph), (a + f) / 2, rtol=0, atol=1e-9)
+    assert sim.free_flight_clip == 1.5
+    for key, value in (("floor_z", 0.25), ("collision_radius", 0.1)):   # what the graphs or free flight hang on
+        far.layout = replace(far.layout, **{key: value})
+        with pytest.raises(ValueError, match="member 1 differs .* (floor|collision)"):
+            sim.set_ensemble([far])
+        far.layout = replace(far.layout, **{key: getattr(sim.layout, key)})
 
 
 def test_upsampling_a_strided_rollout_recovers_a_smooth_trajectory_at_every_frame():
