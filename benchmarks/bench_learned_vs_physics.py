@@ -89,7 +89,8 @@ class Roller:
         self.sim, self.scenes, self.ds = sim, scenes, ds
 
     def __call__(self, parts: set[str]):
-        self.sim.set_speed("bf16" if "bf16" in parts else "none", "compile" in parts)
+        for model in (self.sim, *self.sim.members):
+            model.set_speed("bf16" if "bf16" in parts else "none", "compile" in parts)
         groups = [p for p in parts if p in GROUPS] + (["d2"] if "sym" in parts else [])
         self.sim.symmetrize = groups[0] if groups else False
         return rollout_scenes(self.sim, self.scenes, self.ds.meshes, self.ds.frame_rate, progress=False,
@@ -195,7 +196,8 @@ def plot_rows(rows: list[dict], runs: list[str], path: str) -> Path:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", required=True, action="append",
-                   help="run folder, checkpoint or shipped model name; repeat to compare models in the same rounds")
+                   help="run folder, checkpoint or shipped model name; A+B an ensemble (each step averages "
+                        "A's and B's predictions, `gns eval --ensemble`); repeat to compare models in the same rounds")
     p.add_argument("--data", required=True, help="a datagen toss dataset (its config and seed remake the scenes)")
     p.add_argument("--split", default="test")
     p.add_argument("--limit", type=int, help="first N scenes only")
@@ -210,9 +212,15 @@ def main(argv=None) -> int:
 
     runs, splits = [], {}  # the split read once per frame rate, not once per model
     for run in a.run:
-        saved = read_checkpoint(checkpoint_of(run))
+        first, *others = run.split("+")   # A+B: an ensemble, each step averaging A's and B's predictions
+        saved = read_checkpoint(checkpoint_of(first))
         sim, _ = load_model(saved, "cpu")
         sim.eval()
+        if others:
+            try:
+                sim.set_ensemble([load_model(read_checkpoint(checkpoint_of(o)), "cpu")[0].eval() for o in others])
+            except ValueError as e:
+                raise SystemExit(f"error: --run {run}: {e}") from None
         rate = saved["spec"]["frame_rate"]
         if rate not in splits:
             splits[rate] = load_split(a.data, a.split, a.limit, rate)

@@ -467,10 +467,15 @@ class LearnedSimulator(nn.Module):
         self.__dict__["_members"] = list(members)
 
     @property
+    def members(self) -> list:
+        """The ensemble members set by set_ensemble (empty without)."""
+        return list(self.__dict__.get("_members") or ())
+
+    @property
     def free_flight_clip(self) -> float:
         """How far above the floor an object must stay to be in free flight: the largest floor
         clip of this model and its ensemble members (beyond it no member's network sees the floor)."""
-        return max([self.layout.floor_clip] + [m.layout.floor_clip for m in self.__dict__.get("_members") or ()])
+        return max([self.layout.floor_clip] + [m.layout.floor_clip for m in self.members])
 
     def predict_acceleration(self, history: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2: this model's

@@ -95,3 +95,20 @@ def test_bench_learned_vs_physics_compares_several_models_in_the_same_rounds(tmp
     # the same model gives the same rollouts in both places; symmetrizing changes them
     assert rows[1]["position_error_pct"] == rows[3]["position_error_pct"]
     assert rows[2]["position_error_pct"] != rows[1]["position_error_pct"]
+
+
+def test_bench_learned_vs_physics_times_an_ensemble_as_one_run(tmp_path):
+    import json
+
+    import pytest
+
+    bench, data = learned_vs_physics(tmp_path, 2, 7, "cube")
+    model = str(Path(__file__).parent / "data" / "gns_movi_a_small.pt")
+    assert bench.main(["--run", model, "--run", f"{model}+{model}", "--data", str(data), "--repeats", "1",
+                       "--variants", "free+bf16", "--json", str(tmp_path / "b.json")]) == 0
+    rows = json.loads((tmp_path / "b.json").read_text())["rows"]
+    assert [r["variant"] for r in rows[1:]] == [f"GNS {model} free+bf16", f"GNS {model}+{model} free+bf16"]
+    # a model averaged with itself is the model (its members run under the same bf16 autocast)
+    assert abs(rows[1]["position_error_pct"] - rows[2]["position_error_pct"]) < 1e-3
+    with pytest.raises(SystemExit, match=r"--run .*\+gns_movi_a_coarse: ensemble member 1 differs"):
+        bench.main(["--run", f"{model}+gns_movi_a_coarse", "--data", str(data), "--repeats", "1", "--variants", "plain"])
