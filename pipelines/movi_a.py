@@ -48,12 +48,18 @@ Presets (measured costs on a 2-core CPU in the README):
   best   the whole chain, 9 stages, ~9 1/2 hours on one core; its 8th stage reproduces
          gns_movi_a_k3 (16.5% / 25.2 deg), its last gns_movi_a_k3_canonical (15.3% / 22.8 deg);
          stop it any time and rerun: finished stages are skipped
+  best_pair    best and heading_k2, then rolled out as an ensemble (each step averages the two
+         last stages' predictions, `gns eval --ensemble`): ~14 hours on one core, stages that
+         `--preset best` or `heading_k2` finished in the same --out skipped; the shipped pair
+         (gns_movi_a_k3_canonical + gns_movi_a_heading_k2) scored 14.0% / 22.0 deg (docs/accuracy.md,
+         session 22: two lineages err differently, two seeds of one do not)
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
-The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, fast, mid, spokes,
+  pair_tiny    smoke test of an ensemble: chain_tiny and a one-stage chain of another seed
+The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, fast, mid, spokes,
 mid_spokes, spokes_chain, mid_spokes_chain, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
 spokes chain: free flight, one network call).
@@ -70,20 +76,22 @@ from datagen.outputs import check_writable
 from gns.evaluate import evaluate_run, write_json
 from gns.metrics import format_table
 from gns.checkpoint import read_checkpoint
-from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage
+from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage, trained_step
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST,
                                      MOVI_A_HEADING, MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPOKES,
                                      MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPHERE_EDGES_CHAIN,
-                                     MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_K2, TINY_CHAIN, stage_overrides)
+                                     MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_K2, TINY_CHAIN, TINY_MEMBER,
+                                     stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
 
-def _chain_preset(chain, symmetrize: bool = True) -> dict:
-    """A preset training `chain` on the 4000 MOVi-A scenes, scored as its models are."""
+def _chain_preset(chain, symmetrize: bool = True, members: tuple = ()) -> dict:
+    """A preset training `chain` on the 4000 MOVi-A scenes, scored as its models are; with
+    `members` (more chains), also trains those and rolls out the ensemble of every chain's last stage."""
     return dict(counts={"train": 4000, "valid": 50, "test": 400}, model="cpu", chain=chain, common=COMMON, scene=[],
-                rollout=dict(free_flight=True, symmetrize=symmetrize, autocast="auto"))
+                rollout=dict(free_flight=True, symmetrize=symmetrize, autocast="auto"), members=members)
 
 
 PRESETS = {
@@ -98,6 +106,7 @@ PRESETS = {
     "heading_k2": _chain_preset(MOVI_A_HEADING_K2),
     "budget_pf": _chain_preset(MOVI_A_CHAIN[:3]),
     "best": _chain_preset(MOVI_A_BEST),
+    "best_pair": _chain_preset(MOVI_A_BEST, members=(MOVI_A_HEADING_K2,)),
     "fast": _chain_preset(MOVI_A_FAST, symmetrize=False),
     "mid": _chain_preset(MOVI_A_MID, symmetrize=False),
     "spokes": _chain_preset(MOVI_A_SPOKES, symmetrize=False),
@@ -109,6 +118,8 @@ PRESETS = {
     "mid_sphere_edges_chain": _chain_preset(MOVI_A_MID_SPHERE_EDGES_CHAIN, symmetrize=False),
     "chain_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),
                        scene=["scene.frames=12"], rollout=dict(free_flight=True, symmetrize=True)),
+    "pair_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),
+                      members=(TINY_MEMBER,), scene=["scene.frames=12"], rollout=dict(free_flight=True)),
     # MOVi-A proper has 3-10 objects a scene; these presets train with collision edges between them
     "multi_tiny": dict(counts={"train": 6, "valid": 2, "test": 2}, model="tiny", steps=30,
                        scene=["scene.frames=12", 'scene.objects="2-3"']),
@@ -118,7 +129,8 @@ PRESETS = {
 
 # Everything run() writes into --out: --fresh deletes a folder holding only these.
 OUTPUTS = ({"data", "run", "results.json", "report.md", "plots"}
-           | {f"run_{s.name}" for p in PRESETS.values() for s in p.get("chain", ())})
+           | {f"run_{s.name}" for p in PRESETS.values() for c in (p.get("chain", ()), *p.get("members", ()))
+              for s in c})
 
 
 def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:
@@ -151,9 +163,19 @@ def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:
               "## Plots", "", "![error against time](plots/error_vs_time.png)", "",
               "![worst scene](plots/trajectory_worst.png)", "", "![median scene](plots/trajectory_median.png)", "",
               "![best scene](plots/trajectory_best.png)", "", "Animation of the worst scene: `plots/rollout_worst.gif`."]
+    if results.get("alone"):
+        lines += ["", "## Ensemble", "",
+                  "Each step averages the predictions of the last stages of these chains (`gns eval --ensemble`); "
+                  "each alone, rolled out the same way:", "",
+                  "| model | position % | rotation deg | penetration % |", "|---|---|---|---|"]
+        for r in results["alone"]:
+            lines.append(f"| {r['run']} alone | {r['position_error_pct']:.3g} | {r['rotation_error_deg']:.3g} | "
+                         f"{r['penetration_pct']:.3g} |")
+        lines.append(f"| the ensemble | {results['position_error_pct']:.3g} | {results['rotation_error_deg']:.3g} | "
+                     f"{results['penetration_pct']:.3g} |")
     if results.get("stages"):
         lines += ["", "## Training stages", "",
-                  f"Each stage starts from the one before (`train.init_from`); {sum(s['steps'] for s in results['stages'])} "
+                  f"Each stage starts from the one before in its chain (`train.init_from`); {sum(s['steps'] for s in results['stages'])} "
                   "steps in all (pipelines/movi_a_recipes.py). Rollouts: "
                   f"free flight {'on' if results.get('free_flight') else 'off'}, "
                   f"symmetrized {'yes' if results.get('symmetrize') else 'no'}.", "",
@@ -171,15 +193,26 @@ def run(preset: str, out: Path, workers: int, seed: int) -> dict:
     check_writable(out)
     out.mkdir(parents=True, exist_ok=True)
     data = data_stage(out / "data", [SHAPES, *p["scene"]], p["counts"], seed, workers)
+    members = []   # the last checkpoints of an ensemble's other chains
     if "chain" in p:
-        ckpt, stages = train_chain(data.root, out, p, seed)
+        ckpt, stages = train_chain(data.root, out, p["chain"], p, seed)
+        for chain in p.get("members", ()):
+            member, member_stages = train_chain(data.root, out, chain, p, seed)
+            members.append(member)
+            stages += member_stages
     else:
         ckpt = train_stage(data.root, out / "run", p["model"], [f"train.steps={p['steps']}", f"train.seed={seed}"])
         stages = None
+    member_steps = [trained_step(m.parent) for m in members]
     results = done(out / "results.json", ckpt)
+    if results is not None and results.get("member_steps", []) != member_steps:
+        results = None
     if results is None:
-        say("eval: rolling out the test split")
-        results, *_ = evaluate_run(ckpt, data.root, "test", plots_dir=out / "plots", **p.get("rollout", {}))
+        alone = [single_scores(c, data.root, p.get("rollout", {})) for c in (ckpt, *members)] if members else []
+        say("eval: rolling out the test split" + (f" with an ensemble of {1 + len(members)} models" if members else ""))
+        results, *_ = evaluate_run(ckpt, data.root, "test", plots_dir=out / "plots", ensemble=members,
+                                   **p.get("rollout", {}))
+        results.update(member_steps=member_steps, alone=alone)
         saved = read_checkpoint(ckpt)
         m = saved["config"]["model"]
         results.update(checkpoint_step=int(saved["step"]), preset=preset, paper=PAPER, stages=stages, train={
@@ -195,11 +228,18 @@ def run(preset: str, out: Path, workers: int, seed: int) -> dict:
     return results
 
 
-def train_chain(data: Path, out: Path, p: dict, seed: int) -> tuple[Path, list[dict]]:
-    """Train a preset's stages in order, each from the last one's checkpoint, into OUT/run_<name>;
+def single_scores(ckpt: Path, data: Path, rollout: dict) -> dict:
+    """One ensemble member's own test scores, rolled out as the ensemble is."""
+    say(f"eval: {ckpt.parent.name} alone")
+    r, *_ = evaluate_run(ckpt, data, "test", progress=False, **rollout)
+    return {"run": ckpt.parent.name, **{k: r[k] for k in ("position_error_pct", "rotation_error_deg", "penetration_pct")}}
+
+
+def train_chain(data: Path, out: Path, chain: tuple, p: dict, seed: int) -> tuple[Path, list[dict]]:
+    """Train a chain's stages in order, each from the last one's checkpoint, into OUT/run_<name>;
     finished stages are skipped. Returns the last checkpoint and what each stage was."""
     previous, stages = None, []
-    for stage in p["chain"]:
+    for stage in chain:
         overrides = stage_overrides(stage, previous, seed, p["common"])
         run = out / f"run_{stage.name}"
         ckpt = train_stage(data, run, p["model"], overrides)

@@ -170,6 +170,8 @@ TINY_CHAIN = (
     Stage("a", 20, (), 0),
     Stage("b", 10, ("train.unroll_steps=2", "features.centre_node=true", "model.processor_repeats=2"), 1),
 )
+# and of an ensemble: a second chain over the same graphs (the centre node) from another seed
+TINY_MEMBER = (Stage("m", 20, ("features.centre_node=true",), 5),)
 
 
 def stage_overrides(stage: Stage, previous: str | None, seed: int, common: tuple = COMMON) -> list[str]:

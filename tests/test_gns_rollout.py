@@ -101,6 +101,21 @@ def test_movi_a_chain_trains_each_stage_from_the_last_and_resumes(tmp_path, caps
     assert err.count("skipping") == 4   # the data, both stages, the evaluation
 
 
+def test_movi_a_pair_trains_both_chains_and_scores_their_ensemble(tmp_path, capsys):
+    out = tmp_path / "e"
+    assert movi_a.main(["--preset", "pair_tiny", "--out", str(out), "--workers", "1"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["ensemble"] == [str(out / "run_m" / "latest.pt")] and results["member_steps"] == [20]
+    assert [r["run"] for r in results["alone"]] == ["run_b", "run_m"]
+    assert [s["name"] for s in results["stages"]] == ["a", "b", "m"]
+    # the ensemble is neither member rolled out alone
+    assert all(r["position_error_pct"] != results["position_error_pct"] for r in results["alone"])
+    assert "| the ensemble |" in (out / "report.md").read_text()
+    capsys.readouterr()
+    assert movi_a.main(["--preset", "pair_tiny", "--out", str(out), "--workers", "1"]) == 0
+    assert capsys.readouterr().err.count("skipping") == 5   # the data, three stages, the evaluation
+
+
 def test_movi_a_multi_object_preset_reports_interpenetration(tmp_path, capsys):
     out = tmp_path / "m"
     assert movi_a.main(["--preset", "multi_tiny", "--out", str(out), "--workers", "1"]) == 0

@@ -9,7 +9,8 @@ from pipelines.common import CONFIGS, SETTINGS_FREE
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_HEADING,
                                      MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPHERE_EDGES_CHAIN,
                                      MOVI_A_MID_SPOKES, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPHERE_EDGES_CHAIN,
-                                     MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_K2, stage_overrides)
+                                     MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_K2, TINY_MEMBER,
+                                     stage_overrides)
 
 # how a stage may differ from the file it reproduces: where it starts from (a folder of this
 # pipeline, not the author's), bf16 where it measures faster (the files: bf16 on a CPU where it did)
@@ -68,6 +69,6 @@ def test_fresh_may_delete_the_run_folder_of_every_chain_stage():
     """`--fresh` deletes a folder only if it holds nothing but the pipeline's outputs: a chain
     stage's run folder missing from them would make `--fresh` refuse a folder it wrote itself."""
     from pipelines.movi_a import OUTPUTS, PRESETS
-    chains = [p["chain"] for p in PRESETS.values() if "chain" in p]
-    assert MOVI_A_BEST in chains and MOVI_A_FAST in chains
+    chains = [c for p in PRESETS.values() for c in (p.get("chain", ()), *p.get("members", ())) if c]
+    assert MOVI_A_BEST in chains and MOVI_A_FAST in chains and TINY_MEMBER in chains   # an ensemble's other chains too
     assert {f"run_{s.name}" for chain in chains for s in chain} <= OUTPUTS
