@@ -145,7 +145,8 @@ def train_stage(data: Path, run: Path, preset: str, overrides: list[str]) -> Pat
         changed = config_differences(ckpt["config"], cfg, ignore=SETTINGS_FREE)
         if changed:
             raise CheckpointError(f"{run} was trained with other settings ({'; '.join(changed[:3])}"
-                                  f"{'; ...' if len(changed) > 3 else ''}): rerun with --fresh, or give another --out")
+                                  f"{'; ...' if len(changed) > 3 else ''}): delete {run} (or the whole output with the "
+                                  "pipeline's --fresh, where it has one) to train it again, or give another --out")
     if step >= cfg.train.steps:
         if note:
             say(note)
