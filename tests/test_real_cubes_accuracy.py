@@ -28,6 +28,7 @@ def test_tiny_preset_end_to_end_and_rerun(tmp_path, capsys):
     sim, cfg = load_model(export / "gns_real_cubes_n2.pt")   # the shipped form loads alone
     assert cfg.features.frame_stride == 8 and cfg.train.all_phases and cfg.augment.body_symmetry
     assert cfg.train.rigid_loss == 1 and cfg.features.floor_clip == 1.5 and cfg.features.floor_signed
+    assert cfg.model.message_passing_steps == 10
     load_model(export / "gns_real_cubes_mujoco_n2.pt")
     capsys.readouterr()
     before = (out / "eval" / "gns_n2.json").stat().st_mtime_ns
@@ -45,14 +46,19 @@ def test_a_missing_source_is_one_line(tmp_path, capsys):
 
 
 def test_the_256_toss_settings_are_those_of_the_shipped_model():
-    """gns_real_cubes_n256_floor was trained by hand (docs/accuracy.md, sessions 18-19) with what the
-    pipeline's 256-toss stage now runs; only the seed differs (the file is seed 1, the pipeline's 0)."""
+    """gns_real_cubes_n256_deep was trained by hand (docs/accuracy.md, session 22) with what the
+    pipeline's 256-toss stage now runs, seed included; gns_real_cubes_n256_floor (seed 1) with the
+    same but five message-passing steps."""
     from gns.checkpoint import read_checkpoint
     from gns.config import build_config, config_differences
     from gns.evaluate import checkpoint_of
     from pipelines.common import CONFIGS, SETTINGS_FREE
     p = real_cubes_accuracy.PRESETS["accuracy"]
     cfg = build_config(path=CONFIGS / f"gns_{p.model}.toml", overrides=real_cubes_accuracy.gns_settings(p, 256))
-    shipped = read_checkpoint(checkpoint_of("gns_real_cubes_n256_floor"))
-    assert config_differences(shipped["config"], cfg, ignore=SETTINGS_FREE + ("train.seed",)) == []
-    assert shipped["step"] == cfg.train.steps == 40000 and shipped["seed"] == 1 and cfg.train.seed == 0
+    shipped = read_checkpoint(checkpoint_of("gns_real_cubes_n256_deep"))
+    assert config_differences(shipped["config"], cfg, ignore=SETTINGS_FREE) == []
+    assert shipped["step"] == cfg.train.steps == 40000 and shipped["seed"] == cfg.train.seed == 0
+    assert cfg.model.message_passing_steps == 10
+    floor = read_checkpoint(checkpoint_of("gns_real_cubes_n256_floor"))
+    differ = config_differences(floor["config"], cfg, ignore=SETTINGS_FREE + ("train.seed",))
+    assert [d.split()[0] for d in differ] == ["model.message_passing_steps"], differ
