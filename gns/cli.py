@@ -200,9 +200,9 @@ def _add_rollout_args(p) -> None:
                    help="objects out of reach of the floor and of other objects follow the exact inertial update "
                         "(gravity, constant spin) instead of the network, which then runs only on the others")
     p.add_argument("--ensemble", action="append", default=[], metavar="RUN",
-                   help="another trained run (same network mesh, floor and time step, e.g. another seed or recipe) whose prediction "
-                        "each step averages with the model's; repeat for more members, each costs one more "
-                        "network call")
+                   help="another trained run (same network mesh, floor and time step; e.g. another seed or "
+                        "recipe) whose prediction each step averages with the model's; repeat for more members, "
+                        "each costs one more network call")
     p.add_argument("--sleep-fraction", type=float, default=0.1, metavar="F",
                    help="--sleep: an object is at rest when no vertex moved F x |g| dt^2 in either input step "
                         "(default 0.1)")

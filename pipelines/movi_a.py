@@ -175,8 +175,8 @@ def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:
                      f"{results['penetration_pct']:.3g} |")
     if results.get("stages"):
         lines += ["", "## Training stages", "",
-                  f"Each stage starts from the one before in its chain (`train.init_from`); {sum(s['steps'] for s in results['stages'])} "
-                  "steps in all (pipelines/movi_a_recipes.py). Rollouts: "
+                  "Each stage starts from the one before in its chain (`train.init_from`); "
+                  f"{sum(s['steps'] for s in results['stages'])} steps in all (pipelines/movi_a_recipes.py). Rollouts: "
                   f"free flight {'on' if results.get('free_flight') else 'off'}, "
                   f"symmetrized {'yes' if results.get('symmetrize') else 'no'}.", "",
                   "| stage | steps | settings beyond gns_cpu | reproduces |", "|---|---|---|---|"]
@@ -232,7 +232,8 @@ def single_scores(ckpt: Path, data: Path, rollout: dict) -> dict:
     """One ensemble member's own test scores, rolled out as the ensemble is."""
     say(f"eval: {ckpt.parent.name} alone")
     r, *_ = evaluate_run(ckpt, data, "test", progress=False, **rollout)
-    return {"run": ckpt.parent.name, **{k: r[k] for k in ("position_error_pct", "rotation_error_deg", "penetration_pct")}}
+    keys = ("position_error_pct", "rotation_error_deg", "penetration_pct")
+    return {"run": ckpt.parent.name, **{k: r[k] for k in keys}}
 
 
 def train_chain(data: Path, out: Path, chain: tuple, p: dict, seed: int) -> tuple[Path, list[dict]]:
