@@ -567,7 +567,7 @@ class LearnedSimulator(nn.Module):
         """Restart the random headings of symmetrize="r1"/"r2"/"r4" from `turn_seed` (rollout_scenes
         calls it first): the same scenes, batches and seed give the same rollouts."""
         rng = self.__dict__["_turn_rng"] = torch.Generator().manual_seed(int(self.turn_seed))
-        for m in self.__dict__.get("_members") or ():   # an ensemble's members take the same headings
+        for m in self.members:   # an ensemble's members take the same headings
             m.turn_seed = self.turn_seed
             m.reset_turns()
         return rng

@@ -71,28 +71,24 @@ class Preset:
     # training sizes that also get a GNS trained with the tuned MuJoCo's tosses (pipelines/engine_pretrain.py):
     # size -> (synthetic tosses, copies of each real toss in the same training set)
     engine_data: dict = field(default_factory=dict)
-    symmetric: tuple[int, ...] = ()   # training sizes trained with SYMMETRIC
-    rigid: tuple[int, ...] = ()       # training sizes trained with RIGID_LOSS
-    floor: tuple[int, ...] = ()       # training sizes trained with FLOOR
-    deep: tuple[int, ...] = ()        # training sizes trained with DEEP
+    # training tosses -> the levers above that GNS adds to `train` (SYMMETRIC, RIGID_LOSS, FLOOR, DEEP)
+    levers: dict = field(default_factory=dict)
 
 
 PRESETS = {
     "tiny": Preset(test=1, valid=0, steps={2: 30}, model="tiny", baseline_budget=3, baseline_tosses=None,
                    train=tuple(o for o in _TRAIN if not o.startswith("valid.every")) + ("valid.every=0",),
-                   engine_data={2: (4, 2)}, symmetric=(2,), rigid=(2,), floor=(2,), deep=(2,)),
+                   engine_data={2: (4, 2)}, levers={2: (*SYMMETRIC, *RIGID_LOSS, *FLOOR, *DEEP)}),
     # ~3-4 min per 10k steps on one idle core (16 tosses, batch 32); lr decays 10x every third of the steps
     "accuracy": Preset(test=96, valid=32, steps={16: 20000, 64: 30000, 256: 40000}, engine_data={16: (2000, 40)},
-                       symmetric=(16,), rigid=(256,), floor=(256,), deep=(256,)),
+                       levers={16: SYMMETRIC, 256: (*RIGID_LOSS, *FLOOR, *DEEP)}),
 }
 
 
 def gns_settings(p: Preset, n: int) -> list[str]:
     """The `gns train` settings (on the preset's model config) of the GNS trained on n tosses."""
     steps = p.steps[n]
-    return [f"train.steps={steps}", f"train.lr_decay_steps={max(1, steps // 3)}", *p.train,
-            *(SYMMETRIC if n in p.symmetric else ()), *(RIGID_LOSS if n in p.rigid else ()),
-            *(FLOOR if n in p.floor else ()), *(DEEP if n in p.deep else ())]
+    return [f"train.steps={steps}", f"train.lr_decay_steps={max(1, steps // 3)}", *p.train, *p.levers.get(n, ())]
 
 
 def gns_stage(path: Path, run: Path, data: Path) -> dict:
