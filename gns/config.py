@@ -161,6 +161,11 @@ class TrainConfig:
     # Start a new run from another run's weights and normalisers (a run folder or .pt): fine-tuning,
     # e.g. on real tosses after training on an engine's. Same architecture, features, frame rate.
     init_from: str = ""
+    # Train against a teacher: trained runs (folders or .pt files, "A+B" an ensemble averaged every
+    # step) reading the same network vertices; each step's target is teacher_weight x the teacher's
+    # shape-matched next frame + (1 - teacher_weight) x the true one (gns.distill)
+    teacher: str = ""
+    teacher_weight: float = 1.0
 
 
 @dataclass
@@ -296,6 +301,7 @@ def validate(cfg: Config) -> None:
         (cfg.train.huber_delta > 0, "train.huber_delta must be > 0"),
         (cfg.train.size_weight >= 0, "train.size_weight must be >= 0"),
         (cfg.train.rigid_loss >= 0, "train.rigid_loss must be >= 0"),
+        (0 <= cfg.train.teacher_weight <= 1, "train.teacher_weight must be in [0, 1]"),
         (cfg.train.log_every >= 1 and cfg.train.checkpoint_every >= 1,
          "train.log_every and train.checkpoint_every must be >= 1"),
         (cfg.valid.every >= 0 and cfg.valid.rollout_steps >= 1, "valid.every must be >= 0, valid.rollout_steps >= 1"),

@@ -444,6 +444,37 @@ def stack_graphs(graphs: list[GraphBatch]) -> GraphBatch:
         full_rest=None if first.full_rest is None else cat_padded([g.full_rest for g in graphs]))
 
 
+def with_surface_edges(graph: GraphBatch, surface: bool) -> GraphBatch:
+    """A graph with centre nodes (the last node of each graph, MeshLibrary's centre_node) with its
+    mesh edges rebuilt from its faces: the surface edges (if `surface`) and the spokes, in the
+    order MeshLibrary packs them, so that a model trained on the other kind of graph
+    (features.surface_edges) reads the same nodes (gns.distill)."""
+    if graph.faces is None:
+        raise ValueError("the graph has no faces to rebuild its surface edges from")
+    g = graph.num_graphs
+    device = graph.node_graph.device
+    count = torch.bincount(graph.node_graph, minlength=g)
+    centre = torch.cumsum(count, 0) - 1
+    ring = torch.ones(graph.num_nodes, dtype=torch.bool, device=device)
+    ring[centre] = False
+    ring = ring.nonzero()[:, 0]
+    hub = centre[graph.node_graph[ring]]
+    parts = [torch.stack([ring, hub], 1), torch.stack([hub, ring], 1)]
+    kinds = [1, 2]
+    if surface:
+        f = graph.faces
+        pairs = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        pairs = torch.cat([pairs, pairs.flip(1)])
+        parts.insert(0, torch.unique(pairs[pairs[:, 0] != pairs[:, 1]], dim=0))
+        kinds.insert(0, 0)
+    edges = torch.cat(parts)
+    kind = torch.cat([torch.full((len(p),), k, device=device) for p, k in zip(parts, kinds)])
+    # graph by graph, and within a graph surface edges, then spokes in, then spokes out
+    order = torch.sort(graph.node_graph[edges[:, 0]] * 3 + kind, stable=True).indices
+    edges = edges[order]
+    return replace(graph, mesh_edges=EdgeSet(edges[:, 0].contiguous(), edges[:, 1].contiguous()))
+
+
 def with_collision_edges(graph: GraphBatch, x: torch.Tensor, radius: float) -> GraphBatch:
     """A copy of graph with its collision edges built from positions x (N, 3)."""
     return replace(graph, collision_edges=collision_edges(x, graph, radius))

@@ -41,6 +41,7 @@ from gns.spec import ModelSpec
 from gns.checkpoint import (CHECKPOINT_FORMAT, LATEST, CheckpointError, build_simulator, checkpoint_paths,  # noqa: F401
                             export_model, exported_model_message, is_exported, load_model, read_checkpoint,
                             resume_point, save_checkpoint)
+from gns.distill import Teacher
 from gns.fine_tune import incompatibility, init_from, merge_ranges, with_layout
 
 METRICS = "metrics.jsonl"
@@ -90,7 +91,7 @@ def learning_rate(cfg: Config, step: int) -> float:
 def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: Batch, lr: float,
                grad_clip: float, loss_kind: str = "mse", huber_delta: float = 1.0,
                fraction: float = 1.0, processes: int = 1, size_weight: float = 0.0,
-               rigid_loss: float = 0.0) -> float:
+               rigid_loss: float = 0.0, teacher: Teacher | None = None, teacher_weight: float = 1.0) -> float:
     """One Adam step on the per-node MSE of a batch; returns the loss.
 
     On several processes `batch` is this process's share of the global batch, holding
@@ -101,7 +102,7 @@ def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: B
     """
     for group in optimizer.param_groups:
         group["lr"] = lr
-    loss = unrolled_loss(sim, batch, loss_kind, huber_delta, size_weight, rigid_loss)
+    loss = unrolled_loss(sim, batch, loss_kind, huber_delta, size_weight, rigid_loss, teacher, teacher_weight)
     if processes > 1:
         # every process sees the same global loss, so all stop together on a NaN
         total = parallel.sum_over_processes(loss.detach() * fraction)
@@ -131,20 +132,26 @@ def size_weights(graph: GraphBatch, power: float) -> torch.Tensor | None:
 
 
 def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta: float = 1.0,
-                  size_weight: float = 0.0, rigid_loss: float = 0.0) -> torch.Tensor:
+                  size_weight: float = 0.0, rigid_loss: float = 0.0, teacher: Teacher | None = None,
+                  teacher_weight: float = 1.0) -> torch.Tensor:
     """The one-step loss, averaged over the batch's target frames (pushforward training).
 
     Step k > 1 starts from the model's own earlier predictions, shape-matched as in rollouts and
     detached: the model learns to correct the errors it makes itself (after a bounce, say),
     without backpropagating through time. Each step's target is the true frame, so the
-    acceleration asked for pulls a drifted prediction back toward the truth."""
+    acceleration asked for pulls a drifted prediction back toward the truth; with a `teacher`
+    (train.teacher), teacher_weight x the teacher's next frame from the same inputs plus the
+    rest x the true one."""
     targets = batch.targets
     frames = list(batch.history.unbind(1))
     weight = size_weights(batch.graph, size_weight)
     total = 0.0
     for k in range(targets.shape[1]):
         history = torch.stack(frames[-HISTORY:], dim=1)
-        total = total + sim.loss(history, targets[:, k], batch.graph, kind, delta, weight, rigid_loss)
+        target = targets[:, k]
+        if teacher is not None:
+            target = teacher_weight * teacher.next_frame(frames, batch.graph) + (1 - teacher_weight) * target
+        total = total + sim.loss(history, target, batch.graph, kind, delta, weight, rigid_loss)
         if k + 1 < targets.shape[1]:
             with torch.no_grad():
                 x = sim.predict_next(*frames[-HISTORY:], batch.graph)
@@ -414,9 +421,13 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     resumed_from, ckpt = resumed if resumed else (None, {})
     finished = False
     try:
+        # checked, like the data and the checkpoint, before anything in the run folder changes
+        teacher = Teacher(cfg.train.teacher, sim, device) if cfg.train.teacher else None
+        if teacher is not None:
+            log(f"teacher: {cfg.train.teacher}, {cfg.train.teacher_weight:g} of each target")
         provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance"))
         step = _train_loop(run, cfg, sim, optimizer, tracks, valid, spec, step, rng, device, world,
-                           stale, resumed_from, provenance, log)
+                           stale, resumed_from, provenance, log, teacher)
         finished = True
         return step
     finally:
@@ -503,7 +514,8 @@ def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world
 def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer,
                 tracks: ObjectTracks, valid: ObjectTracks | None, spec: ModelSpec, step: int,
                 rng: np.random.Generator, device: torch.device, world: parallel.World, stale: list[Path],
-                resumed_from: Path | None, provenance: dict, log: Callable[[str], None]) -> int:
+                resumed_from: Path | None, provenance: dict, log: Callable[[str], None],
+                teacher: Teacher | None = None) -> int:
     """Steps from `step` to cfg.train.steps: a batch, an Adam step, a metrics line every
     train.log_every steps (with validation every valid.every), a checkpoint every
     train.checkpoint_every. Returns the last step."""
@@ -527,7 +539,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
     try:
         with stop:
             step, last_good = _steps(run, cfg, sim, optimizer, tracks, valid, step, rng, device, world, state,
-                                     last_good, bar, metrics, writer, stop)
+                                     last_good, bar, metrics, writer, stop, teacher)
     finally:
         bar.close()
         if metrics is not None:
@@ -540,7 +552,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
 def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer, tracks: ObjectTracks,
            valid: ObjectTracks | None, step: int, rng: np.random.Generator, device: torch.device,
            world: parallel.World, state: Callable[[int], dict], last_good: Path | None, bar, metrics, writer,
-           stop) -> tuple[int, Path | None]:
+           stop, teacher: Teacher | None = None) -> tuple[int, Path | None]:
     """The loop of _train_loop; returns (step reached, last checkpoint). Stops on a signal
     (`stop.asked`) after the step under way, with a checkpoint there."""
     lo, hi = parallel.share(cfg.train.batch_size, world)
@@ -555,7 +567,7 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
         try:
             loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, cfg.train.loss,
                               cfg.train.huber_delta, fraction, world.size, cfg.train.size_weight,
-                              cfg.train.rigid_loss)
+                              cfg.train.rigid_loss, teacher, cfg.train.teacher_weight)
         except FloatingPointError as e:
             raise TrainingError(_stopped(str(e), step + 1, last_good)) from None
         step += 1

@@ -188,20 +188,21 @@ def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:
     return path
 
 
-def run(preset: str, out: Path, workers: int, seed: int) -> dict:
+def run(preset: str, out: Path, workers: int, seed: int, train_seed: int | None = None) -> dict:
     p = PRESETS[preset]
+    train_seed = seed if train_seed is None else train_seed
     check_writable(out)
     out.mkdir(parents=True, exist_ok=True)
     data = data_stage(out / "data", [SHAPES, *p["scene"]], p["counts"], seed, workers)
     members = []   # the last checkpoints of an ensemble's other chains
     if "chain" in p:
-        ckpt, stages = train_chain(data.root, out, p["chain"], p, seed)
+        ckpt, stages = train_chain(data.root, out, p["chain"], p, train_seed)
         for chain in p.get("members", ()):
-            member, member_stages = train_chain(data.root, out, chain, p, seed)
+            member, member_stages = train_chain(data.root, out, chain, p, train_seed)
             members.append(member)
             stages += member_stages
     else:
-        ckpt = train_stage(data.root, out / "run", p["model"], [f"train.steps={p['steps']}", f"train.seed={seed}"])
+        ckpt = train_stage(data.root, out / "run", p["model"], [f"train.steps={p['steps']}", f"train.seed={train_seed}"])
         stages = None
     member_steps = [trained_step(m.parent) for m in members]
     results = done(out / "results.json", ckpt)
@@ -257,6 +258,9 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2, help="data generation processes")
     ap.add_argument("--seed", type=int, default=0,
                     help="data seed (and the small preset's training seed); the chains add it to each stage's seed")
+    ap.add_argument("--train-seed", type=int, default=None,
+                    help="training seed instead of --seed, the data unchanged: another seed of a chain on the "
+                         "same scenes (a chain's stages add it to their own seeds)")
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
     a = ap.parse_args(argv)
     out = a.out or Path("runs") / f"movi_a_{a.preset}"
@@ -264,7 +268,7 @@ def main(argv=None) -> int:
     def stages():
         if a.fresh:
             remove_output(out, OUTPUTS)
-        run(a.preset, out, a.workers, a.seed)
+        run(a.preset, out, a.workers, a.seed, a.train_seed)
     return guarded(stages)
 
 

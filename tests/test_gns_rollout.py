@@ -99,6 +99,13 @@ def test_movi_a_chain_trains_each_stage_from_the_last_and_resumes(tmp_path, caps
     assert movi_a.main(["--preset", "chain_tiny", "--out", str(out), "--workers", "1"]) == 0
     err = capsys.readouterr().err
     assert err.count("skipping") == 4   # the data, both stages, the evaluation
+    # another training seed on the same scenes (the data linked, as docs/accuracy.md's runs do)
+    other = tmp_path / "c7"
+    other.mkdir()
+    (other / "data").symlink_to(out / "data")
+    assert movi_a.main(["--preset", "chain_tiny", "--out", str(other), "--workers", "1", "--train-seed", "7"]) == 0
+    assert "data: " in capsys.readouterr().err
+    assert [read_checkpoint(other / f"run_{s}" / "latest.pt")["seed"] for s in ("a", "b")] == [7, 8]
 
 
 def test_movi_a_pair_trains_both_chains_and_scores_their_ensemble(tmp_path, capsys):
