@@ -70,10 +70,13 @@ class Batch:
     graph: GraphBatch
     # (N, U - 1, 3) float64 positions at t+2 .. t+U for unrolled training (noise-corrected as target)
     future: torch.Tensor | None = None
+    # (G,) int64 the ObjectTracks track of each graph: what a teacher reading other vertices packs
+    # its own graphs from (gns.distill)
+    tracks: torch.Tensor | None = None
 
     def to(self, device) -> "Batch":
         future = None if self.future is None else self.future.to(device)
-        return Batch(self.history.to(device), self.target.to(device), self.graph.to(device), future)
+        return Batch(self.history.to(device), self.target.to(device), self.graph.to(device), future, self.tracks)
 
     def windows(self, lo: int, hi: int) -> "Batch":
         """The windows [lo, hi) of this batch (its graphs of scenes lo .. hi-1), renumbered: a
@@ -92,7 +95,8 @@ class Batch:
                       num_symmetries=None if g.num_symmetries is None else g.num_symmetries[keep_graph],
                       full_rest=None if g.full_rest is None else g.full_rest[keep_graph])
         future = None if self.future is None else self.future[keep]
-        return Batch(self.history[keep], self.target[keep], graph, future)
+        tracks = None if self.tracks is None else self.tracks[keep_graph]
+        return Batch(self.history[keep], self.target[keep], graph, future, tracks)
 
     @property
     def targets(self) -> torch.Tensor:
@@ -232,7 +236,7 @@ class ObjectTracks:
             history = history + position_noise
             target = target + position_noise[:, -1]
             future = future + position_noise[:, -1:]
-        return Batch(history, target, graph, future if self.unroll > 1 else None)
+        return Batch(history, target, graph, future if self.unroll > 1 else None, tracks)
 
     def mark_contacts(self, gravity_step: torch.Tensor, threshold: float) -> float:
         """Flag the windows in which some object is in contact; returns the flagged share.

@@ -150,7 +150,7 @@ def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta:
         history = torch.stack(frames[-HISTORY:], dim=1)
         target = targets[:, k]
         if teacher is not None:
-            target = teacher_weight * teacher.next_frame(frames, batch.graph) + (1 - teacher_weight) * target
+            target = teacher_weight * teacher.next_frame(frames, batch.graph, batch.tracks) + (1 - teacher_weight) * target
         total = total + sim.loss(history, target, batch.graph, kind, delta, weight, rigid_loss)
         if k + 1 < targets.shape[1]:
             with torch.no_grad():
@@ -422,7 +422,8 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     finished = False
     try:
         # checked, like the data and the checkpoint, before anything in the run folder changes
-        teacher = Teacher(cfg.train.teacher, sim, device) if cfg.train.teacher else None
+        teacher = (Teacher(cfg.train.teacher, sim, device, tracks, spec.meshes,
+                           cfg.augment.mirror or cfg.augment.body_symmetry) if cfg.train.teacher else None)
         if teacher is not None:
             log(f"teacher: {cfg.train.teacher}, {cfg.train.teacher_weight:g} of each target")
         provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance"))

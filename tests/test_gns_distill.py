@@ -85,13 +85,45 @@ def test_a_student_trained_on_a_teacher_learns_the_teachers_answers_not_the_trut
     assert off["taught"] < 0.7 * off["truth"], off
 
 
-def test_a_teacher_that_reads_other_nodes_or_is_missing_is_one_line(data, teacher_run, tmp_path):
-    with pytest.raises(CheckpointError, match="train.teacher .*features.mesh_vertices"):
-        train(data, tmp_path / "coarse", tiny("train.steps=2", CENTRE, "features.mesh_vertices=4",
+def test_a_full_mesh_teacher_gives_a_coarse_student_its_predicted_pose(data, teacher_run, tmp_path):
+    ds = Dataset(data)
+    scenes = ds.load("train")
+    coarse_cfg = tiny(CENTRE, SPOKES, "features.mesh_vertices=4")
+    from gns.checkpoint import build_simulator
+    from gns.data import feature_spec
+    student = build_simulator(coarse_cfg, feature_spec(ds, scenes)).eval()
+    tracks = ObjectTracks(scenes, student.mesh_library(ds.meshes))
+    with pytest.raises(CheckpointError, match="no training tracks"):
+        Teacher(str(teacher_run), student, torch.device("cpu"), autocast="none")
+    teacher = Teacher(str(teacher_run), student, torch.device("cpu"), tracks, ds.meshes, autocast="none")
+    windows = torch.tensor([1, 4, 11])
+    theirs = tracks.batch(windows)
+    own = ObjectTracks(scenes, teacher.model.mesh_library(ds.meshes)).batch(windows)
+    assert theirs.graph.num_nodes < own.graph.num_nodes
+    g = own.graph
+    with torch.no_grad():
+        x = teacher.model.predict_next(*own.history.unbind(1), g)
+    rot, centre, _ = shape_match_packed(x, g.rest, g.node_graph, g.num_graphs)
+    got = teacher.next_frame(list(theirs.history.unbind(1)), theirs.graph, theirs.tracks)
+    s = theirs.graph
+    torch.testing.assert_close(got, torch.einsum("nij,nj->ni", rot[s.node_graph], s.rest) + centre[s.node_graph],
+                               rtol=0, atol=1e-9)
+    with pytest.raises(CheckpointError, match="augment.mirror"):
+        Teacher(str(teacher_run), student, torch.device("cpu"), tracks, ds.meshes, maps_body_frames=True)
+    # and through training, pushforward steps included (the teacher answers the student's own frames)
+    train(data, tmp_path / "coarse", tiny("train.steps=3", CENTRE, SPOKES, "features.mesh_vertices=4",
+                                          "train.unroll_steps=2", f"train.teacher={teacher_run}"), log=quiet)
+    assert read_checkpoint(tmp_path / "coarse" / "latest.pt")["config"]["train"]["teacher"] == str(teacher_run)
+
+
+def test_a_bad_teacher_is_one_line_before_the_run_folder_exists(data, teacher_run, tmp_path):
+    with pytest.raises(CheckpointError, match="train.teacher .*augment.mirror"):
+        train(data, tmp_path / "coarse", tiny("train.steps=2", CENTRE, "features.mesh_vertices=4", "augment.mirror=true",
                                               f"train.teacher={teacher_run}"), log=quiet)
     assert not (tmp_path / "coarse").exists()
     with pytest.raises(CheckpointError, match="train.teacher .*nowhere.pt"):
         train(data, tmp_path / "missing", tiny("train.steps=2", CENTRE, f"train.teacher={tmp_path / 'nowhere.pt'}"),
               log=quiet)
+    assert not (tmp_path / "missing").exists()
     with pytest.raises(ConfigError, match="train.teacher_weight"):
         tiny("train.teacher_weight=1.5")
