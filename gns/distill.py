@@ -42,8 +42,9 @@ class Teacher:
     """The next frames a trained model (averaged with its ensemble members) predicts, shape-matched
     as its rollouts keep them, on a student's batches."""
 
-    def __init__(self, setting: str, student: LearnedSimulator, device: torch.device, tracks: ObjectTracks | None = None,
-                 meshes: dict | None = None, maps_body_frames: bool = False, autocast: str = "auto"):
+    def __init__(self, setting: str, student: LearnedSimulator, device: torch.device,
+                 tracks: ObjectTracks | None = None, meshes: dict | None = None, maps_body_frames: bool = False,
+                 autocast: str = "auto"):
         """tracks, meshes: the student's training tracks and the data's meshes, which a teacher
         on other vertices packs its own graphs from; maps_body_frames: the batches' body frames are
         mapped by augmentation (refused for such a teacher)."""
@@ -88,7 +89,8 @@ class Teacher:
         return replace(graph, collision_edges=None)
 
     @torch.no_grad()
-    def next_frame(self, frames: list[torch.Tensor], graph: GraphBatch, tracks: torch.Tensor | None = None) -> torch.Tensor:
+    def next_frame(self, frames: list[torch.Tensor], graph: GraphBatch,
+                   tracks: torch.Tensor | None = None) -> torch.Tensor:
         """(N, 3) float64: the shape-matched positions at t+1 from frames [..., t-2, t-1, t] of
         the student's graph; `tracks` (G,): each graph's track (Batch.tracks), for a teacher on
         other vertices."""

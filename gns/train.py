@@ -150,7 +150,8 @@ def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta:
         history = torch.stack(frames[-HISTORY:], dim=1)
         target = targets[:, k]
         if teacher is not None:
-            target = teacher_weight * teacher.next_frame(frames, batch.graph, batch.tracks) + (1 - teacher_weight) * target
+            taught = teacher.next_frame(frames, batch.graph, batch.tracks)
+            target = teacher_weight * taught + (1 - teacher_weight) * target
         total = total + sim.loss(history, target, batch.graph, kind, delta, weight, rigid_loss)
         if k + 1 < targets.shape[1]:
             with torch.no_grad():

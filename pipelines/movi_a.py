@@ -202,7 +202,8 @@ def run(preset: str, out: Path, workers: int, seed: int, train_seed: int | None 
             members.append(member)
             stages += member_stages
     else:
-        ckpt = train_stage(data.root, out / "run", p["model"], [f"train.steps={p['steps']}", f"train.seed={train_seed}"])
+        ckpt = train_stage(data.root, out / "run", p["model"],
+                           [f"train.steps={p['steps']}", f"train.seed={train_seed}"])
         stages = None
     member_steps = [trained_step(m.parent) for m in members]
     results = done(out / "results.json", ckpt)

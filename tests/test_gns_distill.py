@@ -118,8 +118,8 @@ def test_a_full_mesh_teacher_gives_a_coarse_student_its_predicted_pose(data, tea
 
 def test_a_bad_teacher_is_one_line_before_the_run_folder_exists(data, teacher_run, tmp_path):
     with pytest.raises(CheckpointError, match="train.teacher .*augment.mirror"):
-        train(data, tmp_path / "coarse", tiny("train.steps=2", CENTRE, "features.mesh_vertices=4", "augment.mirror=true",
-                                              f"train.teacher={teacher_run}"), log=quiet)
+        train(data, tmp_path / "coarse", tiny("train.steps=2", CENTRE, "features.mesh_vertices=4",
+                                              "augment.mirror=true", f"train.teacher={teacher_run}"), log=quiet)
     assert not (tmp_path / "coarse").exists()
     with pytest.raises(CheckpointError, match="train.teacher .*nowhere.pt"):
         train(data, tmp_path / "missing", tiny("train.steps=2", CENTRE, f"train.teacher={tmp_path / 'nowhere.pt'}"),
