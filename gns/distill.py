@@ -48,9 +48,9 @@ class Teacher:
         """tracks, meshes: the student's training tracks and the data's meshes, which a teacher
         on other vertices packs its own graphs from; maps_body_frames: the batches' body frames are
         mapped by augmentation (refused for such a teacher)."""
-        self.setting = setting
+        paths = teacher_paths(setting)
         models = []
-        for path in teacher_paths(setting):
+        for path in paths:
             try:
                 models.append(load_model(read_checkpoint(path), device)[0])
             except (CheckpointError, OSError) as e:
@@ -69,7 +69,7 @@ class Teacher:
                 else:
                     self.library = m.mesh_library(meshes)
             if problem:
-                raise CheckpointError(f"train.teacher {teacher_paths(setting)[k]} cannot teach this model: {problem}")
+                raise CheckpointError(f"train.teacher {paths[k]} cannot teach this model: {problem}")
         self.model, members = models[0], models[1:]
         if members:
             try:

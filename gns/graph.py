@@ -461,11 +461,8 @@ def with_surface_edges(graph: GraphBatch, surface: bool) -> GraphBatch:
     hub = centre[graph.node_graph[ring]]
     parts = [torch.stack([ring, hub], 1), torch.stack([hub, ring], 1)]
     kinds = [1, 2]
-    if surface:
-        f = graph.faces
-        pairs = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-        pairs = torch.cat([pairs, pairs.flip(1)])
-        parts.insert(0, torch.unique(pairs[pairs[:, 0] != pairs[:, 1]], dim=0))
+    if surface:   # the batch's node numbers keep each graph's edges together and sorted as its own
+        parts.insert(0, torch.from_numpy(mesh_edges(graph.faces.cpu().numpy())).to(device))
         kinds.insert(0, 0)
     edges = torch.cat(parts)
     kind = torch.cat([torch.full((len(p),), k, device=device) for p, k in zip(parts, kinds)])
