@@ -1,9 +1,12 @@
 """What a trained checkpoint may carry on as: the start of a fine-tuning run (train.init_from),
 or a resumed run, on data whose feature spec may differ in what fine-tuning allows.
 
-A fine-tune may change FINE_TUNE_FREE (the weights keep their shapes) and add ADDABLE_GROUPS
+A fine-tune may change FINE_TUNE_FREE (the weights keep their shapes), add ADDABLE_GROUPS
 after the trained feature groups (their encoder columns start at zero, so the start computes
-exactly what the checkpoint did); everything else of the architecture must match.
+exactly what the checkpoint did) and untie a repeated processor (model.message_passing_steps a
+multiple of the checkpoint's: block i starts as the trained block i mod L, so with L x K kept
+the start computes exactly what the checkpoint did); everything else of the architecture must
+match.
 """
 from __future__ import annotations
 
@@ -13,7 +16,7 @@ from pathlib import Path
 import torch
 
 from gns.checkpoint import LATEST, CheckpointError, read_checkpoint
-from gns.config import ARCHITECTURE_SECTIONS, Config, config_differences
+from gns.config import ARCHITECTURE_SECTIONS, Config, ModelConfig, config_differences
 from gns.simulator import LearnedSimulator
 from gns.spec import Floor, ModelSpec
 
@@ -60,7 +63,7 @@ def _widened(state: dict, sim: LearnedSimulator, trained: ModelSpec) -> dict:
     (ADDABLE_GROUPS): the node or edge encoder's first layer gets a zero column per new input
     and the new groups fresh normalisers, so the start computes exactly what the checkpoint did
     and training learns what the new inputs add."""
-    out = dict(state)
+    out = _untied(state, sim)
     for kind, groups, encoder in (("node_features", sim.layout.node_groups, "node_encoder"),
                                   ("edge_features", sim.layout.edge_groups, "edge_encoder")):
         extra = sum(w for n, w in groups if n not in (getattr(trained, kind) or ()))
@@ -70,6 +73,23 @@ def _widened(state: dict, sim: LearnedSimulator, trained: ModelSpec) -> dict:
     for key, value in sim.state_dict().items():
         if key not in out:   # the new groups' normalisers, which accumulate as training starts
             out[key] = value
+    return out
+
+
+def _untied(state: dict, sim: LearnedSimulator) -> dict:
+    """`state` for `sim`'s L processor blocks where the checkpoint has L / m of them: block i
+    starts as the trained block i mod (L / m). A checkpoint that applied its blocks K times thus
+    becomes K / m applications of m copies, the same function at the same cost, whose copies
+    then train apart (more parameters, no more work a step)."""
+    trained = {int(k.split(".")[2]) for k in state if k.startswith("network.blocks.")}
+    if not trained or len(sim.network.blocks) == len(trained):
+        return dict(state)
+    out = {k: v for k, v in state.items() if not k.startswith("network.blocks.")}
+    for key, value in state.items():
+        if key.startswith("network.blocks."):
+            index, rest = key.split(".", 3)[2:]
+            for copy in range(int(index), len(sim.network.blocks), len(trained)):
+                out[f"network.blocks.{copy}.{rest}"] = value.clone()
     return out
 
 
@@ -87,7 +107,13 @@ def incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSp
                      fine_tune: bool = False) -> str | None:
     """How a checkpoint (its config and spec) cannot carry on as the model of cfg on data of spec.
     fine_tune: as the start of a new run, which may change FINE_TUNE_FREE (a resumed run may not)."""
-    diffs = config_differences(config, cfg, ARCHITECTURE_SECTIONS, ignore=FINE_TUNE_FREE if fine_tune else ())
+    diffs = config_differences(config, cfg, ARCHITECTURE_SECTIONS,
+                               ignore=(*FINE_TUNE_FREE, "model.message_passing_steps") if fine_tune else ())
+    if fine_tune:
+        steps = config.get("model", {}).get("message_passing_steps", ModelConfig().message_passing_steps)
+        if cfg.model.message_passing_steps % steps:
+            diffs.append(f"model.message_passing_steps is {steps} in the checkpoint, {cfg.model.message_passing_steps} "
+                         f"now: a fine-tune may only untie its blocks into a multiple of them")
     for key in ("node_features", "edge_features", "collision_features"):
         theirs, mine = tuple(getattr(trained, key) or ()), tuple(getattr(spec, key))
         if fine_tune and mine[:len(theirs)] == theirs and set(mine[len(theirs):]) <= set(ADDABLE_GROUPS.get(key, ())):

@@ -10,6 +10,9 @@ import gns
 from datagen.shapes import get_shape
 from gns.graph import MeshLibrary, centre_spokes
 from gns.simulator import shape_match_packed
+from gns.fine_tune import init_from
+from gns.spec import ModelSpec
+from gns.checkpoint import build_simulator
 from gns.train import CheckpointError, read_checkpoint, train
 from test_gns_train import quiet, tiny
 
@@ -96,10 +99,35 @@ def test_fine_tuning_may_repeat_the_processor_more_often_resuming_may_not(tmp_pa
     with pytest.raises(CheckpointError, match="processor_repeats"):
         train(data, tmp_path / "k2", tiny("train.steps=8", "valid.every=0", "features.normalizer_steps=2"),
               resume=True, log=quiet)
-    # the message passing steps L are weights: changing them is refused even when fine-tuning
-    with pytest.raises(CheckpointError, match="message_passing_steps"):
+    # the message passing steps L are weights: a fine-tune may only untie them into a multiple
+    with pytest.raises(CheckpointError, match="message_passing_steps is 2 in the checkpoint, 3 now"):
         train(data, tmp_path / "l3", tiny(*small, "model.message_passing_steps=3", f"train.init_from={tmp_path / 'k1'}"),
               log=quiet)
+
+
+def test_untying_a_repeated_processor_starts_from_the_same_function(tmp_path):
+    # L = 2 blocks applied K = 2 times become L = 4 blocks of their own, each a copy of block i mod 2
+    data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
+    small = ("valid.every=0", "features.normalizer_steps=2")
+    train(data, tmp_path / "k2", tiny("train.steps=6", *small, "model.processor_repeats=2"), log=quiet)
+    cfg = tiny(*small, "model.message_passing_steps=4", f"train.init_from={tmp_path / 'k2'}")
+    spec = ModelSpec.from_dict(read_checkpoint(tmp_path / "k2" / "latest.pt")["spec"])
+    untied = build_simulator(cfg, spec)
+    init_from(untied, cfg.train.init_from, cfg, spec)
+    tied = gns.load(tmp_path / "k2").simulator
+    assert len(untied.network.blocks) == 4 and untied.network.processor_repeats == 1
+    for i, block in enumerate(untied.network.blocks):
+        for (name, a), b in zip(block.state_dict().items(), tied.network.blocks[i % 2].state_dict().values()):
+            assert torch.equal(a, b), name
+    nodes, edges = torch.randn(7, tied.network.node_encoder[0].in_features), torch.randn(9, tied.network.edge_encoder[0].in_features)
+    senders, receivers = torch.randint(0, 7, (9,)), torch.randint(0, 7, (9,))
+    torch.testing.assert_close(untied.network(nodes, edges, senders, receivers), tied.network(nodes, edges, senders, receivers),
+                               rtol=0, atol=0)
+    # and the copies then train apart
+    train(data, tmp_path / "l4b", tiny("train.steps=6", *small, "model.message_passing_steps=4",
+                                       f"train.init_from={tmp_path / 'k2'}"), log=quiet)
+    trained = gns.load(tmp_path / "l4b").simulator.network.blocks
+    assert not torch.equal(trained[0].node_mlp[0].weight, trained[2].node_mlp[0].weight)
 
 
 @pytest.mark.parametrize("shape", ["sphere", "beveled_cube"])
