@@ -19,7 +19,8 @@ from gns.features import (HISTORY, FeatureLayout, Normalizer, floor_support, mak
 from gns.config import INERTIAL_PRIORS
 from gns.contacts import surface_edges
 from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collision_edges, graph_settings,
-                       mapped_symmetries, per_graph, select_graphs, stack_graphs, with_symmetries)
+                       mapped_symmetries, per_graph, select_graphs, stack_graphs, with_surface_edges,
+                       with_symmetries)
 from gns.network import EncodeProcessDecode
 from gns.precision import resolve_autocast
 from gns.spec import ModelSpec
@@ -274,6 +275,15 @@ def _listed(t: torch.Tensor | None) -> list | None:
     return None if t is None else [round(float(v), 12) for v in t.reshape(-1)]
 
 
+def _surface_free(settings: dict, other: "LearnedSimulator") -> dict:
+    """Graph settings as an ensemble compares them: surface_edges left out where both models have
+    centre nodes and neither keeps some shapes' surfaces (the spokes are then rebuilt exactly)."""
+    theirs = other._graph_settings
+    if settings["centre_node"] and theirs["centre_node"] and not settings["keep_surface"] and not theirs["keep_surface"]:
+        return {k: v for k, v in settings.items() if k != "surface_edges"}
+    return settings
+
+
 class LearnedSimulator(nn.Module):
     """GNS for rigid meshes. `spec` is what it is trained on (gns.spec.ModelSpec; gns.data.feature_spec)."""
 
@@ -449,10 +459,13 @@ class LearnedSimulator(nn.Module):
         They must read the same graphs: the same network mesh, floor, collision edges, time step
         and inertial prior; ValueError names the first difference. Node and edge features may
         differ (e.g. the floor seen from farther): free flight then waits until every member's
-        floor feature is clear (free_flight_clip)."""
+        floor feature is clear (free_flight_clip). With centre nodes on both, a member may differ in
+        features.surface_edges alone: it reads each step's graph with its own mesh edges, rebuilt
+        from the faces (gns.graph.with_surface_edges)."""
         for k, m in enumerate(members, 1):
             for what, mine, theirs in (("network mesh (features.mesh_vertices, mesh_support_gap, centre_node, "
-                                        "surface_edges, surface_edge_shapes)", self._graph_settings, m._graph_settings),
+                                        "surface_edges, surface_edge_shapes)", _surface_free(self._graph_settings, m),
+                                        _surface_free(m._graph_settings, self)),
                                        ("floor height", self.layout.floor_z, m.layout.floor_z),
                                        ("collision edges (features and radius)",
                                         (self.layout.collision_groups, self.layout.collision_radius),
@@ -486,7 +499,9 @@ class LearnedSimulator(nn.Module):
         if not members:  # the rollout's hot path: no extra tensor work without an ensemble
             return acc
         for m in members:
-            acc = acc + m._predict_one(history, graph, self.symmetrize, self.body_frames)
+            own = m._graph_settings["surface_edges"]
+            seen = graph if own == self._graph_settings["surface_edges"] else with_surface_edges(graph, own)
+            acc = acc + m._predict_one(history, seen, self.symmetrize, self.body_frames)
         return acc / (1 + len(members))
 
     def _predict_one(self, history: torch.Tensor, graph: GraphBatch, symmetrize: bool, body_frames: bool) -> torch.Tensor:

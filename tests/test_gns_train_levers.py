@@ -386,6 +386,35 @@ def test_an_ensemble_averages_its_members_predictions_and_refuses_a_member_readi
         far.layout = replace(far.layout, **{key: getattr(sim.layout, key)})
 
 
+def test_an_ensemble_member_on_spokes_only_reads_its_own_mesh_edges(tmp_path):
+    # a full-mesh and a spokes-only model (both with centre nodes) share nodes, not mesh edges:
+    # each member reads the step's graph with its own edges, rebuilt from the faces
+    from gns.data import feature_spec
+    ds = Dataset(write_toss_dataset(tmp_path, train=3, valid=0, frames=10))
+    scenes = ds.load("train")
+    spec = feature_spec(ds, scenes)
+
+    def built(*overrides):
+        cfg = build_config(path=TINY, overrides=["features.centre_node=true", *overrides])
+        sim = build_simulator(cfg, spec).eval()
+        return sim, ObjectTracks(scenes, sim.mesh_library(ds.meshes)).batch(torch.tensor([0, 3, 6]))
+
+    (full, bf), (spokes, bs) = built(), built("features.surface_edges=false")
+    assert bs.graph.mesh_edges.senders.numel() < bf.graph.mesh_edges.senders.numel()
+    a = full.predict_acceleration(bf.history, bf.graph)
+    o = spokes.predict_acceleration(bs.history, bs.graph)
+    full.set_ensemble([spokes])
+    torch.testing.assert_close(full.predict_acceleration(bf.history, bf.graph), (a + o) / 2, rtol=0, atol=1e-9)
+    spokes.set_ensemble([built()[0]])   # the other way round: a full-mesh member of a spokes model
+    full.set_ensemble([])
+    a = spokes.members[0].predict_acceleration(bf.history, bf.graph)
+    torch.testing.assert_close(spokes.predict_acceleration(bs.history, bs.graph), (a + o) / 2, rtol=0, atol=1e-9)
+    # some shapes' surfaces kept (features.surface_edge_shapes) cannot be told from the faces alone
+    kept, _ = built("features.surface_edges=false", "features.surface_edge_shapes=cube")
+    with pytest.raises(ValueError, match="member 1 differs .* network mesh"):
+        full.set_ensemble([kept])
+
+
 def test_upsampling_a_strided_rollout_recovers_a_smooth_trajectory_at_every_frame():
     from gns.geometry import quat_from_axis_angle
     from gns.metrics import rotation_error_deg
