@@ -36,7 +36,7 @@ Presets (measured costs on a 2-core CPU in the README):
   mid_spokes   mid + a stage on spokes-only graphs: ~4 h 15 min on one core; reproduces
          gns_movi_a_mid_spokes (22.5% / 30.8 deg at about PyBullet's throughput)
   spokes_chain heading4's four stages on spokes-only graphs from the first step: ~1 h 45 min on
-         one core (19.2% / 27.6 deg at one call; not shipped, docs/accuracy.md session 20)
+         one core; reproduces gns_movi_a_spokes_chain (19.2% / 27.6 deg at one call)
   mid_spokes_chain   the same on 32 network vertices: ~1 h 17 min; reproduces
          gns_movi_a_mid_spokes_chain (21.9% / 29.5 deg at about PyBullet's throughput)
   spokes_k2    spokes_chain + heading_k2's K = 2 stage on spokes-only graphs
@@ -53,13 +53,17 @@ Presets (measured costs on a 2-core CPU in the README):
          `--preset best` or `heading_k2` finished in the same --out skipped; the shipped pair
          (gns_movi_a_k3_canonical + gns_movi_a_heading_k2) scored 14.0% / 22.0 deg (docs/accuracy.md,
          session 22: two lineages err differently, two seeds of one do not)
+  budget_pair  heading and spokes_chain, rolled out as an ensemble: with --parallel the two chains
+         train at once, one a core, in heading's wall clock (~2 h 55 min); the shipped pair
+         (gns_movi_a_heading + gns_movi_a_spokes_chain) scored 16.2% / 25.0 deg symmetrized where
+         heading alone scored 16.2 / 25.6 (docs/accuracy.md, session 24)
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
   pair_tiny    smoke test of an ensemble: chain_tiny and a one-stage chain of another seed
-The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, fast, mid, spokes,
+The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, budget_pair, fast, mid, spokes,
 mid_spokes, spokes_chain, mid_spokes_chain, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
 spokes chain: free flight, one network call).
@@ -107,6 +111,7 @@ PRESETS = {
     "budget_pf": _chain_preset(MOVI_A_CHAIN[:3]),
     "best": _chain_preset(MOVI_A_BEST),
     "best_pair": _chain_preset(MOVI_A_BEST, members=(MOVI_A_HEADING_K2,)),
+    "budget_pair": _chain_preset(MOVI_A_HEADING, members=(MOVI_A_SPOKES_CHAIN,)),
     "fast": _chain_preset(MOVI_A_FAST, symmetrize=False),
     "mid": _chain_preset(MOVI_A_MID, symmetrize=False),
     "spokes": _chain_preset(MOVI_A_SPOKES, symmetrize=False),
@@ -188,7 +193,21 @@ def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:
     return path
 
 
-def run(preset: str, out: Path, workers: int, seed: int, train_seed: int | None = None) -> dict:
+def train_chains(data: Path, out: Path, chains: list, p: dict, seed: int, parallel: bool) -> list:
+    """train_chain of each chain, in order or (parallel) at once, one process a chain: each stage
+    trains on one thread, so an ensemble's chains use as many cores as there are chains."""
+    if not parallel or len(chains) < 2:
+        return [train_chain(data, out, chain, p, seed) for chain in chains]
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    say(f"train: {len(chains)} chains at once, one process each")
+    with ProcessPoolExecutor(len(chains), mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = [pool.submit(train_chain, data, out, chain, p, seed) for chain in chains]
+        return [f.result() for f in futures]
+
+
+def run(preset: str, out: Path, workers: int, seed: int, train_seed: int | None = None,
+        parallel: bool = False) -> dict:
     p = PRESETS[preset]
     train_seed = seed if train_seed is None else train_seed
     check_writable(out)
@@ -196,11 +215,11 @@ def run(preset: str, out: Path, workers: int, seed: int, train_seed: int | None 
     data = data_stage(out / "data", [SHAPES, *p["scene"]], p["counts"], seed, workers)
     members = []   # the last checkpoints of an ensemble's other chains
     if "chain" in p:
-        ckpt, stages = train_chain(data.root, out, p["chain"], p, train_seed)
-        for chain in p.get("members", ()):
-            member, member_stages = train_chain(data.root, out, chain, p, train_seed)
+        trained = train_chains(data.root, out, [p["chain"], *p.get("members", ())], p, train_seed, parallel)
+        (ckpt, stages), others = trained[0], trained[1:]
+        for member, member_stages in others:
             members.append(member)
-            stages += member_stages
+            stages = stages + member_stages
     else:
         ckpt = train_stage(data.root, out / "run", p["model"],
                            [f"train.steps={p['steps']}", f"train.seed={train_seed}"])
@@ -263,13 +282,16 @@ def main(argv=None) -> int:
                     help="training seed instead of --seed, the data unchanged: another seed of a chain on the "
                          "same scenes (a chain's stages add it to their own seeds)")
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
+    ap.add_argument("--parallel", action="store_true",
+                    help="an ensemble preset (best_pair, budget_pair): train its chains at once, one process (and "
+                         "core) each, instead of one after the other")
     a = ap.parse_args(argv)
     out = a.out or Path("runs") / f"movi_a_{a.preset}"
 
     def stages():
         if a.fresh:
             remove_output(out, OUTPUTS)
-        run(a.preset, out, a.workers, a.seed, a.train_seed)
+        run(a.preset, out, a.workers, a.seed, a.train_seed, a.parallel)
     return guarded(stages)
 
 

@@ -150,7 +150,9 @@ MOVI_A_MID_SPOKES = MOVI_A_MID + (
 # 31 + 17 + 16 + 12 minutes on one core beside another training, 22.0% / 29.6 deg at one call where
 # gns_movi_a_mid_spokes, ~4 h 15 min of lineage, has 22.5 / 30.8; docs/speed.md, session 20)
 SPOKES = ("features.surface_edges=false",)
-MOVI_A_SPOKES_CHAIN = variant(MOVI_A_HEADING4, "spokes", SPOKES)
+# the full-mesh chain ships as gns_movi_a_spokes_chain (19.2% / 27.6 deg at one call): trained on the budget's
+# second core beside the heading chain and averaged with it, 16.2% / 25.0 deg symmetrized (session 24)
+MOVI_A_SPOKES_CHAIN = variant(MOVI_A_HEADING4, "spokes", SPOKES, "gns_movi_a_spokes_chain")
 MOVI_A_MID_SPOKES_CHAIN = variant(MOVI_A_HEADING4, "mid_spokes", ("features.mesh_vertices=32", *SPOKES),
                                   "gns_movi_a_mid_spokes_chain")
 # and the heading_k2 chain's K = 2 stage on top, on spokes too (its first four stages are the spokes chain's)

@@ -3,9 +3,11 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from datagen.cli import main as datagen_main
 from datagen.shards import Dataset
+from gns.checkpoint import read_checkpoint
 from gns.config import build_config
 from gns.evaluate import evaluate_run
 from gns.geometry import pose_to_vertices
@@ -81,7 +83,6 @@ def test_movi_a_pipeline_tiny_runs_end_to_end_and_resumes(tmp_path, capsys):
 
 
 def test_movi_a_chain_trains_each_stage_from_the_last_and_resumes(tmp_path, capsys):
-    from gns.checkpoint import read_checkpoint
     out = tmp_path / "c"
     assert movi_a.main(["--preset", "chain_tiny", "--out", str(out), "--workers", "1"]) == 0
     first, second = (read_checkpoint(out / f"run_{s}" / "latest.pt") for s in ("a", "b"))
@@ -121,6 +122,16 @@ def test_movi_a_pair_trains_both_chains_and_scores_their_ensemble(tmp_path, caps
     capsys.readouterr()
     assert movi_a.main(["--preset", "pair_tiny", "--out", str(out), "--workers", "1"]) == 0
     assert capsys.readouterr().err.count("skipping") == 5   # the data, three stages, the evaluation
+    # --parallel: the two chains at once, one process each, the same stages and weights
+    together = tmp_path / "p"
+    together.mkdir()
+    (together / "data").symlink_to(out / "data")
+    assert movi_a.main(["--preset", "pair_tiny", "--out", str(together), "--workers", "1", "--parallel"]) == 0
+    assert "2 chains at once" in capsys.readouterr().err
+    for run in ("run_b", "run_m"):
+        a, b = (read_checkpoint(d / run / "latest.pt") for d in (out, together))
+        assert a["step"] == b["step"] and all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"])
+    assert json.loads((together / "results.json").read_text())["member_steps"] == [20]
 
 
 def test_movi_a_multi_object_preset_reports_interpenetration(tmp_path, capsys):
