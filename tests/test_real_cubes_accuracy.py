@@ -45,6 +45,21 @@ def test_a_missing_source_is_one_line(tmp_path, capsys):
     assert len(err) == 1 and "does not exist" in err[0]
 
 
+def test_the_64_toss_settings_are_those_of_the_shipped_model():
+    """gns_real_cubes_n64 was trained by hand (docs/accuracy.md, session 24) with what the pipeline's
+    64-toss stage runs, seed included: the 256-toss levers at 30000 steps."""
+    from gns.checkpoint import read_checkpoint
+    from gns.config import build_config, config_differences
+    from gns.evaluate import checkpoint_of
+    from pipelines.common import CONFIGS, SETTINGS_FREE
+    p = real_cubes_accuracy.PRESETS["accuracy"]
+    cfg = build_config(path=CONFIGS / f"gns_{p.model}.toml", overrides=real_cubes_accuracy.gns_settings(p, 64))
+    shipped = read_checkpoint(checkpoint_of("gns_real_cubes_n64"))
+    assert config_differences(shipped["config"], cfg, ignore=SETTINGS_FREE) == []
+    assert shipped["step"] == cfg.train.steps == 30000 and shipped["seed"] == cfg.train.seed == 0
+    assert cfg.model.message_passing_steps == 10 and cfg.train.rigid_loss == 1 and cfg.features.floor_clip == 1.5
+
+
 def test_the_256_toss_settings_are_those_of_the_shipped_model():
     """gns_real_cubes_n256_deep was trained by hand (docs/accuracy.md, session 22) with what the
     pipeline's 256-toss stage now runs, seed included; gns_real_cubes_n256_floor (seed 1) with the
