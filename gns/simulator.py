@@ -279,7 +279,8 @@ def _surface_free(settings: dict, other: "LearnedSimulator") -> dict:
     """Graph settings as an ensemble compares them: surface_edges left out where both models have
     centre nodes and neither keeps some shapes' surfaces (the spokes are then rebuilt exactly)."""
     theirs = other._graph_settings
-    if settings["centre_node"] and theirs["centre_node"] and not settings["keep_surface"] and not theirs["keep_surface"]:
+    both_centred = settings["centre_node"] and theirs["centre_node"]
+    if both_centred and not settings["keep_surface"] and not theirs["keep_surface"]:
         return {k: v for k, v in settings.items() if k != "surface_edges"}
     return settings
 

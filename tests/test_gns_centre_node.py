@@ -119,10 +119,10 @@ def test_untying_a_repeated_processor_starts_from_the_same_function(tmp_path):
     for i, block in enumerate(untied.network.blocks):
         for (name, a), b in zip(block.state_dict().items(), tied.network.blocks[i % 2].state_dict().values()):
             assert torch.equal(a, b), name
-    nodes, edges = torch.randn(7, tied.network.node_encoder[0].in_features), torch.randn(9, tied.network.edge_encoder[0].in_features)
-    senders, receivers = torch.randint(0, 7, (9,)), torch.randint(0, 7, (9,))
-    torch.testing.assert_close(untied.network(nodes, edges, senders, receivers), tied.network(nodes, edges, senders, receivers),
-                               rtol=0, atol=0)
+    nodes = torch.randn(7, tied.network.node_encoder[0].in_features)
+    edges = torch.randn(9, tied.network.edge_encoder[0].in_features)
+    args = (nodes, edges, torch.randint(0, 7, (9,)), torch.randint(0, 7, (9,)))
+    torch.testing.assert_close(untied.network(*args), tied.network(*args), rtol=0, atol=0)
     # and the copies then train apart
     train(data, tmp_path / "l4b", tiny("train.steps=6", *small, "model.message_passing_steps=4",
                                        f"train.init_from={tmp_path / 'k2'}"), log=quiet)
