@@ -67,7 +67,8 @@ Presets (measured costs on a 2-core CPU in the README):
   chain_tiny   smoke test of a chain: two stages of the tiny model
   pair_tiny    smoke test of an ensemble: chain_tiny and a one-stage chain of another seed
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, budget_pair,
-spokes_pair, fast, mid, spokes, mid_spokes, spokes_chain, mid_spokes_chain, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
+spokes_pair, fast, mid, spokes, mid_spokes, spokes_chain, mid_spokes_chain, spokes_k2, sphere_edges_chain,
+mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
 spokes chain alone: free flight, one network call; spokes_pair symmetrized).
 Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
@@ -287,7 +288,7 @@ def main(argv=None) -> int:
                          "same scenes (a chain's stages add it to their own seeds)")
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
     ap.add_argument("--parallel", action="store_true",
-                    help="an ensemble preset (best_pair, budget_pair): train its chains at once, one process (and "
+                    help="an ensemble preset (best_pair, budget_pair, spokes_pair): train its chains at once, one process (and "
                          "core) each, instead of one after the other")
     a = ap.parse_args(argv)
     out = a.out or Path("runs") / f"movi_a_{a.preset}"
