@@ -31,10 +31,12 @@ class Stage:
     ships_as: str = ""     # the shipped model it reproduces (gns/models/<name>.pt), if any
 
 
-def variant(chain: tuple, prefix: str, settings: tuple, ships_as: str = "") -> tuple:
-    """`chain` with `settings` added to every stage (run folders `prefix`_<name>, the same steps and
-    seeds): an A/B of one lever over a whole chain; its last stage ships as `ships_as`, if given."""
-    return tuple(Stage(f"{prefix}_{s.name}", s.steps, (*s.settings, *settings), s.seed,
+def variant(chain: tuple, prefix: str, settings: tuple, ships_as: str = "", seed_offset: int = 0) -> tuple:
+    """`chain` with `settings` added to every stage (run folders `prefix`_<name>, the same steps, the
+    seeds + seed_offset): an A/B of one lever over a whole chain, or (no settings, another offset:
+    what `--train-seed` trains) a second member of an ensemble from the same recipe; its last stage
+    ships as `ships_as`, if given."""
+    return tuple(Stage(f"{prefix}_{s.name}", s.steps, (*s.settings, *settings), s.seed + seed_offset,
                        ships_as if s is chain[-1] else "") for s in chain)
 
 
@@ -153,19 +155,9 @@ SPOKES = ("features.surface_edges=false",)
 # the full-mesh chain ships as gns_movi_a_spokes_chain (19.2% / 27.6 deg at one call): trained on the budget's
 # second core beside the heading chain and averaged with it, 16.2% / 25.0 deg symmetrized (session 24)
 MOVI_A_SPOKES_CHAIN = variant(MOVI_A_HEADING4, "spokes", SPOKES, "gns_movi_a_spokes_chain")
-
-
-
-def reseeded(chain: tuple, prefix: str, offset: int, ships_as: str = "") -> tuple:
-    """`chain` with every stage's seed + offset (what `--train-seed offset` trains), in run folders
-    `prefix`_<name>: a second member of an ensemble from the same recipe."""
-    return tuple(Stage(f"{prefix}_{s.name}", s.steps, s.settings, s.seed + offset, ships_as if s is chain[-1] else "")
-                 for s in chain)
-
-
 # session 24: the spokes chain again from seed 100 (19.2% / 27.6 deg for seed 0, 18.3 / 26.1 for this one at one
 # call); the two trained at once, one a core (~1 h 45 min), and averaged: 16.7% / 25.0 deg symmetrized
-MOVI_A_SPOKES_CHAIN_S100 = reseeded(MOVI_A_SPOKES_CHAIN, "s100", 100, "gns_movi_a_spokes_chain_s100")
+MOVI_A_SPOKES_CHAIN_S100 = variant(MOVI_A_SPOKES_CHAIN, "s100", (), "gns_movi_a_spokes_chain_s100", seed_offset=100)
 MOVI_A_MID_SPOKES_CHAIN = variant(MOVI_A_HEADING4, "mid_spokes", ("features.mesh_vertices=32", *SPOKES),
                                   "gns_movi_a_mid_spokes_chain")
 # and the heading_k2 chain's K = 2 stage on top, on spokes too (its first four stages are the spokes chain's)

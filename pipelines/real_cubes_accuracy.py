@@ -57,9 +57,10 @@ FLOOR = ("features.floor_clip=1.5", "features.floor_signed=true")
 # measured 7.09% / 7.17 deg on the test tosses (mean) against 7.24 / 7.20 for eight seeds of five steps,
 # and 7.77% against 8.20 over 200 other held-out tosses; gns_real_cubes_n256_deep is its seed 0.
 DEEP = ("model.message_passing_steps=10",)
-# At 64 tosses the 256-toss levers together (rigid loss, floor seen from farther, ten steps; docs/accuracy.md,
-# session 24): two seeds 8.97 and 8.89% / 8.4 and 7.9 deg on the test tosses against 11.0 and 11.5% / 9.2 and
-# 10.1 for two seeds without, and 1.6-1.9 points better over 200 other held-out tosses
+# The three together, at 256 tosses and (docs/accuracy.md, session 24) at 64: two seeds 8.97 and 8.89% / 8.4 and
+# 7.9 deg on the test tosses against 11.0 and 11.5% / 9.2 and 10.1 for two seeds without, and 1.6-1.9 points
+# better over 200 other held-out tosses
+MANY_TOSSES = (*RIGID_LOSS, *FLOOR, *DEEP)
 
 
 @dataclass(frozen=True)
@@ -81,10 +82,10 @@ class Preset:
 PRESETS = {
     "tiny": Preset(test=1, valid=0, steps={2: 30}, model="tiny", baseline_budget=3, baseline_tosses=None,
                    train=tuple(o for o in _TRAIN if not o.startswith("valid.every")) + ("valid.every=0",),
-                   engine_data={2: (4, 2)}, levers={2: (*SYMMETRIC, *RIGID_LOSS, *FLOOR, *DEEP)}),
+                   engine_data={2: (4, 2)}, levers={2: (*SYMMETRIC, *MANY_TOSSES)}),
     # ~3-4 min per 10k steps on one idle core (16 tosses, batch 32); lr decays 10x every third of the steps
     "accuracy": Preset(test=96, valid=32, steps={16: 20000, 64: 30000, 256: 40000}, engine_data={16: (2000, 40)},
-                       levers={16: SYMMETRIC, 64: (*RIGID_LOSS, *FLOOR, *DEEP), 256: (*RIGID_LOSS, *FLOOR, *DEEP)}),
+                       levers={16: SYMMETRIC, 64: MANY_TOSSES, 256: MANY_TOSSES}),
 }
 
 

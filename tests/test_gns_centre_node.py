@@ -8,11 +8,11 @@ from gns_fixtures import write_toss_dataset
 
 import gns
 from datagen.shapes import get_shape
+from gns.checkpoint import build_simulator
+from gns.fine_tune import init_from
 from gns.graph import MeshLibrary, centre_spokes
 from gns.simulator import shape_match_packed
-from gns.fine_tune import init_from
 from gns.spec import ModelSpec
-from gns.checkpoint import build_simulator
 from gns.train import CheckpointError, read_checkpoint, train
 from test_gns_train import quiet, tiny
 
