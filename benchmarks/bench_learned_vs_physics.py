@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -153,14 +154,36 @@ def print_table(rows: list[dict]) -> None:
               f"{fmt(r['penetration_pct'], '.3f')} |")
 
 
+def pareto_front(xs: list[float], ys: list[float]) -> list[int]:
+    """Indices of the points no other point beats on both axes (higher x, lower y), by x descending."""
+    order = sorted(range(len(xs)), key=lambda i: (-xs[i], ys[i]))
+    front, best = [], float("inf")
+    for i in order:
+        if ys[i] < best:
+            front.append(i)
+            best = ys[i]
+    return front
+
+
+def _short_names(runs: list[str]) -> list[str]:
+    """Run names without the prefix they all share (gns_movi_a_...), each part of an ensemble too."""
+    names = [Path(r).name if "+" not in r else r for r in runs]
+    parts = [p for n in names for p in n.split("+")]
+    cut = len(os.path.commonprefix(parts)) if len(parts) > 1 else 0
+    cut = parts[0][:cut].rfind("_") + 1 if cut else 0   # whole words only
+    return ["+".join(p[cut:] for p in n.split("+")) for n in names]
+
+
 def plot_rows(rows: list[dict], runs: list[str], path: str) -> Path:
     """Throughput against PyBullet's (x axis, log) and position / rotation error (two panels):
-    one colour per model, every point labelled with its rollout options, PyBullet's throughput
-    drawn as the line to reach. Lower right is better."""
+    one colour per model, one marker per rollout option, the points no other beats on both axes
+    joined (the trade's front) and named, PyBullet's throughput drawn as the line to reach.
+    Lower right is better."""
+    from matplotlib.lines import Line2D
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     from gns.plots import label_points, new_figure, save_figure
-    fig = new_figure((11, 4.6))
+    fig = new_figure((11, 5.2))
     learned = [r for r in rows if r["variant"].startswith("GNS ")]
     model, option = [], []   # "GNS [RUN ]OPTIONS": the run is named only when there are several
     for r in learned:
@@ -168,14 +191,20 @@ def plot_rows(rows: list[dict], runs: list[str], path: str) -> Path:
         run = next((m for m in runs if name.startswith(f"{m} ")), None) if len(runs) > 1 else runs[0]
         model.append(run)
         option.append(name[len(run) + 1:] if len(runs) > 1 else name)
+    options = list(dict.fromkeys(option))
+    markers = "osD^v<>p*h"
+    short = dict(zip(runs, _short_names(runs)))
     axes = fig.subplots(1, 2)
     for ax, key, what in zip(axes, ("position_error_pct", "rotation_error_deg"),
                              ("position error [% of size]", "rotation error [deg]")):
-        for k, run in enumerate(runs):
-            pts = [r for r, m in zip(learned, model) if m == run]
-            ax.scatter([r["x_pybullet"] for r in pts], [r[key] for r in pts], color=f"C{k}", s=40,
-                       label=Path(run).name, zorder=2)
-        ax.axvline(1.0, color="0.3", ls="--", lw=0.8, label="PyBullet's throughput")
+        xs, ys = [r["x_pybullet"] for r in learned], [r[key] for r in learned]
+        for i, r in enumerate(learned):
+            ax.scatter(xs[i], ys[i], color=f"C{runs.index(model[i]) % 10}", s=36, zorder=3,
+                       marker=markers[options.index(option[i]) % len(markers)])
+        front = pareto_front(xs, ys)
+        fx, fy = [xs[i] for i in front], [ys[i] for i in front]
+        ax.step(fx, fy, where="post", color="0.5", lw=0.9, zorder=1)
+        ax.axvline(1.0, color="0.3", ls="--", lw=0.8)
         ax.set_xscale("log")
         ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
         ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}x"))
@@ -184,21 +213,26 @@ def plot_rows(rows: list[dict], runs: list[str], path: str) -> Path:
         ax.set_ylabel(what)
         ax.grid(alpha=0.3, which="both")
         ax.margins(y=0.2)
-        xs = [r["x_pybullet"] for r in learned]
         ax.set_xlim(min(xs + [1.0]) / 1.6, max(xs + [1.0]) * 1.6)
-        label_points(ax, xs, [r[key] for r in learned], option, fontsize=6)
-    axes[0].legend(fontsize=7, loc="best")
+        tag = {o: f" ({k + 1})" if len(options) > 1 else "" for k, o in enumerate(options)}
+        label_points(ax, fx, fy, [short[model[i]] + tag[option[i]] for i in front], fontsize=6.5)
+    handles = [Line2D([], [], ls="", marker="o", color=f"C{k % 10}", label=short[r]) for k, r in enumerate(runs)]
+    handles += [Line2D([], [], ls="", marker=markers[k % len(markers)], color="0.3",
+                       label=f"({k + 1}) {o}" if len(options) > 1 else o) for k, o in enumerate(options)]
+    handles += [Line2D([], [], color="0.5", lw=0.9, label="front: nothing faster and more accurate"),
+                Line2D([], [], color="0.3", ls="--", lw=0.8, label="PyBullet's throughput")]
+    fig.legend(handles=handles, fontsize=7, loc="lower center", ncol=min(4, len(handles)), frameon=False)
     fig.suptitle("learned rollouts against PyBullet on the same scenes (PyBullet's own error is 0)", fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.06 + 0.035 * ((len(handles) - 1) // 4), 1, 1))
     return save_figure(fig, path, dpi=130)
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", required=True, action="append",
+    p.add_argument("--run", action="append",
                    help="run folder, checkpoint or shipped model name; A+B an ensemble (each step averages "
                         "A's and B's predictions, `gns eval --ensemble`); repeat to compare models in the same rounds")
-    p.add_argument("--data", required=True, help="a datagen toss dataset (its config and seed remake the scenes)")
+    p.add_argument("--data", help="a datagen toss dataset (its config and seed remake the scenes)")
     p.add_argument("--split", default="test")
     p.add_argument("--limit", type=int, help="first N scenes only")
     p.add_argument("--repeats", type=int, default=3, help="timed repeats, best taken (default 3)")
@@ -206,7 +240,12 @@ def main(argv=None) -> int:
                    help="comma list of +-joined parts: " + ", ".join(KNOWN))
     p.add_argument("--json", help="also write the rows here")
     p.add_argument("--plot", help="also draw the rows here (PNG): throughput against position and rotation error")
+    p.add_argument("--replot", metavar="JSON", help="only draw --plot from an earlier run's --json (no timing)")
     a = p.parse_args(argv)
+    if a.replot:
+        return replot(p, a)
+    if not a.run or not a.data:
+        p.error("--run and --data are required (or --replot JSON --plot PNG)")
     variants = parse_variants(a.variants)
     torch.set_num_threads(1)
 
@@ -243,6 +282,18 @@ def main(argv=None) -> int:
                                             "repeats": a.repeats, "rows": rows}, indent=2, default=float) + "\n")
     if a.plot:
         print(f"plot: {plot_rows(rows, a.run, a.plot)}")
+    return 0
+
+
+def replot(parser: argparse.ArgumentParser, a: argparse.Namespace) -> int:
+    """--replot JSON --plot PNG: the figure of an earlier run, from its rows."""
+    source = Path(a.replot)
+    if not a.plot:
+        parser.error("--replot needs --plot, the PNG to draw")
+    if not source.is_file():
+        parser.error(f"--replot {source}: no such file")
+    saved = json.loads(source.read_text())
+    print(f"plot: {plot_rows(saved['rows'], saved['run'], a.plot)}")
     return 0
 
 

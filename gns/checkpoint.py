@@ -4,8 +4,9 @@ model, finding where a run resumes, and rebuilding a simulator from one.
 A checkpoint is a `torch.save` dict of format CHECKPOINT_FORMAT: "format", "step", "seed",
 "config" (the full config as a dict), "spec" (the dataset feature spec, gns.spec.ModelSpec),
 "model" (weights and normalisers), "provenance", and in a training checkpoint also
-"optimizer" and "rng". An exported model (`export_model`) drops the last two. docs/gns.md
-documents the keys.
+"optimizer" and "rng", and with `train.ema_decay` "trained" (the weights training goes on from;
+"model" then holds their moving average, gns.weight_average). An exported model (`export_model`)
+drops the last three. docs/gns.md documents the keys.
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from gns.spec import ModelSpec, SpecError
 
 CHECKPOINT_FORMAT = 1
 LATEST = "latest.pt"
+TRAINED = "trained"
 
 
 class CheckpointError(Exception):

@@ -166,6 +166,9 @@ class TrainConfig:
     # shape-matched next frame + (1 - teacher_weight) x the true one (gns.distill)
     teacher: str = ""
     teacher_weight: float = 1.0
+    # In (0, 1): the run saves an exponential moving average of its weights with this decay (about
+    # the last 1 / (1 - decay) steps) as the model to use, and trains on from its own (gns.weight_average)
+    ema_decay: float = 0.0
 
 
 @dataclass
@@ -302,6 +305,7 @@ def validate(cfg: Config) -> None:
         (cfg.train.size_weight >= 0, "train.size_weight must be >= 0"),
         (cfg.train.rigid_loss >= 0, "train.rigid_loss must be >= 0"),
         (0 <= cfg.train.teacher_weight <= 1, "train.teacher_weight must be in [0, 1]"),
+        (0 <= cfg.train.ema_decay < 1, "train.ema_decay must be in [0, 1) (0: off)"),
         (cfg.train.log_every >= 1 and cfg.train.checkpoint_every >= 1,
          "train.log_every and train.checkpoint_every must be >= 1"),
         (cfg.valid.every >= 0 and cfg.valid.rollout_steps >= 1, "valid.every must be >= 0, valid.rollout_steps >= 1"),

@@ -38,11 +38,12 @@ from gns.features import HISTORY
 from gns.simulator import LearnedSimulator, shape_match_packed
 from gns.spec import ModelSpec
 # the checkpoint API stays importable from here (pipelines and users' scripts import it so)
-from gns.checkpoint import (CHECKPOINT_FORMAT, LATEST, CheckpointError, build_simulator, checkpoint_paths,  # noqa: F401
-                            export_model, exported_model_message, is_exported, load_model, read_checkpoint,
-                            resume_point, save_checkpoint)
+from gns.checkpoint import (CHECKPOINT_FORMAT, LATEST, TRAINED, CheckpointError, build_simulator,  # noqa: F401
+                            checkpoint_paths, export_model, exported_model_message, is_exported, load_model,
+                            read_checkpoint, resume_point, save_checkpoint)
 from gns.distill import Teacher
 from gns.fine_tune import incompatibility, init_from, merge_ranges, with_layout
+from gns.weight_average import WeightAverage
 
 METRICS = "metrics.jsonl"
 PROVENANCE = "provenance.json"
@@ -417,7 +418,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     data_spec, tracks, valid = load_data(data_dir, cfg)
     fingerprint = Dataset(data_dir).fingerprint
     rng = _seed(cfg, log)
-    sim, optimizer, spec, step = _build_model(cfg, data_spec, resumed, rng)
+    sim, optimizer, spec, step, average = _build_model(cfg, data_spec, resumed, rng)
     _place_model(sim, cfg, device, world)
     resumed_from, ckpt = resumed if resumed else (None, {})
     finished = False
@@ -429,7 +430,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
             log(f"teacher: {cfg.train.teacher}, {cfg.train.teacher_weight:g} of each target")
         provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance"))
         step = _train_loop(run, cfg, sim, optimizer, tracks, valid, spec, step, rng, device, world,
-                           stale, resumed_from, provenance, log, teacher)
+                           stale, resumed_from, provenance, log, teacher, average)
         finished = True
         return step
     finally:
@@ -475,29 +476,34 @@ def _seed(cfg: Config, log: Callable[[str], None]) -> np.random.Generator:
     return np.random.default_rng(cfg.train.seed)
 
 
-def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] | None,
-                 rng: np.random.Generator) -> tuple[LearnedSimulator, torch.optim.Optimizer, ModelSpec, int]:
+def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] | None, rng: np.random.Generator
+                 ) -> tuple[LearnedSimulator, torch.optim.Optimizer, ModelSpec, int, WeightAverage | None]:
     """The simulator and its optimiser: new, started from train.init_from's weights, or where
     the resumed checkpoint left them (weights, optimiser, step, feature ranges, random state).
-    Returns (simulator, optimiser, spec, step)."""
+    Returns (simulator, optimiser, spec, step, the weight average if train.ema_decay asks for one)."""
     sim = build_simulator(cfg, data_spec)
     spec = with_layout(data_spec, sim)
     optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
+    decay = cfg.train.ema_decay
     if resumed is None:
         if cfg.train.init_from:
             spec = init_from(sim, cfg.train.init_from, cfg, spec)
-        return sim, optimizer, spec, 0
+        return sim, optimizer, spec, 0, WeightAverage(sim, decay) if decay else None
     path, ckpt = resumed
     trained = ModelSpec.from_dict(ckpt["spec"])
     problem = incompatibility(ckpt["config"], trained, cfg, spec)
     if problem:
         raise CheckpointError(f"cannot resume {path}: {problem}")
-    sim.load_state_dict(ckpt["model"])
+    # with a weight average, "model" holds the average and "trained" the weights training goes on from
+    sim.load_state_dict(ckpt.get(TRAINED, ckpt["model"]))
     optimizer.load_state_dict(ckpt["optimizer"])
     step = int(ckpt["step"])
     spec = merge_ranges(trained, spec)
     _restore_rng(ckpt["rng"], rng)
-    return sim, optimizer, spec, step
+    average = None
+    if decay:
+        average = WeightAverage(sim, decay, step, ckpt["model"] if TRAINED in ckpt else None)
+    return sim, optimizer, spec, step, average
 
 
 def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world: parallel.World) -> None:
@@ -517,7 +523,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
                 tracks: ObjectTracks, valid: ObjectTracks | None, spec: ModelSpec, step: int,
                 rng: np.random.Generator, device: torch.device, world: parallel.World, stale: list[Path],
                 resumed_from: Path | None, provenance: dict, log: Callable[[str], None],
-                teacher: Teacher | None = None) -> int:
+                teacher: Teacher | None = None, average: WeightAverage | None = None) -> int:
     """Steps from `step` to cfg.train.steps: a batch, an Adam step, a metrics line every
     train.log_every steps (with validation every valid.every), a checkpoint every
     train.checkpoint_every. Returns the last step."""
@@ -526,8 +532,10 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
         _start_run_folder(run, stale, resumed_from, step, config_dict, provenance, log)
 
     def state(step: int) -> dict:
+        weights = {"model": sim.state_dict()} if average is None else \
+            {"model": average.state_dict(sim), TRAINED: sim.state_dict()}
         return {"format": CHECKPOINT_FORMAT, "step": step, "seed": cfg.train.seed, "config": config_dict,
-                "spec": spec.to_dict(), "model": sim.state_dict(), "optimizer": optimizer.state_dict(),
+                "spec": spec.to_dict(), **weights, "optimizer": optimizer.state_dict(),
                 "rng": _rng_state(rng), "provenance": provenance}
 
     log(_start_line(cfg, sim, tracks, spec, step, world, resumed_from))
@@ -541,7 +549,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
     try:
         with stop:
             step, last_good = _steps(run, cfg, sim, optimizer, tracks, valid, step, rng, device, world, state,
-                                     last_good, bar, metrics, writer, stop, teacher)
+                                     last_good, bar, metrics, writer, stop, teacher, average)
     finally:
         bar.close()
         if metrics is not None:
@@ -554,9 +562,10 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
 def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer, tracks: ObjectTracks,
            valid: ObjectTracks | None, step: int, rng: np.random.Generator, device: torch.device,
            world: parallel.World, state: Callable[[int], dict], last_good: Path | None, bar, metrics, writer,
-           stop, teacher: Teacher | None = None) -> tuple[int, Path | None]:
+           stop, teacher: Teacher | None = None, average: WeightAverage | None = None) -> tuple[int, Path | None]:
     """The loop of _train_loop; returns (step reached, last checkpoint). Stops on a signal
-    (`stop.asked`) after the step under way, with a checkpoint there."""
+    (`stop.asked`) after the step under way, with a checkpoint there. Validation scores the
+    weight average when there is one: the weights the checkpoints keep for use."""
     lo, hi = parallel.share(cfg.train.batch_size, world)
     loss_sum, loss_count, busy = 0.0, 0, 0.0
     t_mark = time.perf_counter()
@@ -572,6 +581,8 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
                               cfg.train.rigid_loss, teacher, cfg.train.teacher_weight)
         except FloatingPointError as e:
             raise TrainingError(_stopped(str(e), step + 1, last_good)) from None
+        if average is not None:
+            average.update()
         step += 1
         busy += time.perf_counter() - t0
         loss_sum += loss
@@ -586,7 +597,8 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
                      "graphs_per_sec": loss_count * cfg.train.batch_size / busy,
                      "time": time.perf_counter() - t_mark}
             if validating:
-                entry.update(validate(sim, valid, cfg, device))
+                with average.swapped_in() if average is not None else contextlib.nullcontext():
+                    entry.update(validate(sim, valid, cfg, device))
             _write_metrics(metrics, writer, entry)
             loss_sum, loss_count, busy = 0.0, 0, 0.0
         if step % cfg.train.checkpoint_every == 0 or step == cfg.train.steps:

@@ -113,3 +113,26 @@ def test_bench_learned_vs_physics_times_an_ensemble_as_one_run(tmp_path):
     with pytest.raises(SystemExit, match=r"--run .*\+gns_movi_a_coarse: ensemble member 1 differs"):
         bench.main(["--run", f"{model}+gns_movi_a_coarse", "--data", str(data), "--repeats", "1",
                     "--variants", "plain"])
+
+
+def test_bench_learned_vs_physics_front_and_replot(tmp_path):
+    import json
+
+    import pytest
+
+    bench, _ = learned_vs_physics(tmp_path, 1, 8, "cube")
+    # (throughput, error): the second is slower and worse than the first, so off the front
+    xs, ys = [1.0, 0.5, 0.2, 0.1, 2.0], [20.0, 21.0, 15.0, 15.0, 30.0]
+    assert bench.pareto_front(xs, ys) == [4, 0, 2]
+    assert bench._short_names(["gns_movi_a_heading+gns_movi_a_spokes", "gns_movi_a_k3"]) == ["heading+spokes", "k3"]
+    rows = [{"variant": "PyBullet", "x_pybullet": 1.0}] + [
+        {"variant": f"GNS {m} {v}", "x_pybullet": x, "position_error_pct": y, "rotation_error_deg": y + 5}
+        for (m, v), x, y in zip([("a", "free"), ("a", "free+sym"), ("b", "free"), ("b", "free+sym")],
+                                [1.0, 0.3, 0.5, 0.1], [22.0, 20.0, 19.0, 18.0])]
+    (tmp_path / "b.json").write_text(json.dumps({"run": ["a", "b"], "rows": rows}))
+    assert bench.main(["--replot", str(tmp_path / "b.json"), "--plot", str(tmp_path / "b.png")]) == 0
+    assert (tmp_path / "b.png").stat().st_size > 10_000
+    with pytest.raises(SystemExit):
+        bench.main(["--replot", str(tmp_path / "b.json")])
+    with pytest.raises(SystemExit):
+        bench.main(["--data", str(tmp_path)])
