@@ -77,6 +77,8 @@ data/movi_a_4000 skips generating them again.
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 from pathlib import Path
 
@@ -200,15 +202,36 @@ def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:
 
 def train_chains(data: Path, out: Path, chains: list, p: dict, seed: int, parallel: bool) -> list:
     """train_chain of each chain, in order or (parallel) at once, one process a chain: each stage
-    trains on one thread, so an ensemble's chains use as many cores as there are chains."""
+    trains on one thread, so an ensemble's chains use as many cores as there are chains. If a
+    chain fails, the others are asked to stop (SIGTERM: the training checkpoints after its step
+    under way) so that the error reaches the user now, not when their stages end; a rerun resumes."""
     if not parallel or len(chains) < 2:
         return [train_chain(data, out, chain, p, seed) for chain in chains]
     import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
     say(f"train: {len(chains)} chains at once, one process each")
-    with ProcessPoolExecutor(len(chains), mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(train_chain, data, out, chain, p, seed) for chain in chains]
+    spawn = multiprocessing.get_context("spawn")
+    with spawn.Manager() as manager, ProcessPoolExecutor(len(chains), mp_context=spawn) as pool:
+        pids = manager.dict()
+        futures = [pool.submit(_chain_in_process, pids, k, data, out, chain, p, seed) for k, chain in enumerate(chains)]
+        wait(futures, return_when=FIRST_EXCEPTION)
+        failed = [f for f in futures if f.done() and f.exception() is not None]
+        if failed:
+            running = [k for k, f in enumerate(futures) if not f.done()]
+            if running:
+                say(f"train: a chain failed; stopping the other{'s' if len(running) > 1 else ''} at a checkpoint")
+            for k in running:
+                if k in pids:
+                    os.kill(pids[k], signal.SIGTERM)
+            wait(futures)
+            failed[0].result()   # raises the first chain's error
         return [f.result() for f in futures]
+
+
+def _chain_in_process(pids, k: int, data: Path, out: Path, chain: tuple, p: dict, seed: int):
+    """train_chain in a pool's process, its pid left where train_chains can signal it."""
+    pids[k] = os.getpid()
+    return train_chain(data, out, chain, p, seed)
 
 
 def run(preset: str, out: Path, workers: int, seed: int, train_seed: int | None = None,
@@ -289,7 +312,8 @@ def main(argv=None) -> int:
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
     ap.add_argument("--parallel", action="store_true",
                     help="an ensemble preset (best_pair, budget_pair, spokes_pair): train its chains at once, one process (and "
-                         "core) each, instead of one after the other")
+                         "core) each, instead of one after the other; if one fails, the others stop at a checkpoint "
+                         "(a rerun resumes them)")
     a = ap.parse_args(argv)
     out = a.out or Path("runs") / f"movi_a_{a.preset}"
 

@@ -134,6 +134,24 @@ def test_movi_a_pair_trains_both_chains_and_scores_their_ensemble(tmp_path, caps
     assert json.loads((together / "results.json").read_text())["member_steps"] == [20]
 
 
+def test_movi_a_parallel_chains_stop_the_others_when_one_fails(tmp_path, capsys):
+    from gns_fixtures import write_toss_dataset
+
+    from gns.config import ConfigError
+    from pipelines.movi_a_recipes import Stage
+    data = write_toss_dataset(tmp_path / "data", train=4, valid=1, frames=10)
+    long = (Stage("long", 100_000, ("train.checkpoint_every=100000",), 0),)
+    # a short first stage lets the long chain reach its training loop before the bad stage fails
+    bad = (Stage("short", 30, (), 1), Stage("bad", 10, ("train.lr_decay_steps=0",), 2))
+    p = {"model": "tiny", "common": ("valid.every=0",)}
+    with pytest.raises(ConfigError, match="lr_decay_steps"):
+        movi_a.train_chains(data, tmp_path, [long, bad], p, 0, parallel=True)
+    assert "stopping the other at a checkpoint" in capsys.readouterr().err
+    # the long chain stopped after its step under way and checkpointed there: a rerun resumes it
+    step = read_checkpoint(tmp_path / "run_long" / "latest.pt")["step"]
+    assert 0 < step < 100_000
+
+
 def test_movi_a_multi_object_preset_reports_interpenetration(tmp_path, capsys):
     out = tmp_path / "m"
     assert movi_a.main(["--preset", "multi_tiny", "--out", str(out), "--workers", "1"]) == 0
