@@ -77,3 +77,20 @@ def test_the_256_toss_settings_are_those_of_the_shipped_model():
     floor = read_checkpoint(checkpoint_of("gns_real_cubes_n256_floor"))
     differ = config_differences(floor["config"], cfg, ignore=SETTINGS_FREE + ("train.seed",))
     assert [d.split()[0] for d in differ] == ["model.message_passing_steps"], differ
+
+
+def test_the_16_toss_engine_data_settings_are_those_of_the_shipped_model():
+    """gns_real_cubes_mujoco_n16 is the pipeline's own 16-toss GNS trained on the tuned MuJoCo's tosses too
+    (docs/accuracy.md, session 25): the many-toss levers, not the plain 16-toss model's symmetric augmentation."""
+    from gns.checkpoint import read_checkpoint
+    from gns.config import build_config, config_differences
+    from gns.evaluate import checkpoint_of
+    from pipelines.common import CONFIGS, SETTINGS_FREE
+    p = real_cubes_accuracy.PRESETS["accuracy"]
+    cfg = build_config(path=CONFIGS / f"gns_{p.model}.toml", overrides=real_cubes_accuracy.gns_settings(p, 16, True))
+    shipped = read_checkpoint(checkpoint_of("gns_real_cubes_mujoco_n16"))
+    assert config_differences(shipped["config"], cfg, ignore=SETTINGS_FREE) == []
+    assert shipped["step"] == cfg.train.steps == 20000 and shipped["seed"] == cfg.train.seed == 0
+    assert cfg.model.message_passing_steps == 10 and not cfg.augment.body_symmetry
+    plain = build_config(path=CONFIGS / f"gns_{p.model}.toml", overrides=real_cubes_accuracy.gns_settings(p, 16))
+    assert plain.augment.body_symmetry and plain.model.message_passing_steps == 5
