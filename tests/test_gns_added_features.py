@@ -38,7 +38,7 @@ def test_a_model_fine_tuned_with_the_impact_feature_starts_as_it_was_and_learns_
     plain = gns.load(tmp_path / "plain")
     # the fine-tuning run's start, before any step: the plain weights, a zero column for the new input
     cfg = tiny(*small, "features.impact_time=true", f"train.init_from={tmp_path / 'plain'}")
-    sim, _, spec, _ = _build_model(cfg, load_data(data, cfg)[0], None, np.random.default_rng(0))
+    sim, _, spec, _, _ = _build_model(cfg, load_data(data, cfg)[0], None, np.random.default_rng(0))
     start = Model(sim.eval(), cfg, spec, plain.meshes, plain.device)
     assert [n for n, _ in start.simulator.layout.node_groups][-1] == "impact"
     kwargs = dict(shapes=["cube"], positions=[[0.0, 0.0, 1.2]], quaternions=[[0.9, 0.3, 0.2, 0.1]],
@@ -107,7 +107,7 @@ def test_a_model_fine_tuned_with_edge_velocities_starts_as_it_was(tmp_path):
     plain = gns.load(tmp_path / "plain")
     cfg = tiny(*small, "features.edge_velocity=true", "features.impact_time=true",
                f"train.init_from={tmp_path / 'plain'}")
-    sim, _, spec, _ = _build_model(cfg, load_data(data, cfg)[0], None, np.random.default_rng(0))
+    sim, _, spec, _, _ = _build_model(cfg, load_data(data, cfg)[0], None, np.random.default_rng(0))
     start = Model(sim.eval(), cfg, spec, plain.meshes, plain.device)
     assert spec.edge_features[-1] == "relative_velocity" and spec.node_features[-1] == "impact"
     kwargs = dict(shapes=["cube"], positions=[[0.0, 0.0, 1.2]], quaternions=[[0.9, 0.3, 0.2, 0.1]],

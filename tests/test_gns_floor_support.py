@@ -136,7 +136,7 @@ def test_a_model_fine_tuned_with_it_starts_as_it_was_and_rolls_out(tmp_path):
     train(data, tmp_path / "plain", tiny(*small), log=quiet)
     plain = gns.load(tmp_path / "plain")
     cfg = tiny(*small, "features.floor_support=true", f"train.init_from={tmp_path / 'plain'}")
-    sim, _, spec, _ = _build_model(cfg, load_data(data, cfg)[0], None, np.random.default_rng(0))
+    sim, _, spec, _, _ = _build_model(cfg, load_data(data, cfg)[0], None, np.random.default_rng(0))
     start = Model(sim.eval(), cfg, spec, plain.meshes, plain.device)
     assert [n for n, _ in start.simulator.layout.node_groups][-1] == "support"
     kwargs = dict(shapes=["cube"], positions=[[0.0, 0.0, 1.2]], quaternions=[[0.9, 0.3, 0.2, 0.1]],
