@@ -3,8 +3,9 @@
 The weights a run saves for use ("model" in its checkpoints: what `gns eval`, `gns export`,
 `train.init_from`, ensembles and teachers read) are then the average, while training goes on from
 its own weights (kept as "trained", which `gns export` drops). Averaging the last few thousand
-steps' weights smooths the step-to-step noise of Adam at a learning rate that has not yet decayed
-to nothing, which MOVi-A stages stopped by their step count end at (docs/accuracy.md, session 25).
+steps' weights smooths the step-to-step noise of Adam at a learning rate kept from decaying to
+nothing (`train.lr_final`); at the end of a fully decayed run the weights no longer move and the
+average changes nothing (docs/accuracy.md, session 25, measured both ways).
 
 Only parameters are averaged: buffers (the normalisers' running statistics) are the trained
 model's own, since the average must read its inputs in the same units as the network being trained.
@@ -49,8 +50,9 @@ class WeightAverage:
 
     @torch.no_grad()
     def update(self) -> None:
-        d = decay_at(self.decay, self.updates)
-        torch._foreach_lerp_(self.average, [p.detach() for p in self.params], 1.0 - d)
+        weight = 1.0 - decay_at(self.decay, self.updates)
+        for avg, p in zip(self.average, self.params):
+            avg.lerp_(p.detach(), weight)
         self.updates += 1
 
     def state_dict(self, module: torch.nn.Module) -> dict[str, torch.Tensor]:
