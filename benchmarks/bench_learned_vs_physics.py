@@ -167,11 +167,11 @@ def pareto_front(xs: list[float], ys: list[float]) -> list[int]:
 
 def _short_names(runs: list[str]) -> list[str]:
     """Run names without the prefix they all share (gns_movi_a_...), each part of an ensemble too."""
-    names = [Path(r).name if "+" not in r else r for r in runs]
-    parts = [p for n in names for p in n.split("+")]
+    members = [[Path(m).name for m in r.split("+")] for r in runs]
+    parts = [m for ms in members for m in ms]
     cut = len(os.path.commonprefix(parts)) if len(parts) > 1 else 0
     cut = parts[0][:cut].rfind("_") + 1 if cut else 0   # whole words only
-    return ["+".join(p[cut:] for p in n.split("+")) for n in names]
+    return ["+".join(m[cut:] for m in ms) for ms in members]
 
 
 def plot_rows(rows: list[dict], runs: list[str], path: str) -> Path:
