@@ -1,7 +1,7 @@
 """Use a trained model from Python: load it, roll it out from poses and velocities, step it in a loop.
 
     import gns
-    model = gns.load("gns_real_cubes_n256")        # a shipped name, a run folder or a .pt file
+    model = gns.load("gns_real_cubes_n256_deep")   # a shipped name, a run folder or a .pt file
     out = model.rollout(shapes=["cube"], scales=2.0, positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]],
                         velocities=[[5, 0, 0]], angular_velocities=[[0, 0, 3]], steps=40)
     out.positions, out.quaternions                   # (steps + 1, B, 3), (steps + 1, B, 4); [0] is the start
@@ -26,19 +26,20 @@ import numbers
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
 from datagen.shards import DataError
-from gns.config import Config, ConfigError
+from gns.config import Config, ConfigError, build_config
 from gns.features import HISTORY
 from gns.graph import GraphBatch
 from gns.ranges import outside_training
-from gns.simulator import LearnedSimulator, shape_match_packed
+from gns.simulator import LearnedSimulator, shape_match_packed, symmetry_group
 from gns.spec import ModelSpec
-from gns.checkpoint import CheckpointError, load_model, read_checkpoint
+from gns.checkpoint import CheckpointError
 from gns.train import parse_device
 
 
@@ -308,15 +309,26 @@ def _meshes_of(spec: ModelSpec, where: str) -> dict:
 
 
 def load(model: str | Path, device: str | torch.device = "cpu", quaternion_order: str = "wxyz",
-         meshes: dict | None = None) -> Model:
-    """A trained model: a shipped name (gns_real_cubes_n256, ...), a run folder (its latest.pt) or
+         meshes: dict | None = None, symmetrize: bool | str = False, ensemble: Sequence[str | Path] = ()) -> Model:
+    """A trained model: a shipped name (gns_real_cubes_n256_deep, ...), a run folder (its latest.pt) or
     a .pt checkpoint or export. device: "cpu", "cuda", "cuda:1", ... meshes {name: (vertices,
-    faces)} replaces the checkpoint's (needed only for old checkpoints of custom shapes)."""
-    from gns.evaluate import checkpoint_of
+    faces)} replaces the checkpoint's (needed only for old checkpoints of custom shapes).
+    symmetrize: True or "d2" averages each step over the floor's mirror images (`gns eval
+    --symmetrize`, as the shipped models' scores were measured: exactly mirror-symmetric rollouts,
+    four network calls a step), or another group of gns.simulator.SYMMETRY_GROUPS. ensemble: more
+    models (names, folders, files) whose predictions each step averages with this one's (`gns eval
+    --ensemble`); they must read the same graphs."""
+    from gns.evaluate import checkpoint_of, load_simulator
     device = parse_device(str(device), "device")
+    try:
+        symmetry_group(symmetrize)
+    except ValueError as e:
+        raise ConfigError(f"symmetrize: {e}") from None
+    if isinstance(ensemble, (str, Path)):
+        ensemble = [ensemble]
     path = checkpoint_of(model)
-    ckpt = read_checkpoint(path)
-    sim, cfg = load_model(ckpt, device)
+    sim, ckpt = load_simulator(path, device, symmetrize=symmetrize, ensemble=ensemble)
+    cfg = build_config(base=ckpt["config"])
     spec = ModelSpec.from_dict(ckpt["spec"])
     found = meshes if meshes is not None else _meshes_of(spec, str(path))
     return Model(sim, cfg, spec, {k: (np.asarray(v, np.float64), np.asarray(f, np.int64))
