@@ -80,6 +80,7 @@ import argparse
 import os
 import signal
 import sys
+import time
 from pathlib import Path
 
 from datagen.outputs import check_writable
@@ -221,6 +222,10 @@ def train_chains(data: Path, out: Path, chains: list, p: dict, seed: int, parall
             if running:
                 say(f"train: a chain failed; stopping the other{'s' if len(running) > 1 else ''} at a checkpoint")
             for k in running:
+                # a chain failing at once may beat the others' start: give them a moment to register
+                deadline = time.monotonic() + 30
+                while k not in pids and not futures[k].done() and time.monotonic() < deadline:
+                    time.sleep(0.05)
                 if k in pids:
                     os.kill(pids[k], signal.SIGTERM)
             wait(futures)
