@@ -158,6 +158,13 @@ MOVI_A_SPOKES_CHAIN = variant(MOVI_A_HEADING4, "spokes", SPOKES, "gns_movi_a_spo
 # session 24: the spokes chain again from seed 100 (19.2% / 27.6 deg for seed 0, 18.3 / 26.1 for this one at one
 # call); the two trained at once, one a core (~1 h 45 min), and averaged: 16.7% / 25.0 deg symmetrized
 MOVI_A_SPOKES_CHAIN_S100 = variant(MOVI_A_SPOKES_CHAIN, "s100", (), "gns_movi_a_spokes_chain_s100", seed_offset=100)
+# session 26: both spokes chains with the learning rate's floor raised to 4e-5 (it decays towards it, not to
+# nothing) and every stage's weights averaged (train.ema_decay, ~1000 steps; the next stage starts from the
+# average): at one call 18.4% / 25.4 deg and 16.9 / 25.7 where the chains above score 19.2 / 27.6 and 18.3 / 26.1;
+# the two as an ensemble 15.5% / 23.5 deg symmetrized (16.7 / 25.0 before; docs/accuracy.md, session 26)
+AVERAGED = ("train.lr_final=4e-5", "train.ema_decay=0.999")
+MOVI_A_SPOKES_CHAIN_AVG = variant(MOVI_A_SPOKES_CHAIN, "avg", AVERAGED, "gns_movi_a_spokes_chain_avg")
+MOVI_A_SPOKES_CHAIN_AVG_S100 = variant(MOVI_A_SPOKES_CHAIN_S100, "avg", AVERAGED, "gns_movi_a_spokes_chain_avg_s100")
 MOVI_A_MID_SPOKES_CHAIN = variant(MOVI_A_HEADING4, "mid_spokes", ("features.mesh_vertices=32", *SPOKES),
                                   "gns_movi_a_mid_spokes_chain")
 # and the heading_k2 chain's K = 2 stage on top, on spokes too (its first four stages are the spokes chain's)
