@@ -314,8 +314,9 @@ def load(model: str | Path, device: str | torch.device = "cpu", quaternion_order
     a .pt checkpoint or export. device: "cpu", "cuda", "cuda:1", ... meshes {name: (vertices,
     faces)} replaces the checkpoint's (needed only for old checkpoints of custom shapes).
     symmetrize: True or "d2" averages each step over the floor's mirror images (`gns eval
-    --symmetrize`, as the shipped models' scores were measured: exactly mirror-symmetric rollouts,
-    four network calls a step), or another group of gns.simulator.SYMMETRY_GROUPS. ensemble: more
+    --symmetrize`, as the real-cube scores were measured; four network calls a step): rollouts
+    exactly mirror-equivariant as far as the mesh graph is (a cube's triangulated faces are not
+    quite), or another group of gns.simulator.SYMMETRY_GROUPS. ensemble: more
     models (names, folders, files) whose predictions each step averages with this one's (`gns eval
     --ensemble`); they must read the same graphs."""
     from gns.evaluate import checkpoint_of, load_simulator
