@@ -306,7 +306,7 @@ def test_a_symmetrized_model_keeps_a_mirror_symmetric_toss_in_its_plane(run):
         gns.load(run / "run", symmetrize="d3")
 
 
-def test_an_ensemble_loads_by_name_and_averages_its_members(run, tmp_path):
+def test_an_ensemble_loaded_in_python_averages_its_members(run, tmp_path):
     toss = dict(shapes=["cube"], scales=0.7, positions=[[0.0, 0.0, 0.6]], quaternions=[[1.0, 0.0, 0.0, 0.0]],
                 velocities=[[1.0, 0.2, 0.5]], angular_velocities=[[0.0, 3.0, 1.0]], friction=0.5, restitution=0.5)
     cfg = build_config(path="gns_tiny", overrides=["train.steps=10", "valid.every=0", "train.seed=7"])
