@@ -37,7 +37,7 @@ from gns.config import Config, ConfigError, build_config
 from gns.features import HISTORY
 from gns.graph import GraphBatch
 from gns.ranges import outside_training
-from gns.simulator import LearnedSimulator, shape_match_packed, symmetry_group
+from gns.simulator import LearnedSimulator, shape_match_packed
 from gns.spec import ModelSpec
 from gns.checkpoint import CheckpointError
 from gns.train import parse_device
@@ -321,10 +321,6 @@ def load(model: str | Path, device: str | torch.device = "cpu", quaternion_order
     --ensemble`); they must read the same graphs."""
     from gns.evaluate import checkpoint_of, load_simulator
     device = parse_device(str(device), "device")
-    try:
-        symmetry_group(symmetrize)
-    except ValueError as e:
-        raise ConfigError(f"symmetrize: {e}") from None
     if isinstance(ensemble, (str, Path)):
         ensemble = [ensemble]
     path = checkpoint_of(model)

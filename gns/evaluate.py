@@ -16,10 +16,11 @@ from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene
-from gns.simulator import RANDOM_TURNS
+from gns.simulator import RANDOM_TURNS, symmetry_group
 from gns.data import feature_spec
 from gns.features import HISTORY
 from gns.ranges import outside_training
+from gns.config import ConfigError
 from gns.spec import ModelSpec
 from gns.checkpoint import LATEST, CheckpointError, load_model, read_checkpoint
 from gns.train import parse_device
@@ -61,6 +62,11 @@ def load_simulator(run: str | Path, device: str | torch.device = "cpu", symmetri
     """The model of `run` (folder, checkpoint or shipped name) set up for rollouts, with the runs
     of `ensemble` as members whose predictions each step averages (LearnedSimulator.set_ensemble).
     Returns (simulator, its saved checkpoint)."""
+    if symmetrize not in RANDOM_TURNS:
+        try:
+            symmetry_group(symmetrize)   # a bad group is one line now, not an error at the first step
+        except ValueError as e:
+            raise ConfigError(f"symmetrize: {e}") from None
     checkpoints = [read_checkpoint(checkpoint_of(r)) for r in (run, *ensemble)]
     sim, *members = [load_model(saved, device)[0] for saved in checkpoints]
     for model in (sim, *members):
