@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from datagen.cli import main as datagen_main
-from datagen.shards import Dataset
+from datagen.shards import Dataset, Scene
 from gns.checkpoint import read_checkpoint
 from gns.config import build_config
 from gns.evaluate import evaluate_run
@@ -267,3 +267,25 @@ def test_a_limit_below_one_is_one_line(trained, capsys, limit):
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--limit must be >= 1" in err[0]
+
+
+def test_predicted_scenes_read_each_scenes_spin_off_its_own_poses():
+    """Angular velocities come from one call over every track of a batch: a scene's spin is its
+    own (a constant spin about its own axis, shorter scenes padded with NaN beside longer ones)."""
+    from gns.rollout import predicted_scenes
+    from scipy.spatial.transform import Rotation
+    dt, spins = 0.1, [np.array([0.0, 0.0, 3.0]), np.array([1.0, -2.0, 0.5]), np.array([0.0, 4.0, 0.0])]
+    lengths, scenes = [12, 7, 9], []
+    for length, w in zip(lengths, spins):
+        q = Rotation.from_rotvec(np.arange(length)[:, None] * dt * w).as_quat()[:, [3, 0, 1, 2]]
+        z = np.zeros((length, 1, 3))
+        scenes.append(Scene(positions=z + 1.0, quaternions=q[:, None], velocities=z.copy(), angular_velocities=z + w,
+                            shape=["cube"], material=["m"], scale=np.ones(1), mass=np.ones(1),
+                            friction=np.ones(1), restitution=np.ones(1)))
+    positions = np.full((max(lengths), 3, 3), np.nan)
+    quaternions = np.full((max(lengths), 3, 4), np.nan)
+    for j, sc in enumerate(scenes):
+        positions[:sc.num_frames, j], quaternions[:sc.num_frames, j] = sc.positions[:, 0], sc.quaternions[:, 0]
+    for sc, w, out in zip(scenes, spins, predicted_scenes(scenes, positions, quaternions, dt)):
+        assert out.num_frames == sc.num_frames and "diverged_at_frame" not in out.attrs
+        np.testing.assert_allclose(out.angular_velocities[:, 0], np.broadcast_to(w, (sc.num_frames, 3)), atol=1e-9)
