@@ -183,7 +183,9 @@ def _add_rollout_args(p) -> None:
                         "c2 (the half turn) at 2x, c4 (the quarter turns) at 4x; r1 each scene turned about z to "
                         "a random heading every step (no extra network work, not exactly equivariant), r2 that "
                         "heading and its half turn averaged, at 2x, r4 four quarter-turn-spaced headings, at 4x "
-                        "(docs/speed.md, session 12)")
+                        "(docs/speed.md, session 12). For a model trained with features.canonical_heading "
+                        "(every recent MOVi-A model) d1 measured nearly d2's accuracy at half its cost "
+                        "(docs/speed.md, session 27)")
     p.add_argument("--turn-seed", type=int, default=0, metavar="N",
                    help="seed of the random headings of --symmetrize r1/r2/r4 (recorded in the output)")
     p.add_argument("--body-frames", action="store_true",
