@@ -40,7 +40,8 @@ Presets (measured costs on a 2-core CPU in the README):
   mid_spokes_chain   the same on 32 network vertices: ~1 h 17 min; reproduces
          gns_movi_a_mid_spokes_chain (21.9% / 29.5 deg at about PyBullet's throughput)
   mid_spokes_chain_avg   mid_spokes_chain with every stage's weights averaged as in
-         spokes_chain_avg (session 27)
+         spokes_chain_avg: ~1 h 17 min on one core; reproduces gns_movi_a_mid_spokes_chain_avg
+         (21.6% / 29.2 deg at one call, the same cost; session 27)
   spokes_k2    spokes_chain + heading_k2's K = 2 stage on spokes-only graphs
   sphere_edges_chain      spokes_chain with the sphere's surface edges kept
          (features.surface_edge_shapes=sphere): spokes-only graphs for the cubes and cylinders;
