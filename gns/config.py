@@ -101,6 +101,16 @@ class FeatureConfig:
     # orientations, and its answer cannot hang on which frame labels the object (the rest
     # features otherwise do; averaging over all frames, --body-frames, costs 24 calls)
     canonical_body_frame: bool = False
+    # > 0: at every step the network sees only each object's k vertices nearest the floor and
+    # its centre node (needs centre_node), the rest of the object following the pose that shape
+    # matching fits to those: a contact's geometry at the full mesh's resolution, the far side of
+    # the object (which only tells the pose, which the centre and k vertices tell too) left out,
+    # so a network call costs about (k + 1) / (n + 1) of the full mesh's. 0 = every vertex
+    lowest_vertices: int = 0
+    # with lowest_vertices: the network also sees each object's this many highest vertices, so
+    # that the pose fitted to the nodes it sees rests on points far apart (a fit to a small
+    # patch turns the errors of a few vertices into a large turn)
+    highest_vertices: int = 0
 
 
 @dataclass
@@ -280,6 +290,13 @@ def validate(cfg: Config) -> None:
         (0 <= cfg.features.mesh_support_gap < 1, "features.mesh_support_gap must be in [0, 1) (a fraction of the size)"),
         (cfg.features.mesh_support_gap == 0 or cfg.features.mesh_vertices > 0,
          "features.mesh_support_gap needs features.mesh_vertices > 0 (the fewest vertices a mesh gets)"),
+        (cfg.features.lowest_vertices == 0 or cfg.features.lowest_vertices >= 3,
+         "features.lowest_vertices must be 0 (every vertex) or >= 3 (with the centre, a pose)"),
+        (cfg.features.lowest_vertices == 0 or cfg.features.centre_node,
+         "features.lowest_vertices needs features.centre_node=true (each kept vertex's way to the others)"),
+        (cfg.features.highest_vertices >= 0, "features.highest_vertices must be >= 0"),
+        (cfg.features.highest_vertices == 0 or cfg.features.lowest_vertices > 0,
+         "features.highest_vertices needs features.lowest_vertices > 0"),
         (cfg.features.surface_edges or cfg.features.centre_node,
          "features.surface_edges=false needs features.centre_node=true (the spokes are then the only edges)"),
         (not mesh_names(cfg.features.surface_edge_shapes) or not cfg.features.surface_edges,

@@ -98,7 +98,8 @@ def _untied(state: dict, sim: LearnedSimulator) -> dict:
 FINE_TUNE_FREE = ("features.mesh_vertices", "features.mesh_support_gap", "features.centre_node",
                   "model.processor_repeats", "features.impact_time", "features.edge_velocity", "model.inertial_prior",
                   "features.canonical_heading", "features.canonical_mirror", "features.floor_support",
-                  "features.canonical_body_frame", "features.surface_edges", "features.surface_edge_shapes")
+                  "features.canonical_body_frame", "features.surface_edges", "features.surface_edge_shapes",
+                  "features.lowest_vertices", "features.highest_vertices")
 # feature groups a fine-tuning run may add after the trained ones (_widened), per kind
 ADDABLE_GROUPS = {"node_features": ("impact", "support"), "edge_features": ("relative_velocity",)}
 

@@ -389,7 +389,17 @@ def select_graphs(graph: GraphBatch, keep: torch.Tensor) -> tuple[GraphBatch, to
     in `graph`. Edges (mesh, collision) and faces are kept where both ends are kept: a graph left
     out must share no collision edge with one kept (the caller's rule), else the kept one would
     lose its contact."""
-    node_keep = keep[graph.node_graph]
+    return _subgraph(graph, keep[graph.node_graph], keep)
+
+
+def select_nodes(graph: GraphBatch, node_keep: torch.Tensor) -> tuple[GraphBatch, torch.Tensor]:
+    """The batch with only the nodes where node_keep (N,) is True, every graph kept (each must keep
+    a node), and the (n,) indices of those nodes in `graph`. Edges and faces are kept where all
+    their nodes are."""
+    return _subgraph(graph, node_keep, torch.ones(graph.num_graphs, dtype=torch.bool, device=node_keep.device))
+
+
+def _subgraph(graph: GraphBatch, node_keep: torch.Tensor, keep: torch.Tensor) -> tuple[GraphBatch, torch.Tensor]:
     nodes = node_keep.nonzero()[:, 0]
     new_node = torch.cumsum(node_keep, 0) - 1       # index of a kept node in the selection
     new_graph = torch.cumsum(keep, 0) - 1
@@ -403,7 +413,7 @@ def select_graphs(graph: GraphBatch, keep: torch.Tensor) -> tuple[GraphBatch, to
 
     faces = None
     if graph.faces is not None:
-        faces = new_node[graph.faces[node_keep[graph.faces[:, 0]]]]
+        faces = new_node[graph.faces[node_keep[graph.faces].all(dim=1)]]
     return replace(graph, mesh_edges=edges(graph.mesh_edges), rest=graph.rest[nodes], material=graph.material[nodes],
                    node_graph=new_graph[graph.node_graph[nodes]], num_graphs=int(keep.sum()),
                    graph_scene=None if graph.graph_scene is None else graph.graph_scene[keep],
@@ -411,6 +421,20 @@ def select_graphs(graph: GraphBatch, keep: torch.Tensor) -> tuple[GraphBatch, to
                    symmetries=None if graph.symmetries is None else graph.symmetries[keep],
                    num_symmetries=None if graph.num_symmetries is None else graph.num_symmetries[keep],
                    full_rest=None if graph.full_rest is None else graph.full_rest[keep]), nodes
+
+
+def lowest_nodes(z: torch.Tensor, graph: GraphBatch, k: int, top: int = 0) -> torch.Tensor:
+    """(N,) bool: the k nodes of each graph lowest in z (N,) (ties: the lower index), its `top`
+    highest and its last node, the centre node of a graph that has one (MeshLibrary puts it last)."""
+    count = torch.bincount(graph.node_graph, minlength=graph.num_graphs)
+    start = torch.cumsum(count, 0) - count
+    key = z.clone()
+    key[start + count - 1] = -torch.inf
+    order = torch.argsort(key, stable=True)
+    order = order[torch.argsort(graph.node_graph[order], stable=True)]   # by graph, lowest first
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(len(order), device=z.device) - start[graph.node_graph[order]]
+    return (rank <= k) | (rank >= (count - top)[graph.node_graph])
 
 
 def stack_graphs(graphs: list[GraphBatch]) -> GraphBatch:

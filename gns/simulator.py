@@ -19,8 +19,8 @@ from gns.features import (HISTORY, FeatureLayout, Normalizer, floor_support, mak
 from gns.config import INERTIAL_PRIORS
 from gns.contacts import surface_edges
 from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collision_edges, graph_settings,
-                       mapped_symmetries, per_graph, select_graphs, stack_graphs, with_surface_edges,
-                       with_symmetries)
+                       lowest_nodes, mapped_symmetries, per_graph, select_graphs, select_nodes, stack_graphs,
+                       with_surface_edges, with_symmetries)
 from gns.network import EncodeProcessDecode
 from gns.precision import resolve_autocast
 from gns.spec import ModelSpec
@@ -313,10 +313,16 @@ class LearnedSimulator(nn.Module):
         self.canonical_mirror = bool(getattr(features_cfg, "canonical_mirror", False))
         self.canonical_body_frame = bool(getattr(features_cfg, "canonical_body_frame", False))
         self.floor_support = bool(getattr(features_cfg, "floor_support", False))
+        self.lowest_vertices = int(getattr(features_cfg, "lowest_vertices", 0))
+        self.highest_vertices = int(getattr(features_cfg, "highest_vertices", 0))
         self.layout: FeatureLayout = make_layout(features_cfg, spec.floor_z, spec.materials_vary,
                                                  collisions=spec.collision_edges, gravity_step=self.gravity_step,
                                                  gravity_z_step=None if spec.gravity_per_frame is None
                                                  else float(spec.gravity_per_frame[2]))
+        if self.lowest_vertices and (self.layout.floor_z is None or self.layout.collisions):
+            # without a floor "lowest" means nothing; with other objects a vertex high above the
+            # floor may touch one, and the network must see it
+            raise ValueError("features.lowest_vertices needs a floor and one object a scene (no collision edges)")
         steps = features_cfg.normalizer_steps
         self.node_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.node_groups})
         self.edge_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.edge_groups})
@@ -474,7 +480,10 @@ class LearnedSimulator(nn.Module):
                                        ("time step and gravity", _listed(self.gravity_per_frame),
                                         _listed(m.gravity_per_frame)),
                                        ("inertial prior (model.inertial_prior)", self.inertial_prior,
-                                        m.inertial_prior)):
+                                        m.inertial_prior),
+                                       ("nodes seen (features.lowest_vertices, highest_vertices)",
+                                        (self.lowest_vertices, self.highest_vertices),
+                                        (m.lowest_vertices, m.highest_vertices))):
                 if mine != theirs:
                     raise ValueError(f"ensemble member {k} differs from the model in its {what}: "
                                      f"{theirs} there, {mine} in the model")
@@ -596,8 +605,31 @@ class LearnedSimulator(nn.Module):
             return rigid_extrapolation(x_tm1, x_t, graph.node_graph, graph.num_graphs)
         return x_t + (x_t - x_tm1)
 
+    def network_nodes(self, x_t: torch.Tensor, graph: GraphBatch) -> tuple[GraphBatch, torch.Tensor] | None:
+        """With features.lowest_vertices = k: the graph of each object's k vertices nearest the floor
+        at x_t (N, 3) (and its features.highest_vertices highest) and its centre, and those nodes'
+        indices; None where the network sees every node."""
+        if not self.lowest_vertices:
+            return None
+        keep = lowest_nodes(x_t[:, 2], graph, self.lowest_vertices, self.highest_vertices)
+        return None if bool(keep.all()) else select_nodes(graph, keep)
+
     def predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
-        """Vertex positions (N, 3) float64 at t-2, t-1, t -> positions at t+1 (N, 3) float64."""
+        """Vertex positions (N, 3) float64 at t-2, t-1, t -> positions at t+1 (N, 3) float64.
+
+        With features.lowest_vertices the network moves the nodes it sees (network_nodes) and every
+        other vertex takes the pose shape matching fits to those: a rollout's shape matching of
+        all of them then finds that same pose."""
+        seen = self.network_nodes(x_t, graph)
+        if seen is None:
+            return self._predict_next(x_tm2, x_tm1, x_t, graph)
+        sub, nodes = seen
+        part = self._predict_next(x_tm2[nodes], x_tm1[nodes], x_t[nodes], sub)
+        rot, t, _ = shape_match_packed(part, sub.rest, sub.node_graph, sub.num_graphs)
+        x = (rot[graph.node_graph] @ graph.rest[:, :, None])[..., 0] + t[graph.node_graph]
+        return x.index_put((nodes,), part)
+
+    def _predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         history = torch.stack([x_tm2, x_tm1, x_t], dim=1)
         if self.inertial_prior == "linear":  # the hot path of older models: no extra tensor work
             return integrate(x_tm1, x_t, self.predict_acceleration(history, graph))
@@ -757,6 +789,11 @@ class LearnedSimulator(nn.Module):
         shape-matched target (train.rigid_loss): what a rollout keeps of a step. Shape matching
         runs through the differentiable polar factor (`_rotation_differentiable`).
         """
+        seen = self.network_nodes(history[:, -1], graph)
+        if seen is not None:   # the loss of the nodes the network sees (predict_next)
+            graph, nodes = seen
+            history, target = history[nodes], target[nodes]
+            node_weight = None if node_weight is None else node_weight[nodes]
         if self.inertial_prior == "linear" and rigid == 0:
             accel = acceleration_of(history[:, -2], history[:, -1], target).to(torch.float32)
         else:

@@ -42,6 +42,9 @@ Presets (measured costs on a 2-core CPU in the README):
   mid_spokes_chain_avg   mid_spokes_chain with every stage's weights averaged as in
          spokes_chain_avg: ~1 h 17 min on one core; reproduces gns_movi_a_mid_spokes_chain_avg
          (21.6% / 29.2 deg at one call, the same cost; session 27)
+  low_spokes_chain_avg   spokes_chain_avg with the network seeing only each object's 12 lowest
+         and 4 highest vertices and its centre at every step (features.lowest_vertices,
+         highest_vertices): the fast end of the speed trade (session 28)
   spokes_k2    spokes_chain + heading_k2's K = 2 stage on spokes-only graphs
   sphere_edges_chain      spokes_chain with the sphere's surface edges kept
          (features.surface_edge_shapes=sphere): spokes-only graphs for the cubes and cylinders;
@@ -77,7 +80,7 @@ Presets (measured costs on a 2-core CPU in the README):
   pair_tiny    smoke test of an ensemble: chain_tiny and a one-stage chain of another seed
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, budget_pair,
 spokes_pair, spokes_pair_avg, fast, mid, spokes, mid_spokes, spokes_chain, spokes_chain_avg,
-mid_spokes_chain, mid_spokes_chain_avg, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
+mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
 spokes chain alone: free flight, one network call; the spokes pairs symmetrized).
 Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
@@ -99,7 +102,8 @@ from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage, trained_step
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST,
                                      MOVI_A_HEADING, MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPOKES,
-                                     MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN_AVG,
+                                     MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_LOW_SPOKES_CHAIN_AVG,
+                                     MOVI_A_MID_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
                                      TINY_CHAIN, TINY_MEMBER, stage_overrides)
@@ -139,6 +143,7 @@ PRESETS = {
     "spokes_chain_avg": _chain_preset(MOVI_A_SPOKES_CHAIN_AVG, symmetrize=False),
     "mid_spokes_chain": _chain_preset(MOVI_A_MID_SPOKES_CHAIN, symmetrize=False),
     "mid_spokes_chain_avg": _chain_preset(MOVI_A_MID_SPOKES_CHAIN_AVG, symmetrize=False),
+    "low_spokes_chain_avg": _chain_preset(MOVI_A_LOW_SPOKES_CHAIN_AVG, symmetrize=False),
     "spokes_k2": _chain_preset(MOVI_A_SPOKES_K2, symmetrize=False),
     "sphere_edges_chain": _chain_preset(MOVI_A_SPHERE_EDGES_CHAIN, symmetrize=False),
     "mid_sphere_edges_chain": _chain_preset(MOVI_A_MID_SPHERE_EDGES_CHAIN, symmetrize=False),

@@ -170,6 +170,11 @@ MOVI_A_MID_SPOKES_CHAIN = variant(MOVI_A_HEADING4, "mid_spokes", ("features.mesh
 # session 27: the mid chain with every stage averaged the same way (the ~1.0x point of the speed issue): 21.6% /
 # 29.2 deg at one call where gns_movi_a_mid_spokes_chain scores 21.9 / 29.6, ahead at every stage (one seed)
 MOVI_A_MID_SPOKES_CHAIN_AVG = variant(MOVI_A_MID_SPOKES_CHAIN, "avg", AVERAGED, "gns_movi_a_mid_spokes_chain_avg")
+# session 28: the averaged spokes chain with the network seeing only each object's 12 vertices nearest the
+# floor, its 4 highest and its centre at every step (features.lowest_vertices, highest_vertices): 17 nodes
+# an object instead of 57-65, the rest following the pose fitted to those
+LOWEST = ("features.lowest_vertices=12", "features.highest_vertices=4")
+MOVI_A_LOW_SPOKES_CHAIN_AVG = variant(MOVI_A_SPOKES_CHAIN_AVG, "low", LOWEST)
 # and the heading_k2 chain's K = 2 stage on top, on spokes too (its first four stages are the spokes chain's)
 MOVI_A_SPOKES_K2 = variant(MOVI_A_HEADING_K2, "spokes", SPOKES)
 

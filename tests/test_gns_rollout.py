@@ -141,8 +141,9 @@ def test_movi_a_parallel_chains_stop_the_others_when_one_fails(tmp_path, capsys)
     from pipelines.movi_a_recipes import Stage
     data = write_toss_dataset(tmp_path / "data", train=4, valid=1, frames=10)
     long = (Stage("long", 100_000, ("train.checkpoint_every=100000",), 0),)
-    # a short first stage lets the long chain reach its training loop before the bad stage fails
-    bad = (Stage("short", 30, (), 1), Stage("bad", 10, ("train.lr_decay_steps=0",), 2))
+    # a first stage lets the long chain reach its training loop before the bad stage fails (30 steps
+    # were too few beside two trainings on the two cores)
+    bad = (Stage("short", 600, (), 1), Stage("bad", 10, ("train.lr_decay_steps=0",), 2))
     p = {"model": "tiny", "common": ("valid.every=0",)}
     with pytest.raises(ConfigError, match="lr_decay_steps"):
         movi_a.train_chains(data, tmp_path, [long, bad], p, 0, parallel=True)

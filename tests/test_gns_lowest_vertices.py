@@ -1,0 +1,152 @@
+"""The network sees only each object's vertices nearest the floor and its centre (features.lowest_vertices)."""
+import numpy as np
+import pytest
+import torch
+from gns_fixtures import write_toss_dataset
+
+from datagen.shapes import get_shape
+from gns.checkpoint import build_simulator
+from gns.config import ConfigError
+from gns.graph import MeshLibrary, lowest_nodes, select_nodes
+from gns.simulator import shape_match_packed
+from gns.spec import Floor, ModelSpec
+from gns.train import read_checkpoint, train
+from test_gns_train import quiet, tiny
+
+
+def _graph(names=("sphere", "beveled_cube", "sphere")):
+    meshes = {n: (get_shape(n).vertices, get_shape(n).faces) for n in set(names)}
+    lib = MeshLibrary(meshes, centre_node=True, surface_edges=False)
+    k = len(names)
+    return lib.pack(lib.shape_ids(list(names)), torch.linspace(0.7, 1.4, k, dtype=torch.float64),
+                    torch.full((k,), 0.4), torch.full((k,), 0.3))
+
+
+def _turned(graph, seed=0):
+    """Every object of graph at a random pose, 2 m above the floor (N, 3)."""
+    from scipy.spatial.transform import Rotation
+    rng = np.random.default_rng(seed)
+    rot = torch.from_numpy(Rotation.random(graph.num_graphs, random_state=seed).as_matrix())
+    centre = torch.from_numpy(rng.uniform(-1, 1, (graph.num_graphs, 3)) + [0, 0, 2.0])
+    return (rot[graph.node_graph] @ graph.rest[:, :, None])[..., 0] + centre[graph.node_graph]
+
+
+def test_each_object_keeps_its_k_lowest_vertices_and_its_centre():
+    graph = _graph()
+    x = _turned(graph)
+    keep = lowest_nodes(x[:, 2], graph, 5)
+    count = torch.bincount(graph.node_graph).tolist()
+    start = 0
+    for n in count:
+        z, kept = x[start:start + n, 2], keep[start:start + n]
+        assert kept[-1]                                  # the centre node, last of its graph
+        assert int(kept.sum()) == 6
+        ring = z[:-1]
+        assert set(torch.nonzero(kept[:-1])[:, 0].tolist()) == set(torch.argsort(ring)[:5].tolist())
+        start += n
+    # with the highest too: both ends of each object, and its centre
+    both = lowest_nodes(x[:, 2], graph, 5, top=2)
+    start = 0
+    for n in count:
+        ring, kept = x[start:start + n - 1, 2], both[start:start + n - 1]
+        order = torch.argsort(ring).tolist()
+        assert set(torch.nonzero(kept)[:, 0].tolist()) == set(order[:5] + order[-2:]) and both[start + n - 1]
+        start += n
+    # ties go to the lower index: a flat object keeps its first vertices
+    assert lowest_nodes(torch.zeros(graph.num_nodes, dtype=torch.float64), graph, 3)[:3].all()
+
+
+def test_the_selected_graph_keeps_the_spokes_of_the_kept_vertices_only():
+    graph = _graph()
+    x = _turned(graph, 1)
+    sub, nodes = select_nodes(graph, lowest_nodes(x[:, 2], graph, 7))
+    assert sub.num_graphs == graph.num_graphs and sub.num_nodes == 8 * graph.num_graphs
+    torch.testing.assert_close(sub.rest, graph.rest[nodes])
+    # every kept vertex joined both ways to its own centre, nothing else
+    s, r = sub.mesh_edges.senders, sub.mesh_edges.receivers
+    assert len(s) == 2 * 7 * graph.num_graphs
+    assert torch.equal(sub.node_graph[s], sub.node_graph[r])
+    centres = torch.cumsum(torch.bincount(sub.node_graph), 0) - 1
+    assert bool(((s[:, None] == centres).any(1) ^ (r[:, None] == centres).any(1)).all())
+
+
+def _simulator(k, floor=True, collisions=False):
+    cfg = tiny(f"features.lowest_vertices={k}", "features.centre_node=true", "features.surface_edges=false")
+    spec = ModelSpec(floor=Floor(z=0.0) if floor else None, frame_rate=12.0, gravity=(0.0, 0.0, -10.0),
+                     collision_edges=collisions)
+    torch.manual_seed(0)
+    return build_simulator(cfg, spec)
+
+
+def test_vertices_the_network_does_not_see_follow_the_pose_of_those_it_does():
+    sim = _simulator(6).eval()
+    graph = _graph()
+    x_t = _turned(graph, 2)
+    x_t[:, 2] -= 1.6          # near the floor, where it matters
+    frames = [x_t - 0.02 * k for k in (2, 1, 0)]
+    with torch.no_grad():
+        x = sim.predict_next(*frames, graph)
+        keep = lowest_nodes(x_t[:, 2], graph, 6)
+        sub, nodes = select_nodes(graph, keep)
+        alone = sim._predict_next(*(f[nodes] for f in frames), sub)
+    # the seen nodes move as the network says, on a graph of them alone
+    torch.testing.assert_close(x[nodes], alone)
+    # the rest is rigid with the pose fitted to the seen ones, which a fit of all finds again
+    rot, t, _ = shape_match_packed(alone, sub.rest, sub.node_graph, sub.num_graphs)
+    rot_all, t_all, _ = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
+    torch.testing.assert_close(rot_all, rot)
+    torch.testing.assert_close(t_all, t)
+    unseen = ~keep
+    rigid = (rot[graph.node_graph] @ graph.rest[:, :, None])[..., 0] + t[graph.node_graph]
+    torch.testing.assert_close(x[unseen], rigid[unseen])
+
+
+def test_the_loss_counts_the_seen_nodes_only():
+    sim = _simulator(4).train()
+    graph = _graph()
+    x_t = _turned(graph, 3)
+    history = torch.stack([x_t - 0.04, x_t - 0.02, x_t], 1)
+    target = x_t + 0.01
+    loss = sim.loss(history, target, graph)
+    sub, nodes = select_nodes(graph, lowest_nodes(x_t[:, 2], graph, 4))
+    sim.lowest_vertices = 0
+    torch.testing.assert_close(loss, sim.loss(history[nodes], target[nodes], sub))
+    # and a target moved on an unseen vertex does not change it
+    moved = target.clone()
+    moved[~lowest_nodes(x_t[:, 2], graph, 4)] += 1.0
+    sim.lowest_vertices = 4
+    torch.testing.assert_close(sim.loss(history, moved, graph), loss)
+
+
+def test_bad_settings_are_one_clear_error():
+    with pytest.raises(ConfigError, match="lowest_vertices must be 0"):
+        tiny("features.lowest_vertices=2", "features.centre_node=true")
+    with pytest.raises(ConfigError, match="needs features.centre_node"):
+        tiny("features.lowest_vertices=8")
+    with pytest.raises(ValueError, match="needs a floor and one object"):
+        _simulator(8, collisions=True)
+    with pytest.raises(ValueError, match="needs a floor and one object"):
+        _simulator(8, floor=False)
+
+
+@pytest.mark.filterwarnings("ignore:outside training")
+def test_a_model_trains_on_its_lowest_vertices_and_rolls_out(tmp_path):
+    import gns
+    data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
+    small = ("train.steps=4", "valid.every=2", "features.normalizer_steps=2", "features.centre_node=true",
+             "features.surface_edges=false")
+    train(data, tmp_path / "full", tiny(*small), log=quiet)
+    # a fine-tune may change it (the weights keep their shapes)
+    train(data, tmp_path / "low", tiny(*small, "features.lowest_vertices=4", f"train.init_from={tmp_path / 'full'}"),
+          log=quiet)
+    assert read_checkpoint(tmp_path / "low" / "latest.pt")["config"]["features"]["lowest_vertices"] == 4
+    model = gns.load(tmp_path / "low")
+    assert model.simulator.lowest_vertices == 4
+    out = model.rollout(["cube"], [[0.0, 0.0, 0.6]], [[1.0, 0.0, 0.0, 0.0]], velocities=[[1.0, 0.0, -1.0]], steps=4)
+    assert torch.isfinite(out.positions).all()
+
+
+def test_an_ensemble_must_see_the_same_nodes():
+    with pytest.raises(ValueError, match="nodes seen"):
+        _simulator(6).set_ensemble([_simulator(8)])
+    _simulator(6).set_ensemble([_simulator(6)])
