@@ -44,7 +44,8 @@ Presets (measured costs on a 2-core CPU in the README):
          (21.6% / 29.2 deg at one call, the same cost; session 27)
   low_spokes_chain_avg   spokes_chain_avg with the network seeing only each object's 12 lowest
          and 4 highest vertices and its centre at every step (features.lowest_vertices,
-         highest_vertices): the fast end of the speed trade (session 28)
+         highest_vertices): ~1 h 55 min on one core; reproduces gns_movi_a_low_spokes_chain_avg
+         (17.5% / 23.9 deg at one call, 1.44x PyBullet; 15.6 / 22.5 with d1 at 0.91x; session 28)
   spokes_k2    spokes_chain + heading_k2's K = 2 stage on spokes-only graphs
   sphere_edges_chain      spokes_chain with the sphere's surface edges kept
          (features.surface_edge_shapes=sphere): spokes-only graphs for the cubes and cylinders;
