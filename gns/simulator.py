@@ -16,7 +16,7 @@ from torch import nn
 
 from gns.features import (HISTORY, FeatureLayout, Normalizer, floor_support, make_layout, raw_collision_features,
                           raw_edge_features, raw_node_features)
-from gns.config import INERTIAL_PRIORS
+from gns.config import INERTIAL_PRIORS, ConfigError
 from gns.contacts import surface_edges
 from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collision_edges, graph_settings,
                        lowest_nodes, mapped_symmetries, per_graph, select_graphs, select_nodes, stack_graphs,
@@ -322,7 +322,7 @@ class LearnedSimulator(nn.Module):
         if self.lowest_vertices and (self.layout.floor_z is None or self.layout.collisions):
             # without a floor "lowest" means nothing; with other objects a vertex high above the
             # floor may touch one, and the network must see it
-            raise ValueError("features.lowest_vertices needs a floor and one object a scene (no collision edges)")
+            raise ConfigError("features.lowest_vertices needs a floor and one object a scene (no collision edges)")
         steps = features_cfg.normalizer_steps
         self.node_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.node_groups})
         self.edge_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.edge_groups})
