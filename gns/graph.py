@@ -151,6 +151,11 @@ def mapped_symmetries(graph: "GraphBatch", g: torch.Tensor) -> torch.Tensor | No
     if graph.symmetries is None:
         return None
     g = g.to(graph.symmetries)
+    if g.dim() == 2 and bool((g == torch.diag(torch.diagonal(g))).all()):
+        # the floor's mirrors and half turn (symmetrized rollouts, every step): g S g^T is S
+        # with entry (i, j) times g_ii g_jj, without two batched matmuls
+        d = torch.diagonal(g)
+        return graph.symmetries * (d[:, None] * d[None, :])
     g = g[:, None] if g.dim() == 3 else g
     return g @ graph.symmetries @ g.transpose(-1, -2)
 

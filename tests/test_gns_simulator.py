@@ -210,3 +210,25 @@ def test_shape_match_of_a_diverged_graph_spoils_only_that_graph():
     assert torch.isnan(r_p[1]).all() and torch.isnan(r_p[2]).all()
     assert torch.allclose(r_p[[0, 3]], rot[[0, 3]], atol=1e-12)
     assert torch.isfinite(proj[node_graph == 0]).all() and torch.isnan(proj[node_graph == 1]).all()
+
+
+def test_per_node_turns_equal_the_matrix_products():
+    """The rollout's cheap forms (session 29) against the plain matrix products they replace:
+    each node turned by its graph's rotation, turns about z from cosines and sines, and the
+    floor's diagonal maps of the body-frame symmetries."""
+    from gns.graph import mapped_symmetries
+    from gns.simulator import rotate_nodes, turn_about_z, z_turns
+    rot = random_rotations(4, seed=1)
+    node_graph = torch.tensor([0, 0, 1, 2, 2, 2, 3])
+    v = torch.from_numpy(np.random.default_rng(2).normal(size=(7, 3)))
+    assert torch.allclose(rotate_nodes(rot, node_graph, v), (rot[node_graph] @ v[:, :, None])[..., 0], atol=1e-14)
+    angle = torch.from_numpy(np.random.default_rng(3).uniform(-np.pi, np.pi, 7))
+    history = torch.from_numpy(np.random.default_rng(4).normal(size=(7, 3, 3)))
+    expected = torch.einsum("nij,ntj->nti", z_turns(angle), history)
+    assert torch.allclose(turn_about_z(history, torch.cos(angle), torch.sin(angle)), expected, atol=1e-14)
+    assert torch.allclose(turn_about_z(expected, torch.cos(angle), -torch.sin(angle)), history, atol=1e-14)
+    graph, _ = cube_batch(num_graphs=2)
+    for g in (torch.diag(torch.tensor([-1.0, 1.0, 1.0])), torch.diag(torch.tensor([-1.0, -1.0, 1.0])), z_turns(
+            torch.tensor([0.3]))[0]):
+        g = g.to(DTYPE)
+        assert torch.allclose(mapped_symmetries(graph, g), g @ graph.symmetries @ g.T, atol=1e-14)
