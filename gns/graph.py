@@ -431,15 +431,20 @@ def _subgraph(graph: GraphBatch, node_keep: torch.Tensor, keep: torch.Tensor) ->
 def lowest_nodes(z: torch.Tensor, graph: GraphBatch, k: int, top: int = 0) -> torch.Tensor:
     """(N,) bool: the k nodes of each graph lowest in z (N,) (ties: the lower index), its `top`
     highest and its last node, the centre node of a graph that has one (MeshLibrary puts it last)."""
-    count = torch.bincount(graph.node_graph, minlength=graph.num_graphs)
+    node_graph = graph.node_graph
+    count = torch.bincount(node_graph, minlength=graph.num_graphs)
     start = torch.cumsum(count, 0) - count
     key = z.clone()
     key[start + count - 1] = -torch.inf
-    order = torch.argsort(key, stable=True)
-    order = order[torch.argsort(graph.node_graph[order], stable=True)]   # by graph, lowest first
-    rank = torch.empty_like(order)
-    rank[order] = torch.arange(len(order), device=z.device) - start[graph.node_graph[order]]
-    return (rank <= k) | (rank >= (count - top)[graph.node_graph])
+    # each graph's heights in a row of a (G, most nodes) table padded with +inf, sorted row by row:
+    # ~3x faster than sorting all nodes and then by graph (a rollout does this every step)
+    width = int(count.max()) if len(count) else 0
+    slot = node_graph * width + (torch.arange(len(z), device=z.device) - start.index_select(0, node_graph))
+    table = z.new_full((graph.num_graphs * width,), torch.inf).index_copy(0, slot, key).view(graph.num_graphs, width)
+    order = torch.sort(table, dim=1, stable=True).indices
+    rank = torch.empty_like(order).scatter_(1, order, torch.arange(width, device=z.device).expand_as(order))
+    rank = rank.view(-1).index_select(0, slot)
+    return (rank <= k) | (rank >= (count - top).index_select(0, node_graph))
 
 
 def stack_graphs(graphs: list[GraphBatch]) -> GraphBatch:
