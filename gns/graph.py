@@ -401,13 +401,21 @@ def select_nodes(graph: GraphBatch, node_keep: torch.Tensor) -> tuple[GraphBatch
     """The batch with only the nodes where node_keep (N,) is True, every graph kept (each must keep
     a node), and the (n,) indices of those nodes in `graph`. Edges and faces are kept where all
     their nodes are."""
-    return _subgraph(graph, node_keep, torch.ones(graph.num_graphs, dtype=torch.bool, device=node_keep.device))
+    return _subgraph(graph, node_keep, None)
 
 
-def _subgraph(graph: GraphBatch, node_keep: torch.Tensor, keep: torch.Tensor) -> tuple[GraphBatch, torch.Tensor]:
+def _subgraph(graph: GraphBatch, node_keep: torch.Tensor, keep: torch.Tensor | None) -> tuple[GraphBatch, torch.Tensor]:
+    """`keep` (G,) the graphs kept, None for all (their per-graph fields are then not copied)."""
     nodes = node_keep.nonzero()[:, 0]
     new_node = torch.cumsum(node_keep, 0) - 1       # index of a kept node in the selection
-    new_graph = torch.cumsum(keep, 0) - 1
+    if keep is None:   # select_nodes, every rollout step of a features.lowest_vertices model
+        per = lambda t: t  # noqa: E731
+        node_graph = graph.node_graph.index_select(0, nodes)
+        num_graphs = graph.num_graphs
+    else:
+        per = lambda t: t[keep]  # noqa: E731
+        node_graph = (torch.cumsum(keep, 0) - 1)[graph.node_graph[nodes]]
+        num_graphs = int(keep.sum())
 
     def edges(e: EdgeSet | None) -> EdgeSet | None:
         if e is None:
@@ -419,13 +427,13 @@ def _subgraph(graph: GraphBatch, node_keep: torch.Tensor, keep: torch.Tensor) ->
     faces = None
     if graph.faces is not None:
         faces = new_node[graph.faces[node_keep[graph.faces].all(dim=1)]]
-    return replace(graph, mesh_edges=edges(graph.mesh_edges), rest=graph.rest[nodes], material=graph.material[nodes],
-                   node_graph=new_graph[graph.node_graph[nodes]], num_graphs=int(keep.sum()),
-                   graph_scene=None if graph.graph_scene is None else graph.graph_scene[keep],
+    return replace(graph, mesh_edges=edges(graph.mesh_edges), rest=graph.rest.index_select(0, nodes),
+                   material=graph.material.index_select(0, nodes), node_graph=node_graph, num_graphs=num_graphs,
+                   graph_scene=None if graph.graph_scene is None else per(graph.graph_scene),
                    collision_edges=edges(graph.collision_edges), faces=faces,
-                   symmetries=None if graph.symmetries is None else graph.symmetries[keep],
-                   num_symmetries=None if graph.num_symmetries is None else graph.num_symmetries[keep],
-                   full_rest=None if graph.full_rest is None else graph.full_rest[keep]), nodes
+                   symmetries=None if graph.symmetries is None else per(graph.symmetries),
+                   num_symmetries=None if graph.num_symmetries is None else per(graph.num_symmetries),
+                   full_rest=None if graph.full_rest is None else per(graph.full_rest)), nodes
 
 
 def lowest_nodes(z: torch.Tensor, graph: GraphBatch, k: int, top: int = 0) -> torch.Tensor:

@@ -646,7 +646,7 @@ class LearnedSimulator(nn.Module):
         if seen is None:
             return self._predict_next(x_tm2, x_tm1, x_t, graph)
         sub, nodes = seen
-        part = self._predict_next(x_tm2[nodes], x_tm1[nodes], x_t[nodes], sub)
+        part = self._predict_next(*(f.index_select(0, nodes) for f in (x_tm2, x_tm1, x_t)), sub)
         rot, t, _ = shape_match_packed(part, sub.rest, sub.node_graph, sub.num_graphs)
         if fitted is not None:
             fitted.append((rot, t))
