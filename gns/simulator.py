@@ -52,6 +52,12 @@ def rigid_extrapolation(x_tm1: torch.Tensor, x_t: torch.Tensor, node_graph: torc
     return x_t + rotate_nodes(_rotation(h), node_graph, p) - p + (c1 - c0).index_select(0, node_graph)
 
 
+def posed(rot: torch.Tensor, t: torch.Tensor, node_graph: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
+    """The rest vertices (N, 3) of each graph placed at its pose, rotation rot (G, 3, 3) and
+    translation t (G, 3): R rest + t per node."""
+    return rotate_nodes(rot, node_graph, rest) + t.index_select(0, node_graph)
+
+
 def rotate_nodes(rot: torch.Tensor, node_graph: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """v (N, 3) turned by its graph's rotation rot (G, 3, 3): rot[node_graph] @ v per node. As
     three column products after index_select: on CPU, rot[node_graph] and a batched (N, 3, 3) x
@@ -170,7 +176,7 @@ def shape_match_packed(x: torch.Tensor, rest: torch.Tensor, node_graph: torch.Te
     cx, cr, _, h = _packed_fit(x, rest, node_graph, num_graphs)
     rot = _rotation(h)
     t = cx - (rot @ cr[:, :, None])[..., 0]
-    x_proj = rotate_nodes(rot, node_graph, rest) + t.index_select(0, node_graph)
+    x_proj = posed(rot, t, node_graph, rest)
     return rot, t, x_proj
 
 
@@ -650,7 +656,7 @@ class LearnedSimulator(nn.Module):
         rot, t, _ = shape_match_packed(part, sub.rest, sub.node_graph, sub.num_graphs)
         if fitted is not None:
             fitted.append((rot, t))
-        x = rotate_nodes(rot, graph.node_graph, graph.rest) + t.index_select(0, graph.node_graph)
+        x = posed(rot, t, graph.node_graph, graph.rest)
         return x.index_put((nodes,), part)
 
     def _predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
@@ -691,18 +697,12 @@ class LearnedSimulator(nn.Module):
                 free[b[near]] = False
         return free
 
-    def inertial_step(self, pose_tm1: tuple[torch.Tensor, torch.Tensor], pose_t: tuple[torch.Tensor, torch.Tensor],
-                      graph: GraphBatch) -> torch.Tensor:
+    def inertial_pose(self, pose_tm1: tuple[torch.Tensor, torch.Tensor],
+                      pose_t: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """Free flight, exactly: the centre of mass keeps its velocity plus gravity's g dt^2 and the
         body turns by the same rotation as in the last frame (constant angular velocity; exact for
         the isotropic inertia of cubes and spheres, which is also what shape matching assumes of a
-        mesh). Poses (R (G, 3, 3), t (G, 3)) at t-1 and t -> vertices (N, 3) at t+1."""
-        rot, centre = self.inertial_pose(pose_tm1, pose_t)
-        return rotate_nodes(rot, graph.node_graph, graph.rest) + centre.index_select(0, graph.node_graph)
-
-    def inertial_pose(self, pose_tm1: tuple[torch.Tensor, torch.Tensor],
-                      pose_t: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """The pose (R, t) at t+1 that `inertial_step` places the vertices at."""
+        mesh). Poses (R (G, 3, 3), t (G, 3)) at t-1 and t -> the pose at t+1."""
         (r0, t0), (r1, t1) = pose_tm1, pose_t
         return r1 @ r0.transpose(1, 2) @ r1, 2 * t1 - t0 + self.gravity_per_frame.to(t1)
 
@@ -733,7 +733,7 @@ class LearnedSimulator(nn.Module):
             skip |= sleeping
         if free_flight:
             flight = self.inertial_pose(*pose)
-            ballistic = rotate_nodes(flight[0], graph.node_graph, graph.rest) + flight[1].index_select(0, graph.node_graph)
+            ballistic = posed(*flight, graph.node_graph, graph.rest)
             free = self.in_free_flight(frames, ballistic, graph, contacts) & ~skip
             counts["free_flight"] += int(free.sum())
             skip |= free
@@ -786,7 +786,7 @@ class LearnedSimulator(nn.Module):
         before it enters the history (paper, rollouts only). With `sleep`, objects at rest keep
         their pose until the model predicts a real acceleration (see Sleep). With `free_flight`,
         objects out of reach of the floor and of every other object (`in_free_flight`) follow the
-        exact inertial update (`inertial_step`) instead of the network, and only the others enter
+        exact inertial update (`inertial_pose`) instead of the network, and only the others enter
         the network call; sleeping objects do not enter it either. `self.rollout_counts` then says
         how many object-steps did. With `poses`, also returns every predicted frame's pose from
         shape matching, rotations (steps, G, 3, 3) and translations (steps, G, 3).
@@ -809,7 +809,7 @@ class LearnedSimulator(nn.Module):
             x = self.advance(frames, graph, sleep, free_flight, pose, counts, fitted)
             if fitted:
                 rot, t = fitted[0]
-                matched = rotate_nodes(rot, graph.node_graph, graph.rest) + t.index_select(0, graph.node_graph)
+                matched = posed(rot, t, graph.node_graph, graph.rest)
             elif shape_matching or poses or free_flight:
                 rot, t, matched = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
             if shape_matching or poses or free_flight:
