@@ -73,6 +73,9 @@ Presets (measured costs on a 2-core CPU in the README):
   spokes_pair_avg    spokes_pair the same way: with --parallel ~2 h on two cores; the shipped
          pair (gns_movi_a_spokes_chain_avg + _avg_s100) scored 15.5% / 23.5 deg symmetrized, the
          best within the accuracy issue's budget (session 26)
+  low_spokes_pair_avg   low_spokes_chain_avg and the same chain from seed 100, as an ensemble:
+         with --parallel ~2 h on two cores; the shipped pair (gns_movi_a_low_spokes_chain_avg +
+         _s100) scored 14.7% / 22.1 deg symmetrized (15.0 / 22.2 with d1; session 29)
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
@@ -81,9 +84,10 @@ Presets (measured costs on a 2-core CPU in the README):
   pair_tiny    smoke test of an ensemble: chain_tiny and a one-stage chain of another seed
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, budget_pair,
 spokes_pair, spokes_pair_avg, fast, mid, spokes, mid_spokes, spokes_chain, spokes_chain_avg,
-mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
+mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, spokes_k2,
+sphere_edges_chain, mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
-spokes chain alone: free flight, one network call; the spokes pairs symmetrized).
+spokes chain alone: free flight, one network call; the spokes and low pairs symmetrized).
 Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
 data/movi_a_4000 skips generating them again.
 """
@@ -103,7 +107,8 @@ from gns.checkpoint import read_checkpoint
 from pipelines.common import guarded, data_stage, done, remove_output, say, train_stage, trained_step
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_CHAIN, MOVI_A_FAST,
                                      MOVI_A_HEADING, MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPOKES,
-                                     MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPOKES_CHAIN,
+                                     MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
+                                     MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPOKES_CHAIN,
                                      MOVI_A_MID_SPOKES_CHAIN_AVG, MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES,
                                      MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
@@ -145,6 +150,7 @@ PRESETS = {
     "mid_spokes_chain": _chain_preset(MOVI_A_MID_SPOKES_CHAIN, symmetrize=False),
     "mid_spokes_chain_avg": _chain_preset(MOVI_A_MID_SPOKES_CHAIN_AVG, symmetrize=False),
     "low_spokes_chain_avg": _chain_preset(MOVI_A_LOW_SPOKES_CHAIN_AVG, symmetrize=False),
+    "low_spokes_pair_avg": _chain_preset(MOVI_A_LOW_SPOKES_CHAIN_AVG, members=(MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,)),
     "spokes_k2": _chain_preset(MOVI_A_SPOKES_K2, symmetrize=False),
     "sphere_edges_chain": _chain_preset(MOVI_A_SPHERE_EDGES_CHAIN, symmetrize=False),
     "mid_sphere_edges_chain": _chain_preset(MOVI_A_MID_SPHERE_EDGES_CHAIN, symmetrize=False),

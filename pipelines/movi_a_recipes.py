@@ -175,6 +175,10 @@ MOVI_A_MID_SPOKES_CHAIN_AVG = variant(MOVI_A_MID_SPOKES_CHAIN, "avg", AVERAGED, 
 # an object instead of 57-65, the rest following the pose fitted to those
 LOWEST = ("features.lowest_vertices=12", "features.highest_vertices=4")
 MOVI_A_LOW_SPOKES_CHAIN_AVG = variant(MOVI_A_SPOKES_CHAIN_AVG, "low", LOWEST, "gns_movi_a_low_spokes_chain_avg")
+# session 29: the same from seed 100 (what `--preset low_spokes_chain_avg --train-seed 100` trains), the
+# second member of the low pair
+MOVI_A_LOW_SPOKES_CHAIN_AVG_S100 = variant(MOVI_A_SPOKES_CHAIN_AVG_S100, "low", LOWEST,
+                                           "gns_movi_a_low_spokes_chain_avg_s100")
 # and the heading_k2 chain's K = 2 stage on top, on spokes too (its first four stages are the spokes chain's)
 MOVI_A_SPOKES_K2 = variant(MOVI_A_HEADING_K2, "spokes", SPOKES)
 

@@ -9,7 +9,7 @@ from pipelines.common import CONFIGS, SETTINGS_FREE
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_HEADING,
                                      MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPHERE_EDGES_CHAIN,
                                      MOVI_A_MID_SPOKES, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN_AVG,
-                                     MOVI_A_LOW_SPOKES_CHAIN_AVG,
+                                     MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
                                      TINY_MEMBER, stage_overrides)
@@ -22,7 +22,7 @@ FREE = SETTINGS_FREE + ("train.init_from", "train.autocast")
 SHIPPING = (MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST + MOVI_A_HEADING_K2
             + MOVI_A_MID_SPOKES_CHAIN[-1:] + MOVI_A_SPOKES_CHAIN[-1:] + MOVI_A_SPOKES_CHAIN_S100[-1:]
             + MOVI_A_SPOKES_CHAIN_AVG[-1:] + MOVI_A_SPOKES_CHAIN_AVG_S100[-1:] + MOVI_A_MID_SPOKES_CHAIN_AVG[-1:]
-            + MOVI_A_LOW_SPOKES_CHAIN_AVG[-1:])
+            + MOVI_A_LOW_SPOKES_CHAIN_AVG[-1:] + MOVI_A_LOW_SPOKES_CHAIN_AVG_S100[-1:])
 
 
 @pytest.mark.parametrize("stage", [s for s in SHIPPING if s.ships_as], ids=lambda s: s.name)
@@ -63,8 +63,11 @@ def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     (MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, ("train.lr_final", "train.ema_decay")),
     (MOVI_A_MID_SPOKES_CHAIN_AVG, MOVI_A_MID_SPOKES_CHAIN, ("train.lr_final", "train.ema_decay")),
     (MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_SPOKES_CHAIN_AVG, ("features.lowest_vertices", "features.highest_vertices")),
+    (MOVI_A_LOW_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_AVG_S100,
+     ("features.lowest_vertices", "features.highest_vertices")),
 ], ids=["heading", "spokes_chain", "mid_spokes_chain", "spokes_k2", "sphere_edges_chain", "mid_sphere_edges_chain",
-        "spokes_chain_avg", "spokes_chain_avg_s100", "mid_spokes_chain_avg", "low_spokes_chain_avg"])
+        "spokes_chain_avg", "spokes_chain_avg_s100", "mid_spokes_chain_avg", "low_spokes_chain_avg",
+        "low_spokes_chain_avg_s100"])
 def test_a_chain_compared_with_its_control_differs_only_in_its_lever(chain, control, differ):
     """The A/Bs of docs/accuracy.md compare these chains stage by stage (the heading chain with
     `budget`, session 18; the spokes chains with `heading4`, session 20; the sphere-edges chains with
