@@ -37,7 +37,7 @@ from gns.config import Config, ConfigError, build_config
 from gns.features import HISTORY
 from gns.graph import GraphBatch
 from gns.ranges import outside_training
-from gns.simulator import LearnedSimulator, shape_match_packed
+from gns.simulator import LearnedSimulator, posed, shape_match_packed
 from gns.spec import ModelSpec
 from gns.checkpoint import CheckpointError
 from gns.train import parse_device
@@ -223,8 +223,7 @@ class Model:
         # scaled rest shape and materials from the inputs themselves, so that a gradient reaches them
         graph.rest = graph.rest * scale[graph.node_graph, None]
         graph.material = torch.stack(mat, 1).to(torch.float32)[graph.node_graph]
-        frames = tuple(torch.einsum("nij,nj->ni", past_rot[k][graph.node_graph], graph.rest) + past_pos[k][graph.node_graph]
-                       for k in range(HISTORY))
+        frames = tuple(posed(past_rot[k], past_pos[k], graph.node_graph, graph.rest) for k in range(HISTORY))
         return State(pos, self._quat_out(quat / quat.norm(dim=-1, keepdim=True)), frames[-1], 0.0, frames, graph)
 
     def _materials(self, friction, restitution, b: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -26,7 +26,7 @@ import torch
 from gns.checkpoint import LATEST, CheckpointError, load_model, read_checkpoint
 from gns.data import ObjectTracks
 from gns.graph import GraphBatch, with_surface_edges
-from gns.simulator import LearnedSimulator, shape_match_packed
+from gns.simulator import LearnedSimulator, posed, shape_match_packed
 
 
 def teacher_paths(setting: str) -> list[Path]:
@@ -105,16 +105,11 @@ class Teacher:
         placed = []
         for x in frames[-3:]:
             rot, centre, _ = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
-            placed.append(_placed(own, rot, centre))
+            placed.append(posed(rot, centre, own.node_graph, own.rest))
         x = self.model.predict_next(*placed, own)
         rot, centre, _ = shape_match_packed(x, own.rest, own.node_graph, own.num_graphs)
-        return _placed(graph, rot, centre)
+        return posed(rot, centre, graph.node_graph, graph.rest)
 
-
-def _placed(graph: GraphBatch, rot: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
-    """(N, 3) the graph's rest vertices at poses rot (G, 3, 3), centre (G, 3)."""
-    n = graph.node_graph
-    return torch.einsum("nij,nj->ni", rot[n], graph.rest) + centre[n]
 
 
 def _other_vertices(teacher: LearnedSimulator, student: LearnedSimulator) -> bool:

@@ -272,6 +272,11 @@ def z_turns(angle: torch.Tensor) -> torch.Tensor:
     return turn
 
 
+def _pose_where(mask: torch.Tensor, a: tuple, b: tuple) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per object, pose a (R (G, 3, 3), t (G, 3)) where mask (G,) is True, else pose b."""
+    return torch.where(mask[:, None, None], a[0], b[0]), torch.where(mask[:, None], a[1], b[1])
+
+
 def turn_about_z(v: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
     """v (N, ..., 3) turned about z by the angles whose cosines and sines are cos, sin (N,):
     z_turns(angle) @ v without building the (N, 3, 3) matrices (a batched matmul of 3x3s is
@@ -742,7 +747,7 @@ class LearnedSimulator(nn.Module):
         held = torch.where(free[graph.node_graph, None], ballistic, frames[-1]) if free_flight else frames[-1]
         fit = [] if fitted is not None and free_flight else None
         if fit is not None:   # the poses of `held`: the ballistic one, or the one at t
-            held_pose = tuple(torch.where(free.view(-1, *[1] * (a.dim() - 1)), a, b) for a, b in zip(flight, pose[1]))
+            held_pose = _pose_where(free, flight, pose[1])
         if int(skip_node.sum()) < SUBGRAPH_MIN_SHARE * graph.num_nodes:
             # few to leave out: one call on everything is cheaper than cutting the graph, and
             # the others' answers are the same (a skipped object shares no edge with them)
@@ -751,8 +756,7 @@ class LearnedSimulator(nn.Module):
             if skip.any():
                 x = torch.where(skip_node[:, None], held, x)
             if fit:
-                fitted.append(tuple(torch.where(skip.view(-1, *[1] * (a.dim() - 1)), h, a)
-                                    for a, h in zip(fit[0], held_pose)))
+                fitted.append(_pose_where(skip, held_pose, fit[0]))
         else:
             x = held
             needed = ~skip
