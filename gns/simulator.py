@@ -347,10 +347,11 @@ class LearnedSimulator(nn.Module):
                                                  collisions=spec.collision_edges, gravity_step=self.gravity_step,
                                                  gravity_z_step=None if spec.gravity_per_frame is None
                                                  else float(spec.gravity_per_frame[2]))
-        if self.lowest_vertices and (self.layout.floor_z is None or self.layout.collisions):
-            # without a floor "lowest" means nothing; with other objects a vertex high above the
-            # floor may touch one, and the network must see it
-            raise ConfigError("features.lowest_vertices needs a floor and one object a scene (no collision edges)")
+        if self.lowest_vertices and self.layout.floor_z is None:
+            raise ConfigError("features.lowest_vertices needs a floor (\"lowest\" means nearest the floor)")
+        if self.lowest_vertices and self.layout.collisions and self.collision_mode != "vertex":
+            # a vertex-to-surface edge needs the other object's faces, which a cut graph loses
+            raise ConfigError("features.lowest_vertices with collision edges needs features.collision_mode=vertex")
         steps = features_cfg.normalizer_steps
         self.node_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.node_groups})
         self.edge_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.edge_groups})
@@ -638,11 +639,18 @@ class LearnedSimulator(nn.Module):
 
     def network_nodes(self, x_t: torch.Tensor, graph: GraphBatch) -> tuple[GraphBatch, torch.Tensor] | None:
         """With features.lowest_vertices = k: the graph of each object's k vertices nearest the floor
-        at x_t (N, 3) (and its features.highest_vertices highest) and its centre, and those nodes'
-        indices; None where the network sees every node."""
+        at x_t (N, 3) (and its features.highest_vertices highest), its centre and, with collision
+        edges, every vertex that has one, and those nodes' indices; None where the network sees
+        every node. The cut graph carries the collision edges of the whole one: both ends of each
+        are kept, so the network sees every contact between objects, however high it is."""
         if not self.lowest_vertices:
             return None
         keep = lowest_nodes(x_t[:, 2], graph, self.lowest_vertices, self.highest_vertices)
+        if self.layout.collisions:
+            contacts = self.collision_edges(x_t, graph)
+            if len(contacts.senders):
+                keep = keep.index_fill(0, contacts.senders, True)   # edges come both ways: receivers too
+            graph = replace(graph, collision_edges=contacts)
         return None if bool(keep.all()) else select_nodes(graph, keep)
 
     def predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch,

@@ -1,4 +1,6 @@
 """The network sees only each object's vertices nearest the floor and its centre (features.lowest_vertices)."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -70,8 +72,9 @@ def test_the_selected_graph_keeps_the_spokes_of_the_kept_vertices_only():
     assert bool(((s[:, None] == centres).any(1) ^ (r[:, None] == centres).any(1)).all())
 
 
-def _simulator(k, floor=True, collisions=False):
-    cfg = tiny(f"features.lowest_vertices={k}", "features.centre_node=true", "features.surface_edges=false")
+def _simulator(k, floor=True, collisions=False, mode="vertex"):
+    cfg = tiny(f"features.lowest_vertices={k}", "features.centre_node=true", "features.surface_edges=false",
+               f"features.collision_mode={mode}")
     spec = ModelSpec(floor=Floor(z=0.0) if floor else None, frame_rate=12.0, gravity=(0.0, 0.0, -10.0),
                      collision_edges=collisions)
     torch.manual_seed(0)
@@ -154,10 +157,82 @@ def test_bad_settings_are_one_clear_error():
         tiny("features.lowest_vertices=2", "features.centre_node=true")
     with pytest.raises(ConfigError, match="needs features.centre_node"):
         tiny("features.lowest_vertices=8")
-    with pytest.raises(ValueError, match="needs a floor and one object"):
-        _simulator(8, collisions=True)
-    with pytest.raises(ValueError, match="needs a floor and one object"):
+    with pytest.raises(ValueError, match="lowest_vertices needs a floor"):
         _simulator(8, floor=False)
+    with pytest.raises(ValueError, match="needs features.collision_mode=vertex"):
+        _simulator(8, collisions=True, mode="surface")
+    assert _simulator(8, collisions=True).layout.collisions
+
+
+def _stacked_scene():
+    """Scene 0: a sphere on the floor, a beveled cube whose lowest vertex is 5 cm above the
+    sphere's top (their contact far above the cube's lowest vertices) and a cube 3 away; scene 1:
+    a sphere alone. Positions at t (N, 3) and the graph."""
+    names = ("sphere", "beveled_cube", "beveled_cube", "sphere")
+    meshes = {n: (get_shape(n).vertices, get_shape(n).faces) for n in set(names)}
+    lib = MeshLibrary(meshes, centre_node=True, surface_edges=False)
+    graph = lib.pack(lib.shape_ids(list(names)), torch.tensor([1.4, 1.0, 1.0, 0.7], dtype=torch.float64),
+                     torch.full((4,), 0.4), torch.full((4,), 0.3), graph_scene=torch.tensor([0, 0, 0, 1]))
+    rest = [graph.rest[graph.node_graph == g] for g in range(4)]
+    centre = torch.zeros(4, 3, dtype=torch.float64)
+    for g, x in ((0, 0.0), (2, 3.0), (3, 0.0)):
+        centre[g] = torch.tensor([x, 0.0, -float(rest[g][:, 2].min()) + (0.5 if g == 3 else 0.0)])
+    # the cube's lowest vertex 5 cm above the sphere's highest: inside the collision radius
+    top = rest[0][rest[0][:, 2].argmax()] + centre[0]
+    centre[1] = top - rest[1][rest[1][:, 2].argmin()] + torch.tensor([0.0, 0.0, 0.05], dtype=torch.float64)
+    return graph.rest + centre[graph.node_graph], graph
+
+
+def test_with_other_objects_every_vertex_in_contact_is_seen():
+    """Low graphs in scenes of several objects: the network also sees each vertex that has a
+    collision edge (however high), the cut graph carries every collision edge of the whole one,
+    and the kept nodes move exactly as the network says on that graph."""
+    from gns.graph import collision_edges
+    sim = _simulator(6, collisions=True).eval()
+    x_t, graph = _stacked_scene()
+    full = collision_edges(x_t, graph, sim.layout.collision_radius)
+    assert len(full.senders) > 0
+    touching = torch.zeros(graph.num_nodes, dtype=torch.bool)
+    touching[full.senders] = True
+    low = lowest_nodes(x_t[:, 2], graph, 6)
+    assert bool((touching & ~low).any())              # contacts the floor rule alone would miss
+    sub, nodes = sim.network_nodes(x_t, graph)
+    seen = torch.zeros(graph.num_nodes, dtype=torch.bool)
+    seen[nodes] = True
+    assert torch.equal(seen, low | touching)
+    pairs = lambda s, r: sorted(zip(s.tolist(), r.tolist()))  # noqa: E731
+    assert pairs(nodes[sub.collision_edges.senders], nodes[sub.collision_edges.receivers]) == \
+        pairs(full.senders, full.receivers)
+    # the same edges again from the cut graph's own positions: nothing depends on the handover
+    again = collision_edges(x_t[nodes], replace(sub, collision_edges=None), sim.layout.collision_radius)
+    assert pairs(again.senders, again.receivers) == pairs(sub.collision_edges.senders, sub.collision_edges.receivers)
+    frames = [x_t - torch.tensor([0.0, 0.0, 0.02 * k], dtype=torch.float64) for k in (2, 1, 0)]
+    with torch.no_grad():
+        x = sim.predict_next(*frames, graph)
+        alone = sim._predict_next(*(f[nodes] for f in frames), replace(sub, collision_edges=None))
+    torch.testing.assert_close(x[nodes], alone)
+    rot, t, _ = shape_match_packed(alone, sub.rest, sub.node_graph, sub.num_graphs)
+    rigid = (rot[graph.node_graph] @ graph.rest[:, :, None])[..., 0] + t[graph.node_graph]
+    torch.testing.assert_close(x[~seen], rigid[~seen])
+
+
+def test_with_other_objects_a_rollout_takes_the_fitted_poses_too():
+    from gns.simulator import Sleep
+    sim = _simulator(6, collisions=True).eval()
+    x_t, graph = _stacked_scene()
+    history = torch.stack([x_t + torch.tensor([0.0, 0.01, 0.02 * k], dtype=torch.float64) for k in (2, 1, 0)], 1)
+    with torch.no_grad():
+        out, rots, trans = sim.rollout(history, graph, 4, free_flight=True, sleep=Sleep(), poses=True)
+        frames = list(history.unbind(1))
+        pose = [shape_match_packed(f, graph.rest, graph.node_graph, graph.num_graphs)[:2] for f in frames[-2:]]
+        for step in range(4):
+            x = sim.advance(frames, graph, Sleep(), True, pose)
+            rot, t, matched = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
+            torch.testing.assert_close(out[step], matched, atol=1e-9, rtol=0)
+            torch.testing.assert_close(rots[step], rot, atol=1e-9, rtol=0)
+            frames.append(out[step])
+            pose = [pose[1], (rots[step], trans[step])]
+    assert sim.rollout_counts["network"] > 0
 
 
 @pytest.mark.filterwarnings("ignore:outside training")
