@@ -37,7 +37,8 @@ from gns.config import Config, ConfigError, build_config
 from gns.features import HISTORY
 from gns.graph import GraphBatch
 from gns.ranges import outside_training
-from gns.simulator import LearnedSimulator, posed, shape_match_packed
+from gns.rigid import posed, shape_match_packed
+from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import CheckpointError
 from gns.train import parse_device
@@ -315,7 +316,7 @@ def load(model: str | Path, device: str | torch.device = "cpu", quaternion_order
     symmetrize: True or "d2" averages each step over the floor's mirror images (`gns eval
     --symmetrize`, as the real-cube scores were measured; four network calls a step): rollouts
     exactly mirror-equivariant as far as the mesh graph is (a cube's triangulated faces are not
-    quite), or another group of gns.simulator.SYMMETRY_GROUPS. ensemble: more
+    quite), or another group of gns.symmetry.SYMMETRY_GROUPS. ensemble: more
     models (names, folders, files) whose predictions each step averages with this one's (`gns eval
     --ensemble`); they must read the same graphs."""
     from gns.evaluate import checkpoint_of, load_simulator

@@ -26,7 +26,8 @@ import torch
 from gns.checkpoint import LATEST, CheckpointError, load_model, read_checkpoint
 from gns.data import ObjectTracks
 from gns.graph import GraphBatch, with_surface_edges
-from gns.simulator import LearnedSimulator, posed, shape_match_packed
+from gns.rigid import posed, shape_match_packed
+from gns.simulator import LearnedSimulator
 
 
 def teacher_paths(setting: str) -> list[Path]:

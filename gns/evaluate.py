@@ -16,7 +16,8 @@ from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene
-from gns.simulator import RANDOM_TURNS, symmetry_group
+from gns.simulator import RANDOM_TURNS
+from gns.symmetry import symmetry_group
 from gns.data import feature_spec
 from gns.features import HISTORY
 from gns.ranges import outside_training

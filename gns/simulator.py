@@ -1,9 +1,11 @@
 """The learned simulator: features -> network -> acceleration -> next positions, and back.
 
-Owns everything physical around the network: feature building and normalisation, the integrator
-x_{t+1} = x_t + (x_t - x_{t-1}) + a with its exact inverse (targets), the loss, and shape
-matching (rigid projection of predicted vertices, used in rollouts only). Positions are float64
-throughout; the network runs in float32 on normalised features.
+Owns everything around the network: feature building and normalisation, the loss, and the
+rollout (which objects the network moves, which fly free or sleep, which nodes it sees). The
+rigid-body steps it calls (the integrator x_{t+1} = x_t + (x_t - x_{t-1}) + a and its exact
+inverse, shape matching) are gns.rigid; the floor's symmetries and canonical frames
+gns.symmetry. Positions are float64 throughout; the network runs in float32 on normalised
+features.
 """
 from __future__ import annotations
 
@@ -23,161 +25,10 @@ from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collis
                        with_surface_edges, with_symmetries)
 from gns.network import EncodeProcessDecode
 from gns.precision import resolve_autocast
+from gns.rigid import acceleration_of, integrate, posed, rigid_extrapolation, shape_match_packed
+from gns.symmetry import (FLOOR_SYMMETRIES, SYMMETRY_GROUPS, _mapped_full, canonical_body_frame, mirror_signs,
+                          symmetry_group, turn_about_z, z_turns)
 from gns.spec import ModelSpec
-
-
-def integrate(x_tm1: torch.Tensor, x_t: torch.Tensor, acceleration: torch.Tensor) -> torch.Tensor:
-    """Semi-implicit Euler with dt = one frame: x_{t+1} = x_t + (x_t - x_{t-1}) + a. (N, 3) each."""
-    return x_t + (x_t - x_tm1) + acceleration
-
-
-def acceleration_of(x_tm1: torch.Tensor, x_t: torch.Tensor, x_tp1: torch.Tensor) -> torch.Tensor:
-    """The inverse of `integrate`: a = x_{t+1} - 2 x_t + x_{t-1}. (N, 3) each."""
-    return (x_tp1 - x_t) - (x_t - x_tm1)
-
-
-def rigid_extrapolation(x_tm1: torch.Tensor, x_t: torch.Tensor, node_graph: torch.Tensor,
-                        num_graphs: int) -> torch.Tensor:
-    """x_{t+1} if every object keeps its last frame's velocity and its last frame's turn: each
-    vertex's offset from its object's centre is turned again by the rotation that best maps the
-    offsets at t-1 onto those at t (Kabsch), the centre moves on by its last step. (N, 3) each.
-
-    `integrate` extrapolates each vertex along a straight line instead, which for a spinning
-    object lands outside its circle: shape matching turns such points by less than the last
-    frame's turn (44.6 against 48 degrees at 48 degrees a frame), so a network must add a
-    centripetal acceleration at every step just to keep the spin, and any shrinkage of its
-    answer is lost spin. With this prior, keeping the spin is the default and the network learns
-    only what changes momentum. Translation and rotation equivariant, exact for a rigid input."""
-    c1, c0, p, h = _packed_fit(x_t, x_tm1, node_graph, num_graphs)
-    return x_t + rotate_nodes(_rotation(h), node_graph, p) - p + (c1 - c0).index_select(0, node_graph)
-
-
-def posed(rot: torch.Tensor, t: torch.Tensor, node_graph: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
-    """The rest vertices (N, 3) of each graph placed at its pose, rotation rot (G, 3, 3) and
-    translation t (G, 3): R rest + t per node."""
-    return rotate_nodes(rot, node_graph, rest) + t.index_select(0, node_graph)
-
-
-def rotate_nodes(rot: torch.Tensor, node_graph: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """v (N, 3) turned by its graph's rotation rot (G, 3, 3): rot[node_graph] @ v per node. As
-    three column products after index_select: on CPU, rot[node_graph] and a batched (N, 3, 3) x
-    (N, 3, 1) matmul cost ~4x as much, ~10% of a rollout step of a small model (session 29)."""
-    r = rot.index_select(0, node_graph)
-    return r[:, :, 0] * v[:, :1] + r[:, :, 1] * v[:, 1:2] + r[:, :, 2] * v[:, 2:]
-
-
-def _rotation_from_covariance(h: torch.Tensor) -> torch.Tensor:
-    """Rotation part of the polar decomposition of h (B, 3, 3), never a reflection.
-
-    For h = sum_i p_i q_i^T = U S V^T, R = U diag(1, 1, det(U V^T)) V^T maximises
-    sum_i p_i . R q_i over proper rotations (Kabsch). A non-finite h (a diverged prediction)
-    gives a NaN rotation for its graph only, instead of stopping LAPACK for the whole batch.
-    """
-    finite = torch.isfinite(h).all(dim=(1, 2))
-    eye = torch.eye(3, dtype=h.dtype, device=h.device)
-    u, _, vh = torch.linalg.svd(torch.where(finite[:, None, None], h, eye))
-    sign = torch.linalg.det(u @ vh)
-    fix = torch.ones_like(h[:, 0])
-    fix[:, 2] = sign
-    rot = (u * fix[:, None, :]) @ vh
-    return torch.where(finite[:, None, None], rot, torch.nan)
-
-
-POLAR_ITERATIONS = 12
-
-
-def _rotation_differentiable(h: torch.Tensor) -> torch.Tensor:
-    """`_rotation_from_covariance` with a finite gradient: the polar factor by scaled Newton
-    iteration X <- (g X + X^-T / g) / 2 (Higham), which converges quadratically and to double
-    precision within POLAR_ITERATIONS for any well-conditioned h. The SVD's gradient divides by
-    differences of singular values, and a cube's isotropic rest shape makes them all equal, so
-    it is infinite exactly where rigid objects need it. A covariance whose polar factor is a
-    reflection (det h < 0, a prediction turned inside out) takes the SVD's rotation, without
-    gradient."""
-    finite = torch.isfinite(h).all(dim=(1, 2))
-    eye = torch.eye(3, dtype=h.dtype, device=h.device)
-    x = torch.where(finite[:, None, None], h, eye)
-    x = x / x.norm(dim=(1, 2), keepdim=True)
-    for _ in range(POLAR_ITERATIONS):
-        inv_t = torch.linalg.inv(x).transpose(1, 2)
-        g = (inv_t.norm(dim=(1, 2), keepdim=True) / x.norm(dim=(1, 2), keepdim=True)).sqrt()
-        x = 0.5 * (g * x + inv_t / g)
-    proper = (torch.linalg.det(x) > 0)[:, None, None]
-    rot = torch.where(proper, x, _rotation_from_covariance(h.detach()))
-    return torch.where(finite[:, None, None], rot, torch.nan)
-
-
-def _rotation(h: torch.Tensor) -> torch.Tensor:
-    if torch.is_grad_enabled() and h.requires_grad:
-        return _rotation_differentiable(h)
-    return _rotation_from_covariance(h)
-
-
-def shape_match(x: torch.Tensor, rest: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Best rigid transform of the rest shape onto the points, batched.
-
-    x: (B, V, 3) predicted vertices; rest: (B, V, 3) rest vertices in the body frame.
-    Returns R (B, 3, 3), t (B, 3) with x ~ R rest + t (t is the pose translation, so it is the
-    centre of mass when rest is centred on it), and x_proj = R rest + t (B, V, 3).
-    """
-    cx, cr = x.mean(1, keepdim=True), rest.mean(1, keepdim=True)
-    h = (x - cx).transpose(1, 2) @ (rest - cr)
-    rot = _rotation(h)
-    t = cx[:, 0] - (rot @ cr[:, 0, :, None])[..., 0]
-    return rot, t, rest @ rot.transpose(1, 2) + t[:, None]
-
-
-def _packed_fit(a: torch.Tensor, b: torch.Tensor, node_graph: torch.Tensor, num_graphs: int):
-    """Per graph of a packed batch: the point sets' means ca, cb (G, 3), a's offsets p = a - ca
-    (N, 3) and the covariance h = sum p (b - cb)^T (G, 3, 3), whose polar factor best turns b's
-    offsets onto a's (Kabsch)."""
-    count = torch.zeros(num_graphs, dtype=a.dtype, device=a.device).index_add_(
-        0, node_graph, torch.ones_like(a[:, 0]))[:, None]
-    ca = torch.zeros(num_graphs, 3, dtype=a.dtype, device=a.device).index_add_(0, node_graph, a) / count
-    cb = torch.zeros(num_graphs, 3, dtype=a.dtype, device=a.device).index_add_(0, node_graph, b) / count
-    p, q = a - ca.index_select(0, node_graph), b - cb.index_select(0, node_graph)
-    h = torch.zeros(num_graphs, 3, 3, dtype=a.dtype, device=a.device).index_add_(
-        0, node_graph, p[:, :, None] * q[:, None, :])
-    return ca, cb, p, h
-
-
-def canonical_body_frame(x: torch.Tensor, graph: GraphBatch, rot: torch.Tensor) -> tuple[GraphBatch, torch.Tensor]:
-    """graph with each object's rest shape described in the equivalent body frame (one of its
-    symmetries S: r -> S r, pose R -> R S^T) whose pose is closest to the identity (largest trace
-    of R S^T; ties to the first), and those poses (G, 3, 3). rot: each object's pose R at
-    positions x (N, 3) (shape_match_packed). The world vertices are unchanged, so this only
-    relabels what the rest features say; the choice is a discrete one, made without gradient
-    (features.canonical_body_frame)."""
-    if graph.symmetries is None:
-        graph = with_symmetries(graph)
-    syms, counts = graph.symmetries, graph.num_symmetries
-    with torch.no_grad():
-        score = torch.einsum("gij,gkij->gk", rot.detach(), syms.to(rot.dtype))
-        padding = torch.arange(syms.shape[1], device=score.device)[None] >= counts.to(score.device)[:, None]
-        pick = score.masked_fill(padding, -torch.inf).argmax(1)
-    s = syms[torch.arange(graph.num_graphs, device=pick.device), pick].to(graph.rest.dtype)   # (G, 3, 3)
-    # S G S^T = G: the groups stay as they are
-    graph = replace(graph, rest=torch.einsum("nij,nj->ni", s[graph.node_graph], graph.rest),
-                    full_rest=_mapped_full(graph, lambda full: full @ s.transpose(1, 2).to(full.dtype)))
-    return graph, rot @ s.transpose(1, 2).to(rot.dtype)
-
-
-def _mapped_full(graph: GraphBatch, map_full) -> torch.Tensor | None:
-    """graph.full_rest mapped as its rest was (a mirror, a body-frame symmetry), if it has one."""
-    return None if graph.full_rest is None else map_full(graph.full_rest)
-
-
-def shape_match_packed(x: torch.Tensor, rest: torch.Tensor, node_graph: torch.Tensor,
-                       num_graphs: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """`shape_match` for a packed batch with different vertex counts per graph.
-
-    x, rest: (N, 3); node_graph: (N,) graph index. Returns R (G, 3, 3), t (G, 3), x_proj (N, 3).
-    """
-    cx, cr, _, h = _packed_fit(x, rest, node_graph, num_graphs)
-    rot = _rotation(h)
-    t = cx - (rot @ cr[:, :, None])[..., 0]
-    x_proj = posed(rot, t, node_graph, rest)
-    return rot, t, x_proj
 
 
 @dataclass(frozen=True)
@@ -226,76 +77,15 @@ class Sleep:
 # out (multi-object MOVi-style scenes, benchmarks/bench_learned_vs_physics.py).
 SUBGRAPH_MIN_SHARE = 0.2
 
-def _maps(*rows) -> tuple:
-    return tuple(tuple(tuple(float(v) for v in r) for r in m) for m in rows)
-
-
-_MIRRORS = _maps(((1, 0, 0), (0, 1, 0), (0, 0, 1)), ((-1, 0, 0), (0, 1, 0), (0, 0, 1)),
-                 ((1, 0, 0), (0, -1, 0), (0, 0, 1)), ((-1, 0, 0), (0, -1, 0), (0, 0, 1)))
-# the floor's symmetries a rollout may average over (3x3 maps of the world, z kept): "d2" the
-# identity, the mirrors in x and in y and the half turn; "d4" also the quarter turns and the
-# diagonal mirrors (x and y swapped), at twice the cost; "d1" (the identity and the mirror in x)
-# and "c2" (the identity and the half turn) at half the cost, "c4" (the quarter turns) at the same:
-# which of d2's gain is the exact mirror and which the average over images (docs/speed.md, session 12)
-SYMMETRY_GROUPS = {"d2": _MIRRORS,
-                   "d4": _MIRRORS + tuple(tuple((m[1], m[0], m[2])) for m in _MIRRORS),
-                   "d1": (_MIRRORS[0], _MIRRORS[1]),
-                   "c2": (_MIRRORS[0], _MIRRORS[3]),
-                   "c4": (_MIRRORS[0], _maps(((0, -1, 0), (1, 0, 0), (0, 0, 1)))[0], _MIRRORS[3],
-                          _maps(((0, 1, 0), (-1, 0, 0), (0, 0, 1)))[0])}
-FLOOR_SYMMETRIES = SYMMETRY_GROUPS["d2"]
-
-
-def symmetry_group(symmetrize) -> str | None:
-    """The group a `symmetrize` setting names: False/None -> None, True -> "d2", or a key of
-    SYMMETRY_GROUPS."""
-    if symmetrize is None or symmetrize is False:
-        return None
-    if symmetrize is True:
-        return "d2"
-    if symmetrize not in SYMMETRY_GROUPS:
-        raise ValueError(f"unknown symmetry group {symmetrize!r}; known: {', '.join(SYMMETRY_GROUPS)}")
-    return symmetrize
-
-
 # rollout options averaging over random headings instead of a fixed group (_predict_turned)
 RANDOM_TURNS = {"r1": 1, "r2": 2, "r4": 4}
 
 IMAGE_NODES = 32768  # most nodes in one network call of symmetrized images (predict_acceleration)
 
 
-def z_turns(angle: torch.Tensor) -> torch.Tensor:
-    """(N,) angles -> (N, 3, 3) rotations about z by them."""
-    c, s = torch.cos(angle), torch.sin(angle)
-    turn = torch.zeros(angle.shape[0], 3, 3, dtype=angle.dtype, device=angle.device)
-    turn[:, 0, 0], turn[:, 0, 1], turn[:, 1, 0], turn[:, 1, 1], turn[:, 2, 2] = c, -s, s, c, 1.0
-    return turn
-
-
 def _pose_where(mask: torch.Tensor, a: tuple, b: tuple) -> tuple[torch.Tensor, torch.Tensor]:
     """Per object, pose a (R (G, 3, 3), t (G, 3)) where mask (G,) is True, else pose b."""
     return torch.where(mask[:, None, None], a[0], b[0]), torch.where(mask[:, None], a[1], b[1])
-
-
-def turn_about_z(v: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
-    """v (N, ..., 3) turned about z by the angles whose cosines and sines are cos, sin (N,):
-    z_turns(angle) @ v without building the (N, 3, 3) matrices (a batched matmul of 3x3s is
-    several times slower on CPU)."""
-    shape = (-1,) + (1,) * (v.dim() - 2)
-    c, s = cos.view(shape), sin.view(shape)
-    x, y = v[..., 0], v[..., 1]
-    return torch.stack([c * x - s * y, s * x + c * y, v[..., 2]], -1)
-
-
-def mirror_signs(history: torch.Tensor, scene: torch.Tensor, count: int) -> torch.Tensor:
-    """(count,) +-1 per scene: the sign of the x plus z parts of its angular momentum about its
-    centre, sum of (x_t - centre) x (x_t - x_{t-1}) over its nodes, which a mirror in y flips
-    (+1 where it is 0). history (N, 3 frames, 3)."""
-    x, v = history[:, -1], history[:, -1] - history[:, -2]
-    nodes = torch.bincount(scene, minlength=count).clamp(min=1).to(x.dtype)
-    centre = torch.zeros(count, 3, dtype=x.dtype, device=x.device).index_add_(0, scene, x) / nodes[:, None]
-    spin = torch.zeros(count, 3, dtype=x.dtype, device=x.device).index_add_(0, scene, torch.cross(x - centre[scene], v, dim=1))
-    return torch.where(spin[:, 0] + spin[:, 2] < 0, -1.0, 1.0).to(x.dtype)
 
 
 def _listed(t: torch.Tensor | None) -> list | None:
@@ -851,7 +641,7 @@ class LearnedSimulator(nn.Module):
         node_weight (N,): each node's share of the mean (mean 1: train.size_weight).
         rigid > 0 adds rigid x the same loss of the shape-matched prediction against the
         shape-matched target (train.rigid_loss): what a rollout keeps of a step. Shape matching
-        runs through the differentiable polar factor (`_rotation_differentiable`).
+        runs through the differentiable polar factor (`gns.rigid._rotation_differentiable`).
         """
         seen = self.network_nodes(history[:, -1], graph)
         if seen is not None:   # the loss of the nodes the network sees (predict_next)

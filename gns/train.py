@@ -35,7 +35,8 @@ from gns.config import Config, ConfigError, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import GraphBatch, MeshLibrary, graph_settings, graph_sizes
 from gns.features import HISTORY
-from gns.simulator import LearnedSimulator, shape_match_packed
+from gns.rigid import shape_match_packed
+from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 # the checkpoint API stays importable from here (pipelines and users' scripts import it so)
 from gns.checkpoint import (CHECKPOINT_FORMAT, LATEST, TRAINED, CheckpointError, build_simulator,  # noqa: F401

@@ -25,7 +25,7 @@ from gns.data import ObjectTracks, in_contact
 from gns.evaluate import load_simulator, load_split
 from gns.geometry import matrix_to_quat
 from gns.metrics import object_width, rotation_error_deg
-from gns.simulator import shape_match_packed
+from gns.rigid import shape_match_packed
 from gns.spec import ModelSpec
 
 CONTACT = TrainConfig.contact_threshold  # |a - g| > CONTACT |g|: the step is in contact (gns.data.in_contact)

@@ -21,7 +21,7 @@ import torch
 
 from gns.config import build_config
 from gns.evaluate import load_simulator
-from gns.simulator import acceleration_of
+from gns.rigid import acceleration_of
 from gns.train import load_data
 from pipelines.common import guarded
 

@@ -326,7 +326,7 @@ def test_symmetrized_images_in_one_call_equal_one_call_per_image(run):
     from dataclasses import replace
 
     import gns.simulator as simulator
-    from gns.simulator import FLOOR_SYMMETRIES
+    from gns.symmetry import FLOOR_SYMMETRIES
     model = gns.load(run / "run")
     sim = model.simulator
     state = model.state(**three_cubes(), warn=False)

@@ -11,7 +11,7 @@ from datagen.shapes import get_shape
 from gns.checkpoint import build_simulator
 from gns.fine_tune import init_from
 from gns.graph import MeshLibrary, centre_spokes
-from gns.simulator import shape_match_packed
+from gns.rigid import shape_match_packed
 from gns.spec import ModelSpec
 from gns.train import CheckpointError, read_checkpoint, train
 from test_gns_train import quiet, tiny

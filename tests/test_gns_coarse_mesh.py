@@ -9,7 +9,7 @@ from datagen.shapes import get_shape
 from gns.coarse_mesh import coarsen, farthest_order, farthest_points, network_meshes, support_gap, vertices_for_gap
 from gns.config import ConfigError
 from gns.graph import MeshLibrary, mesh_edges
-from gns.simulator import shape_match_packed
+from gns.rigid import shape_match_packed
 from gns.train import CheckpointError, read_checkpoint, train
 from test_gns_train import quiet, tiny
 

@@ -11,7 +11,7 @@ from gns.data import ObjectTracks, feature_spec, rotation_z, vertices_from_poses
 from gns.features import make_layout
 from gns.geometry import pose_to_vertices, quat_from_axis_angle, quat_to_matrix
 from gns.graph import MeshLibrary, mesh_edges
-from gns.simulator import acceleration_of, shape_match_packed
+from gns.rigid import acceleration_of, shape_match_packed
 
 
 @pytest.fixture(scope="module")

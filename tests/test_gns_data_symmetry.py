@@ -9,7 +9,7 @@ from datagen.shapes import get_shape
 from datagen.shards import Dataset
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary, mesh_symmetries
-from gns.simulator import shape_match_packed
+from gns.rigid import shape_match_packed
 
 
 def _tracks(tmp_path):

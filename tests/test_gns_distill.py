@@ -10,7 +10,7 @@ from gns.config import ConfigError
 from gns.data import ObjectTracks
 from gns.distill import Teacher
 from gns.graph import MeshLibrary, with_surface_edges
-from gns.simulator import shape_match_packed
+from gns.rigid import shape_match_packed
 from gns.train import read_checkpoint, train, unrolled_loss
 from test_gns_train import quiet, tiny
 

@@ -14,7 +14,7 @@ from gns.config import ConfigError, build_config
 from gns.data import ObjectTracks, feature_spec
 from gns.features import SUPPORT_SHARPNESS, floor_support, make_layout
 from gns.graph import MeshLibrary
-from gns.simulator import shape_match_packed
+from gns.rigid import shape_match_packed
 from gns.api import Model
 from gns.train import _build_model, build_simulator, load_data, train
 from test_gns_train import TINY, quiet, tiny

@@ -15,7 +15,8 @@ from datagen.shards import Dataset
 from gns.config import ConfigError, build_config
 from gns.data import ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
-from gns.simulator import LearnedSimulator, integrate, rigid_extrapolation, shape_match_packed
+from gns.rigid import integrate, rigid_extrapolation, shape_match_packed
+from gns.simulator import LearnedSimulator
 from gns.stability import resting_scene
 from gns.train import CheckpointError, read_checkpoint, train
 from gns_fixtures import write_toss_dataset

@@ -10,7 +10,7 @@ from datagen.shapes import get_shape
 from gns.checkpoint import build_simulator
 from gns.config import ConfigError
 from gns.graph import MeshLibrary, lowest_nodes, select_nodes
-from gns.simulator import shape_match_packed
+from gns.rigid import shape_match_packed
 from gns.spec import Floor, ModelSpec
 from gns.train import read_checkpoint, train
 from test_gns_train import quiet, tiny

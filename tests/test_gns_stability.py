@@ -18,7 +18,8 @@ from gns.data import ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
 from gns.ranges import outside_training
 from gns.graph import EdgeSet
-from gns.simulator import LearnedSimulator, Sleep, shape_match
+from gns.rigid import shape_match
+from gns.simulator import LearnedSimulator, Sleep
 from gns.spec import ModelSpec
 from gns.stability import (REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene)
 from gns.train import load_model, read_checkpoint

@@ -11,7 +11,7 @@ from datagen.shards import Dataset, Scene
 from gns.config import ConfigError, build_config
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
-from gns.simulator import shape_match_packed
+from gns.rigid import shape_match_packed
 from gns.train import build_simulator, read_checkpoint, train, unrolled_loss
 from test_gns_train import TINY, metrics, quiet, tiny
 
@@ -192,7 +192,7 @@ def test_d4_symmetrized_predictions_are_exactly_quarter_turn_equivariant(tmp_pat
     sim, b = sim_and_batch(tmp_path)
     from dataclasses import replace
 
-    from gns.simulator import symmetry_group
+    from gns.symmetry import symmetry_group
     quarter = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     diagonal = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
@@ -286,7 +286,7 @@ def test_a_canonical_heading_makes_the_model_exactly_equivariant_to_any_turn_abo
 
 def test_a_canonical_mirror_makes_the_model_exactly_equivariant_to_floor_mirrors_at_one_call(tmp_path):
     from gns.config import ConfigError
-    from gns.simulator import mirror_signs
+    from gns.symmetry import mirror_signs
 
     def mirrored_off(sim, b, g, shift=(0.0, 0.0, 0.0), body=None):
         """How far the prediction for the scene mirrored by g (and moved) is from the mirrored
@@ -322,7 +322,7 @@ def test_a_canonical_body_frame_makes_the_answer_independent_of_which_equivalent
     (r -> S r, pose R S^T): the same prediction with features.canonical_body_frame, not without;
     also under the canonical heading and through symmetrized images (mirrors map the groups)."""
     from gns.graph import mesh_symmetries
-    from gns.simulator import canonical_body_frame
+    from gns.symmetry import canonical_body_frame
 
     def relabelled_off(sim, b, k):
         g = b.graph
