@@ -104,25 +104,16 @@ def test_vertices_the_network_does_not_see_follow_the_pose_of_those_it_does():
     torch.testing.assert_close(x[unseen], rigid[unseen])
 
 
-@pytest.mark.parametrize("heights", [(0.4, 0.5, 0.45), (0.4, 3.0, 3.5)])
-def test_a_rollout_takes_the_fitted_poses_as_a_second_fit_would_find_them(heights):
-    """Rollouts reuse the pose fitted to the seen nodes (and the ballistic and kept ones) instead of
-    shape matching every vertex again: the same frames and poses as the plain loop. All objects
-    near the floor, then two of three in free flight (the network on a subgraph)."""
+def _rollout_equals_the_plain_loop(sim, x_t, graph, steps):
+    """sim.rollout (free flight, sleep, fitted poses handed over) against advance + a shape match
+    of every vertex at each step, from x_t moving at constant velocity."""
     from gns.simulator import Sleep
-    sim = _simulator(6).eval()
-    graph = _graph()
-    x_t = _turned(graph, 4)
-    centres = torch.tensor(heights, dtype=torch.float64)
-    lift = centres - torch.zeros(3, dtype=torch.float64).index_add_(0, graph.node_graph, x_t[:, 2]) / torch.bincount(
-        graph.node_graph)
-    x_t[:, 2] += lift[graph.node_graph]
     history = torch.stack([x_t + torch.tensor([0.0, 0.01, 0.02 * k], dtype=torch.float64) for k in (2, 1, 0)], 1)
     with torch.no_grad():
-        out, rots, trans = sim.rollout(history, graph, 5, free_flight=True, sleep=Sleep(), poses=True)
+        out, rots, trans = sim.rollout(history, graph, steps, free_flight=True, sleep=Sleep(), poses=True)
         frames = list(history.unbind(1))
         pose = [shape_match_packed(f, graph.rest, graph.node_graph, graph.num_graphs)[:2] for f in frames[-2:]]
-        for step in range(5):
+        for step in range(steps):
             x = sim.advance(frames, graph, Sleep(), True, pose)
             rot, t, matched = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
             torch.testing.assert_close(out[step], matched, atol=1e-9, rtol=0)
@@ -131,6 +122,21 @@ def test_a_rollout_takes_the_fitted_poses_as_a_second_fit_would_find_them(height
             frames.append(out[step])   # the rollout's own frames: differences do not compound here
             pose = [pose[1], (rots[step], trans[step])]
     assert sim.rollout_counts["network"] > 0
+
+
+@pytest.mark.parametrize("heights", [(0.4, 0.5, 0.45), (0.4, 3.0, 3.5)])
+def test_a_rollout_takes_the_fitted_poses_as_a_second_fit_would_find_them(heights):
+    """Rollouts reuse the pose fitted to the seen nodes (and the ballistic and kept ones) instead of
+    shape matching every vertex again: the same frames and poses as the plain loop. All objects
+    near the floor, then two of three in free flight (the network on a subgraph)."""
+    sim = _simulator(6).eval()
+    graph = _graph()
+    x_t = _turned(graph, 4)
+    centres = torch.tensor(heights, dtype=torch.float64)
+    lift = centres - torch.zeros(3, dtype=torch.float64).index_add_(0, graph.node_graph, x_t[:, 2]) / torch.bincount(
+        graph.node_graph)
+    x_t[:, 2] += lift[graph.node_graph]
+    _rollout_equals_the_plain_loop(sim, x_t, graph, 5)
     if heights[1] > 1:
         assert sim.rollout_counts["free_flight"] > 0
 
@@ -217,22 +223,9 @@ def test_with_other_objects_every_vertex_in_contact_is_seen():
 
 
 def test_with_other_objects_a_rollout_takes_the_fitted_poses_too():
-    from gns.simulator import Sleep
     sim = _simulator(6, collisions=True).eval()
     x_t, graph = _stacked_scene()
-    history = torch.stack([x_t + torch.tensor([0.0, 0.01, 0.02 * k], dtype=torch.float64) for k in (2, 1, 0)], 1)
-    with torch.no_grad():
-        out, rots, trans = sim.rollout(history, graph, 4, free_flight=True, sleep=Sleep(), poses=True)
-        frames = list(history.unbind(1))
-        pose = [shape_match_packed(f, graph.rest, graph.node_graph, graph.num_graphs)[:2] for f in frames[-2:]]
-        for step in range(4):
-            x = sim.advance(frames, graph, Sleep(), True, pose)
-            rot, t, matched = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
-            torch.testing.assert_close(out[step], matched, atol=1e-9, rtol=0)
-            torch.testing.assert_close(rots[step], rot, atol=1e-9, rtol=0)
-            frames.append(out[step])
-            pose = [pose[1], (rots[step], trans[step])]
-    assert sim.rollout_counts["network"] > 0
+    _rollout_equals_the_plain_loop(sim, x_t, graph, 4)
 
 
 @pytest.mark.filterwarnings("ignore:outside training")
