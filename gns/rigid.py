@@ -1,7 +1,8 @@
 """Rigid-body steps in torch, batched over the objects of a packed graph (float64 positions):
 the integrator and its exact inverse, the rigid inertial prior, posing rest shapes, and shape
 matching (the best rigid fit of a rest shape to predicted vertices, with a finite gradient for
-the training's rigid loss). gns.geometry holds the numpy twins the metrics and plots use."""
+the training's rigid loss). The numpy quaternion and pose helpers of the metrics and plots are
+gns.geometry."""
 from __future__ import annotations
 
 import torch

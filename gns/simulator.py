@@ -26,9 +26,9 @@ from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collis
 from gns.network import EncodeProcessDecode
 from gns.precision import resolve_autocast
 from gns.rigid import acceleration_of, integrate, posed, rigid_extrapolation, shape_match_packed
-from gns.symmetry import (FLOOR_SYMMETRIES, SYMMETRY_GROUPS, _mapped_full, canonical_body_frame, mirror_signs,
-                          symmetry_group, turn_about_z, z_turns)
 from gns.spec import ModelSpec
+from gns.symmetry import (FLOOR_SYMMETRIES, SYMMETRY_GROUPS, canonical_body_frame, mapped_full_rest, mirror_signs,
+                          symmetry_group, turn_about_z, z_turns)
 
 
 @dataclass(frozen=True)
@@ -272,7 +272,7 @@ class LearnedSimulator(nn.Module):
             mirror = torch.stack([one, mirror_signs(turned, scene, count)[scene], one], 1)   # (N, 3): 1, +-1, 1
             turned = turned * mirror[:, None, :]
             per_object = per_graph(mirror, graph, "amin")                                   # (G, 3)
-            graph = replace(graph, rest=graph.rest * mirror.to(graph.rest.dtype), full_rest=_mapped_full(
+            graph = replace(graph, rest=graph.rest * mirror.to(graph.rest.dtype), full_rest=mapped_full_rest(
                 graph, lambda full: full * per_object.to(full.dtype)[:, None]),
                 symmetries=mapped_symmetries(graph, torch.diag_embed(per_object)))
         nodes, edge_sets = self._inputs(turned, graph)
@@ -365,7 +365,7 @@ class LearnedSimulator(nn.Module):
                 # the same world vertices described in the k-th equivalent body frame (r -> S r):
                 # the answer may not hang on which one, so average over all of each object's group
                 rest = torch.einsum("nij,nj->ni", syms[graph.node_graph, k], graph.rest)
-                full = _mapped_full(graph, lambda f: f @ syms[:, k].transpose(1, 2))
+                full = mapped_full_rest(graph, lambda f: f @ syms[:, k].transpose(1, 2))
                 counts = graph.num_symmetries[graph.node_graph]
                 weight = ((k < counts).to(history.dtype) / counts.to(history.dtype))[:, None]
             for m in floors:

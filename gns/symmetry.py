@@ -88,10 +88,10 @@ def canonical_body_frame(x: torch.Tensor, graph: GraphBatch, rot: torch.Tensor) 
     s = syms[torch.arange(graph.num_graphs, device=pick.device), pick].to(graph.rest.dtype)   # (G, 3, 3)
     # S G S^T = G: the groups stay as they are
     graph = replace(graph, rest=torch.einsum("nij,nj->ni", s[graph.node_graph], graph.rest),
-                    full_rest=_mapped_full(graph, lambda full: full @ s.transpose(1, 2).to(full.dtype)))
+                    full_rest=mapped_full_rest(graph, lambda full: full @ s.transpose(1, 2).to(full.dtype)))
     return graph, rot @ s.transpose(1, 2).to(rot.dtype)
 
 
-def _mapped_full(graph: GraphBatch, map_full) -> torch.Tensor | None:
+def mapped_full_rest(graph: GraphBatch, map_full) -> torch.Tensor | None:
     """graph.full_rest mapped as its rest was (a mirror, a body-frame symmetry), if it has one."""
     return None if graph.full_rest is None else map_full(graph.full_rest)
