@@ -438,8 +438,7 @@ class LearnedSimulator(nn.Module):
         keep = lowest_nodes(x_t[:, 2], graph, self.lowest_vertices, self.highest_vertices)
         if self.layout.collisions:
             contacts = self.collision_edges(x_t, graph)
-            if len(contacts.senders):
-                keep = keep.index_fill(0, contacts.senders, True)   # edges come both ways: receivers too
+            keep = keep.index_fill(0, contacts.senders, True)   # edges come both ways: receivers too
             graph = replace(graph, collision_edges=contacts)
         return None if bool(keep.all()) else select_nodes(graph, keep)
 
