@@ -17,6 +17,8 @@ from datagen.config import ConfigError, parse_value, typed_value  # noqa: E402
 
 
 INERTIAL_PRIORS = ("linear", "rigid")   # model.inertial_prior (gns.simulator.LearnedSimulator.inertial)
+# train.teacher_symmetrize: the keys of gns.symmetry.SYMMETRY_GROUPS (not imported: it needs torch; tested equal)
+TEACHER_GROUPS = ("d1", "d2", "d4", "c2", "c4")
 
 
 @dataclass
@@ -176,6 +178,10 @@ class TrainConfig:
     # shape-matched next frame + (1 - teacher_weight) x the true one (gns.distill)
     teacher: str = ""
     teacher_weight: float = 1.0
+    # The teacher's every prediction averaged over the floor's mirror images, as `gns eval
+    # --symmetrize` rolls out ("d1", "d2", ...; "" none): the most accurate answers are the
+    # symmetrized ensemble's, and a student called once cannot average images itself
+    teacher_symmetrize: str = ""
     # In (0, 1): the run saves an exponential moving average of its weights with this decay (about
     # the last 1 / (1 - decay) steps) as the model to use, and trains on from its own (gns.weight_average)
     ema_decay: float = 0.0
@@ -322,6 +328,10 @@ def validate(cfg: Config) -> None:
         (cfg.train.size_weight >= 0, "train.size_weight must be >= 0"),
         (cfg.train.rigid_loss >= 0, "train.rigid_loss must be >= 0"),
         (0 <= cfg.train.teacher_weight <= 1, "train.teacher_weight must be in [0, 1]"),
+        (cfg.train.teacher_symmetrize in ("", *TEACHER_GROUPS),
+         f"train.teacher_symmetrize must be '' or one of {', '.join(TEACHER_GROUPS)}"),
+        (not cfg.train.teacher_symmetrize or cfg.train.teacher,
+         "train.teacher_symmetrize needs train.teacher"),
         (0 <= cfg.train.ema_decay < 1, "train.ema_decay must be in [0, 1) (0: off)"),
         (cfg.train.log_every >= 1 and cfg.train.checkpoint_every >= 1,
          "train.log_every and train.checkpoint_every must be >= 1"),

@@ -45,10 +45,11 @@ class Teacher:
 
     def __init__(self, setting: str, student: LearnedSimulator, device: torch.device,
                  tracks: ObjectTracks | None = None, meshes: dict | None = None, maps_body_frames: bool = False,
-                 autocast: str = "auto"):
+                 autocast: str = "auto", symmetrize: str = ""):
         """tracks, meshes: the student's training tracks and the data's meshes, which a teacher
         on other vertices packs its own graphs from; maps_body_frames: the batches' body frames are
-        mapped by augmentation (refused for such a teacher)."""
+        mapped by augmentation (refused for such a teacher); symmetrize: the teacher's
+        predictions averaged over that group's images (train.teacher_symmetrize)."""
         paths = teacher_paths(setting)
         models = []
         for path in paths:
@@ -72,6 +73,7 @@ class Teacher:
             if problem:
                 raise CheckpointError(f"train.teacher {paths[k]} cannot teach this model: {problem}")
         self.model, members = models[0], models[1:]
+        self.model.symmetrize = symmetrize or False   # the members follow the first model's setting
         if members:
             try:
                 self.model.set_ensemble(members)

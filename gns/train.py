@@ -426,9 +426,11 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     try:
         # checked, like the data and the checkpoint, before anything in the run folder changes
         teacher = (Teacher(cfg.train.teacher, sim, device, tracks, spec.meshes,
-                           cfg.augment.mirror or cfg.augment.body_symmetry) if cfg.train.teacher else None)
+                           cfg.augment.mirror or cfg.augment.body_symmetry, symmetrize=cfg.train.teacher_symmetrize)
+                   if cfg.train.teacher else None)
         if teacher is not None:
-            log(f"teacher: {cfg.train.teacher}, {cfg.train.teacher_weight:g} of each target")
+            images = f", symmetrized {cfg.train.teacher_symmetrize}" if cfg.train.teacher_symmetrize else ""
+            log(f"teacher: {cfg.train.teacher}{images}, {cfg.train.teacher_weight:g} of each target")
         provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance"))
         step = _train_loop(run, cfg, sim, optimizer, tracks, valid, spec, step, rng, device, world,
                            stale, resumed_from, provenance, log, teacher, average)

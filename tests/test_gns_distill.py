@@ -127,3 +127,36 @@ def test_a_bad_teacher_is_one_line_before_the_run_folder_exists(data, teacher_ru
     assert not (tmp_path / "missing").exists()
     with pytest.raises(ConfigError, match="train.teacher_weight"):
         tiny("train.teacher_weight=1.5")
+
+
+def test_a_symmetrized_teacher_answers_what_its_symmetrized_rollout_predicts(data, teacher_run, tmp_path):
+    ds = Dataset(data)
+    model = load_model(read_checkpoint(teacher_run / "latest.pt"))[0]
+    batch = ObjectTracks(ds.load("train"), model.mesh_library(ds.meshes)).batch(torch.tensor([0, 5, 13]))
+    frames, g = list(batch.history.unbind(1)), batch.graph
+    answers = {}
+    for group in ("", "d1", "d2"):
+        teacher = Teacher(f"{teacher_run}+{teacher_run}", model, torch.device("cpu"), autocast="none",
+                          symmetrize=group)
+        answers[group] = teacher.next_frame(frames, g)
+        model.symmetrize = group or False
+        with torch.no_grad():
+            x = model.predict_next(*frames, g)
+        torch.testing.assert_close(answers[group], shape_match_packed(x, g.rest, g.node_graph, g.num_graphs)[2],
+                                   rtol=0, atol=1e-9)
+    # the images change the answer (the network alone is not mirror-equivariant)
+    assert float((answers["d2"] - answers[""]).abs().max()) > 1e-7
+    assert float((answers["d2"] - answers["d1"]).abs().max()) > 1e-7
+    train(data, tmp_path / "run", tiny("train.steps=2", f"train.teacher={teacher_run}", "train.teacher_symmetrize=d1"),
+          log=quiet)
+    assert read_checkpoint(tmp_path / "run" / "latest.pt")["config"]["train"]["teacher_symmetrize"] == "d1"
+
+
+def test_teacher_symmetrize_names_a_symmetry_group_and_needs_a_teacher(teacher_run):
+    from gns.config import TEACHER_GROUPS
+    from gns.symmetry import SYMMETRY_GROUPS
+    assert set(TEACHER_GROUPS) == set(SYMMETRY_GROUPS)
+    with pytest.raises(ConfigError, match="train.teacher_symmetrize must be"):
+        tiny(f"train.teacher={teacher_run}", "train.teacher_symmetrize=d3")
+    with pytest.raises(ConfigError, match="train.teacher_symmetrize needs train.teacher"):
+        tiny("train.teacher_symmetrize=d2")
