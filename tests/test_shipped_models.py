@@ -108,7 +108,7 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
               "gns_movi_a_spokes", "gns_movi_a_mid_spokes", "gns_movi_a_mid_spokes_chain", "gns_movi_a_spokes_chain",
               "gns_movi_a_spokes_chain_s100", "gns_movi_a_spokes_chain_avg", "gns_movi_a_spokes_chain_avg_s100",
               "gns_movi_a_mid_spokes_chain_avg", "gns_movi_a_low_spokes_chain_avg",
-              "gns_movi_a_low_spokes_chain_avg_s100")
+              "gns_movi_a_low_spokes_chain_avg_s100", "gns_movi_a_low_distilled")
     assert {*movi_a, "gns_diagnostic_45"} <= set(shipped_models())
     data = tmp_path / "movi"
     assert datagen(["toss", "--shapes", "beveled_cube,cylinder,sphere", "--scenes", "1", "--test", "6",
@@ -132,9 +132,11 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
                            ("gns_movi_a_mid_spokes_chain", 32), ("gns_movi_a_mid_spokes_chain_avg", 32)):
         sim, cfg = load_model(checkpoint_of(name))
         assert not cfg.features.surface_edges and cfg.features.centre_node and cfg.features.mesh_vertices == vertices
-    for name in ("gns_movi_a_low_spokes_chain_avg", "gns_movi_a_low_spokes_chain_avg_s100"):
+    for name in ("gns_movi_a_low_spokes_chain_avg", "gns_movi_a_low_spokes_chain_avg_s100", "gns_movi_a_low_distilled"):
         sim, cfg = load_model(checkpoint_of(name))
         assert (sim.lowest_vertices, sim.highest_vertices) == (12, 4) and not cfg.features.surface_edges
+    # trained on the symmetrized low pair's answers (session 31)
+    assert load_model(checkpoint_of("gns_movi_a_low_distilled"))[1].train.teacher_symmetrize == "d2"
     sim, cfg = load_model(checkpoint_of("gns_movi_a_coarse_pf3"))
     assert cfg.features.mesh_vertices == 16 and cfg.train.unroll_steps == 3 and cfg.train.rigid_loss == 1
     sim, cfg = load_model(checkpoint_of("gns_movi_a_k3"))
