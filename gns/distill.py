@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from gns.checkpoint import LATEST, CheckpointError, load_model, read_checkpoint
+from gns.checkpoint import CheckpointError, checkpoint_of, load_model, read_checkpoint
 from gns.data import ObjectTracks
 from gns.graph import GraphBatch, with_surface_edges
 from gns.rigid import posed, shape_match_packed
@@ -31,12 +31,9 @@ from gns.simulator import LearnedSimulator
 
 
 def teacher_paths(setting: str) -> list[Path]:
-    """train.teacher "A+B+..." -> the checkpoints (a run folder means its latest.pt)."""
-    paths = []
-    for part in setting.split("+"):
-        path = Path(part.strip())
-        paths.append(path / LATEST if path.is_dir() else path)
-    return paths
+    """train.teacher "A+B+..." -> the checkpoints (a run folder means its latest.pt, a bare name a
+    shipped model, as `gns eval --run` reads them)."""
+    return [checkpoint_of(part.strip()) for part in setting.split("+")]
 
 
 class Teacher:

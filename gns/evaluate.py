@@ -23,27 +23,13 @@ from gns.features import HISTORY
 from gns.ranges import outside_training
 from gns.config import ConfigError
 from gns.spec import ModelSpec
-from gns.checkpoint import LATEST, CheckpointError, load_model, read_checkpoint
+from gns.checkpoint import LATEST, SHIPPED_MODELS, CheckpointError, checkpoint_of, load_model, read_checkpoint  # noqa: F401
 from gns.train import parse_device
-
-
-SHIPPED_MODELS = Path(__file__).resolve().parent / "models"
 
 
 def shipped_models() -> list[str]:
     """Names of the trained models shipped with the package (gns/models/*.pt, docs/accuracy.md)."""
     return sorted(p.stem for p in SHIPPED_MODELS.glob("*.pt"))
-
-
-def checkpoint_of(run: str | Path) -> Path:
-    """A run folder means its latest checkpoint; a .pt file is taken as it is; a bare name that
-    is neither is looked up among the shipped models (e.g. gns_real_cubes_n256)."""
-    run = Path(run)
-    if run.is_dir():
-        return run / LATEST
-    if not run.exists() and run.parent == Path(".") and (SHIPPED_MODELS / f"{run.stem}.pt").is_file():
-        return SHIPPED_MODELS / f"{run.stem}.pt"
-    return run
 
 
 def _worst_first(per_scene: list[float]) -> list[int]:

@@ -11,11 +11,10 @@ match.
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import torch
 
-from gns.checkpoint import LATEST, CheckpointError, read_checkpoint
+from gns.checkpoint import CheckpointError, checkpoint_of, read_checkpoint
 from gns.config import ARCHITECTURE_SECTIONS, Config, ModelConfig, config_differences
 from gns.simulator import LearnedSimulator
 from gns.spec import Floor, ModelSpec
@@ -43,8 +42,7 @@ def init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec) 
     """Load another run's weights and normalisers into a new run's simulator (fine-tuning); returns
     the spec with the two datasets' ranges united. The loaded normalisers have spent their
     accumulation budget, so they stay as the weights were trained with."""
-    path = Path(source)
-    path = path / LATEST if path.is_dir() else path
+    path = checkpoint_of(source)   # a run folder, a .pt file or a shipped model's name
     init = read_checkpoint(path)
     trained = ModelSpec.from_dict(init["spec"])
     problems = [incompatibility(init["config"], trained, cfg, spec, fine_tune=True)]

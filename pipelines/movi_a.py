@@ -76,18 +76,25 @@ Presets (measured costs on a 2-core CPU in the README):
   low_spokes_pair_avg   low_spokes_chain_avg and the same chain from seed 100, as an ensemble:
          with --parallel ~2 h on two cores; the shipped pair (gns_movi_a_low_spokes_chain_avg +
          _s100) scored 14.7% / 22.1 deg symmetrized (15.0 / 22.2 with d1; session 29)
+  low_distilled   low_spokes_pair_avg, then the first chain's last stage trained 20k steps more
+         against the pair's answers averaged over the floor's four images (train.teacher,
+         train.teacher_symmetrize=d2; ~45 min on one core after the pair's ~2 h on two), rolled
+         out alone at one call: reproduces gns_movi_a_low_distilled (16.5% / 23.3 deg at 1.5x
+         PyBullet; the same steps on the truth: 17.0 / 23.6; session 31)
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
                report adds interpenetration between objects (% of size, vs the truth's own)
   chain_tiny   smoke test of a chain: two stages of the tiny model
   pair_tiny    smoke test of an ensemble: chain_tiny and a one-stage chain of another seed
+  distill_tiny smoke test of a distilled stage: pair_tiny, then a stage taught by the pair
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, budget_pair,
 spokes_pair, spokes_pair_avg, fast, mid, spokes, mid_spokes, spokes_chain, spokes_chain_avg,
-mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, spokes_k2,
+mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, low_distilled, spokes_k2,
 sphere_edges_chain, mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
-spokes chain alone: free flight, one network call; the spokes and low pairs symmetrized).
+spokes chain alone and low_distilled: free flight, one network call; the spokes and low pairs
+symmetrized).
 Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
 data/movi_a_4000 skips generating them again.
 """
@@ -112,17 +119,20 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_MID_SPOKES_CHAIN_AVG, MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES,
                                      MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
-                                     TINY_CHAIN, TINY_MEMBER, stage_overrides)
+                                     MOVI_A_LOW_DISTILLED, TINY_CHAIN, TINY_DISTILLED, TINY_MEMBER, stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 
 
-def _chain_preset(chain, symmetrize: bool = True, members: tuple = ()) -> dict:
+def _chain_preset(chain, symmetrize: bool = True, members: tuple = (), distilled=None) -> dict:
     """A preset training `chain` on the 4000 MOVi-A scenes, scored as its models are; with
-    `members` (more chains), also trains those and rolls out the ensemble of every chain's last stage."""
+    `members` (more chains), also trains those and rolls out the ensemble of every chain's last stage;
+    with `distilled` (a Stage), then trains that from the first chain's last run against the ensemble
+    (train.teacher) and rolls it out alone."""
     return dict(counts={"train": 4000, "valid": 50, "test": 400}, model="cpu", chain=chain, common=COMMON, scene=[],
-                rollout=dict(free_flight=True, symmetrize=symmetrize, autocast="auto"), members=members)
+                rollout=dict(free_flight=True, symmetrize=symmetrize, autocast="auto"), members=members,
+                distilled=distilled)
 
 
 PRESETS = {
@@ -151,6 +161,8 @@ PRESETS = {
     "mid_spokes_chain_avg": _chain_preset(MOVI_A_MID_SPOKES_CHAIN_AVG, symmetrize=False),
     "low_spokes_chain_avg": _chain_preset(MOVI_A_LOW_SPOKES_CHAIN_AVG, symmetrize=False),
     "low_spokes_pair_avg": _chain_preset(MOVI_A_LOW_SPOKES_CHAIN_AVG, members=(MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,)),
+    "low_distilled": _chain_preset(MOVI_A_LOW_SPOKES_CHAIN_AVG, symmetrize=False,
+                                   members=(MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,), distilled=MOVI_A_LOW_DISTILLED),
     "spokes_k2": _chain_preset(MOVI_A_SPOKES_K2, symmetrize=False),
     "sphere_edges_chain": _chain_preset(MOVI_A_SPHERE_EDGES_CHAIN, symmetrize=False),
     "mid_sphere_edges_chain": _chain_preset(MOVI_A_MID_SPHERE_EDGES_CHAIN, symmetrize=False),
@@ -158,6 +170,9 @@ PRESETS = {
                        scene=["scene.frames=12"], rollout=dict(free_flight=True, symmetrize=True)),
     "pair_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),
                       members=(TINY_MEMBER,), scene=["scene.frames=12"], rollout=dict(free_flight=True)),
+    "distill_tiny": dict(counts={"train": 8, "valid": 2, "test": 4}, model="tiny", chain=TINY_CHAIN, common=(),
+                         members=(TINY_MEMBER,), distilled=TINY_DISTILLED, scene=["scene.frames=12"],
+                         rollout=dict(free_flight=True)),
     # MOVi-A proper has 3-10 objects a scene; these presets train with collision edges between them
     "multi_tiny": dict(counts={"train": 6, "valid": 2, "test": 2}, model="tiny", steps=30,
                        scene=["scene.frames=12", 'scene.objects="2-3"']),
@@ -168,7 +183,8 @@ PRESETS = {
 # Everything run() writes into --out: --fresh deletes a folder holding only these.
 OUTPUTS = ({"data", "run", "results.json", "report.md", "plots"}
            | {f"run_{s.name}" for p in PRESETS.values() for c in (p.get("chain", ()), *p.get("members", ()))
-              for s in c})
+              for s in c}
+           | {f"run_{p['distilled'].name}" for p in PRESETS.values() if p.get("distilled")})
 
 
 def report(out: Path, preset: str, results: dict, train_info: dict) -> Path:
@@ -278,6 +294,9 @@ def run(preset: str, out: Path, workers: int, seed: int, train_seed: int | None 
         for member, member_stages in others:
             members.append(member)
             stages = stages + member_stages
+        if p.get("distilled"):
+            ckpt, distilled = train_distilled(data.root, out, p["distilled"], [ckpt, *members], p, train_seed)
+            stages, members = stages + [distilled], []
     else:
         ckpt = train_stage(data.root, out / "run", p["model"],
                            [f"train.steps={p['steps']}", f"train.seed={train_seed}"])
@@ -313,6 +332,15 @@ def single_scores(ckpt: Path, data: Path, rollout: dict) -> dict:
     r, *_ = evaluate_run(ckpt, data, "test", progress=False, **rollout)
     keys = ("position_error_pct", "rotation_error_deg", "penetration_pct")
     return {"run": ckpt.parent.name, **{k: r[k] for k in keys}}
+
+
+def train_distilled(data: Path, out: Path, stage, teachers: list[Path], p: dict, seed: int) -> tuple[Path, dict]:
+    """Train `stage` from the first of `teachers` (the chains' last checkpoints) against all of them
+    as an ensemble (train.teacher) into OUT/run_<name>. Returns its checkpoint and what it was."""
+    teacher = "+".join(str(t.parent) for t in teachers)   # run folders: their latest.pt, as a rerun finds it
+    overrides = [*stage_overrides(stage, str(teachers[0].parent), seed, p["common"]), f"train.teacher={teacher}"]
+    ckpt = train_stage(data, out / f"run_{stage.name}", p["model"], overrides)
+    return ckpt, {"name": stage.name, "steps": stage.steps, "settings": overrides, "ships_as": stage.ships_as}
 
 
 def train_chain(data: Path, out: Path, chain: tuple, p: dict, seed: int) -> tuple[Path, list[dict]]:

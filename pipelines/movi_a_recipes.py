@@ -179,6 +179,12 @@ MOVI_A_LOW_SPOKES_CHAIN_AVG = variant(MOVI_A_SPOKES_CHAIN_AVG, "low", LOWEST, "g
 # second member of the low pair
 MOVI_A_LOW_SPOKES_CHAIN_AVG_S100 = variant(MOVI_A_SPOKES_CHAIN_AVG_S100, "low", LOWEST,
                                            "gns_movi_a_low_spokes_chain_avg_s100")
+# session 31: the low pair's first chain trained on 20k more steps of its last stage's schedule against the
+# pair's own answers averaged over the floor's four images (train.teacher: the pipeline adds the two
+# chains' last runs; ~45 min on one core): 16.5% / 23.3 deg at one call, 1.5x PyBullet, where the same
+# steps on the truth give 17.0 / 23.6 (docs/accuracy.md, session 31)
+MOVI_A_LOW_DISTILLED = Stage("low_distilled", 20_000, (*MOVI_A_LOW_SPOKES_CHAIN_AVG[-1].settings,
+                                                       "train.teacher_symmetrize=d2"), 40, "gns_movi_a_low_distilled")
 # and the heading_k2 chain's K = 2 stage on top, on spokes too (its first four stages are the spokes chain's)
 MOVI_A_SPOKES_K2 = variant(MOVI_A_HEADING_K2, "spokes", SPOKES)
 
@@ -198,6 +204,8 @@ TINY_CHAIN = (
 )
 # and of an ensemble: a second chain over the same graphs (the centre node) from another seed
 TINY_MEMBER = (Stage("m", 20, ("features.centre_node=true",), 5),)
+# and of a distilled stage: the first chain's last stage trained on the symmetrized pair's answers
+TINY_DISTILLED = Stage("d", 10, ("features.centre_node=true", "train.teacher_symmetrize=d1"), 6)
 
 
 def stage_overrides(stage: Stage, previous: str | None, seed: int, common: tuple = COMMON) -> list[str]:

@@ -160,3 +160,18 @@ def test_teacher_symmetrize_names_a_symmetry_group_and_needs_a_teacher(teacher_r
         tiny(f"train.teacher={teacher_run}", "train.teacher_symmetrize=d3")
     with pytest.raises(ConfigError, match="train.teacher_symmetrize needs train.teacher"):
         tiny("train.teacher_symmetrize=d2")
+
+
+def test_a_teacher_may_be_named_as_gns_eval_names_a_shipped_model(teacher_run):
+    from gns.checkpoint import SHIPPED_MODELS
+    from gns.distill import teacher_paths
+    paths = teacher_paths(f"gns_movi_a_low_spokes_chain_avg + {teacher_run}")
+    assert paths == [SHIPPED_MODELS / "gns_movi_a_low_spokes_chain_avg.pt", teacher_run / "latest.pt"]
+    assert paths[0].is_file()
+
+
+def test_init_from_may_name_a_shipped_model(data, tmp_path):
+    # the shipped MOVi-A model is read (its architecture is named against this one's), not looked for as a path
+    with pytest.raises(CheckpointError, match=r"models/gns_movi_a_low_distilled\.pt \(train.init_from\): model.latent_size"):
+        train(data, tmp_path / "run", tiny("train.steps=2", "train.init_from=gns_movi_a_low_distilled"), log=quiet)
+    assert not (tmp_path / "run").exists()

@@ -9,26 +9,27 @@ from pipelines.common import CONFIGS, SETTINGS_FREE
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_HEADING,
                                      MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPHERE_EDGES_CHAIN,
                                      MOVI_A_MID_SPOKES, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN_AVG,
-                                     MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
+                                     MOVI_A_LOW_DISTILLED, MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
                                      TINY_MEMBER, stage_overrides)
 
-# how a stage may differ from the file it reproduces: where it starts from (a folder of this
-# pipeline, not the author's), bf16 where it measures faster (the files: bf16 on a CPU where it did)
-FREE = SETTINGS_FREE + ("train.init_from", "train.autocast")
+# how a stage may differ from the file it reproduces: where it starts from and who teaches it (folders
+# of this pipeline, not the author's), bf16 where it measures faster (the files: bf16 on a CPU where it did)
+FREE = SETTINGS_FREE + ("train.init_from", "train.teacher", "train.autocast")
 
 
 SHIPPING = (MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST + MOVI_A_HEADING_K2
             + MOVI_A_MID_SPOKES_CHAIN[-1:] + MOVI_A_SPOKES_CHAIN[-1:] + MOVI_A_SPOKES_CHAIN_S100[-1:]
             + MOVI_A_SPOKES_CHAIN_AVG[-1:] + MOVI_A_SPOKES_CHAIN_AVG_S100[-1:] + MOVI_A_MID_SPOKES_CHAIN_AVG[-1:]
-            + MOVI_A_LOW_SPOKES_CHAIN_AVG[-1:] + MOVI_A_LOW_SPOKES_CHAIN_AVG_S100[-1:])
+            + MOVI_A_LOW_SPOKES_CHAIN_AVG[-1:] + MOVI_A_LOW_SPOKES_CHAIN_AVG_S100[-1:] + (MOVI_A_LOW_DISTILLED,))
 
 
 @pytest.mark.parametrize("stage", [s for s in SHIPPING if s.ships_as], ids=lambda s: s.name)
 def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
     shipped = read_checkpoint(checkpoint_of(stage.ships_as))
-    cfg = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(stage, "x.pt", 0))
+    taught = ["train.teacher=x.pt"] if shipped["config"]["train"].get("teacher") else []   # the pipeline adds it
+    cfg = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(stage, "x.pt", 0) + taught)
     assert config_differences(shipped["config"], cfg, ignore=FREE) == []
     assert shipped["step"] == stage.steps and shipped["seed"] == stage.seed
 
