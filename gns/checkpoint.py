@@ -24,6 +24,7 @@ from gns.spec import ModelSpec, SpecError
 
 CHECKPOINT_FORMAT = 1
 LATEST = "latest.pt"
+TRAINED = "trained"
 SHIPPED_MODELS = Path(__file__).resolve().parent / "models"
 
 
@@ -36,7 +37,6 @@ def checkpoint_of(run: str | Path) -> Path:
     if not run.exists() and run.parent == Path(".") and (SHIPPED_MODELS / f"{run.stem}.pt").is_file():
         return SHIPPED_MODELS / f"{run.stem}.pt"
     return run
-TRAINED = "trained"
 
 
 class CheckpointError(Exception):

@@ -23,7 +23,7 @@ from gns.features import HISTORY
 from gns.ranges import outside_training
 from gns.config import ConfigError
 from gns.spec import ModelSpec
-from gns.checkpoint import LATEST, SHIPPED_MODELS, CheckpointError, checkpoint_of, load_model, read_checkpoint  # noqa: F401
+from gns.checkpoint import SHIPPED_MODELS, CheckpointError, checkpoint_of, load_model, read_checkpoint
 from gns.train import parse_device
 
 
