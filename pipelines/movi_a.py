@@ -79,7 +79,7 @@ Presets (measured costs on a 2-core CPU in the README):
   low_distilled   low_spokes_pair_avg, then the first chain's last stage trained 20k steps more
          against the pair's answers averaged over the floor's four images (train.teacher,
          train.teacher_symmetrize=d2; ~45 min on one core after the pair's ~2 h on two), rolled
-         out alone at one call: reproduces gns_movi_a_low_distilled (16.5% / 23.3 deg at 1.5x
+         out alone at one call: reproduces gns_movi_a_low_distilled (16.5% / 23.3 deg at ~1.4-1.5x
          PyBullet; the same steps on the truth: 17.0 / 23.6; session 31)
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them

@@ -181,7 +181,7 @@ MOVI_A_LOW_SPOKES_CHAIN_AVG_S100 = variant(MOVI_A_SPOKES_CHAIN_AVG_S100, "low", 
                                            "gns_movi_a_low_spokes_chain_avg_s100")
 # session 31: the low pair's first chain trained on 20k more steps of its last stage's schedule against the
 # pair's own answers averaged over the floor's four images (train.teacher: the pipeline adds the two
-# chains' last runs; ~45 min on one core): 16.5% / 23.3 deg at one call, 1.5x PyBullet, where the same
+# chains' last runs; ~45 min on one core): 16.5% / 23.3 deg at one call, ~1.4-1.5x PyBullet, where the same
 # steps on the truth give 17.0 / 23.6 (docs/accuracy.md, session 31)
 MOVI_A_LOW_DISTILLED = Stage("low_distilled", 20_000, (*MOVI_A_LOW_SPOKES_CHAIN_AVG[-1].settings,
                                                        "train.teacher_symmetrize=d2"), 40, "gns_movi_a_low_distilled")
