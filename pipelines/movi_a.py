@@ -338,9 +338,7 @@ def train_distilled(data: Path, out: Path, stage, teachers: list[Path], p: dict,
     """Train `stage` from the first of `teachers` (the chains' last checkpoints) against all of them
     as an ensemble (train.teacher) into OUT/run_<name>. Returns its checkpoint and what it was."""
     teacher = "+".join(str(t.parent) for t in teachers)   # run folders: their latest.pt, as a rerun finds it
-    overrides = [*stage_overrides(stage, str(teachers[0].parent), seed, p["common"]), f"train.teacher={teacher}"]
-    ckpt = train_stage(data, out / f"run_{stage.name}", p["model"], overrides)
-    return ckpt, {"name": stage.name, "steps": stage.steps, "settings": overrides, "ships_as": stage.ships_as}
+    return _train_one(data, out, stage, str(teachers[0].parent), p, seed, (f"train.teacher={teacher}",))
 
 
 def train_chain(data: Path, out: Path, chain: tuple, p: dict, seed: int) -> tuple[Path, list[dict]]:
@@ -348,12 +346,18 @@ def train_chain(data: Path, out: Path, chain: tuple, p: dict, seed: int) -> tupl
     finished stages are skipped. Returns the last checkpoint and what each stage was."""
     previous, stages = None, []
     for stage in chain:
-        overrides = stage_overrides(stage, previous, seed, p["common"])
-        run = out / f"run_{stage.name}"
-        ckpt = train_stage(data, run, p["model"], overrides)
-        stages.append({"name": stage.name, "steps": stage.steps, "settings": overrides, "ships_as": stage.ships_as})
-        previous = str(run)   # the folder (its latest.pt): the same setting whichever checkpoint a rerun finds
+        ckpt, done_stage = _train_one(data, out, stage, previous, p, seed)
+        stages.append(done_stage)
+        previous = str(ckpt.parent)   # the folder (its latest.pt): the same setting whichever checkpoint a rerun finds
     return ckpt, stages
+
+
+def _train_one(data: Path, out: Path, stage, previous: str | None, p: dict, seed: int,
+               extra: tuple = ()) -> tuple[Path, dict]:
+    """One stage into OUT/run_<name> (skipped if finished): its checkpoint and what it was."""
+    overrides = [*stage_overrides(stage, previous, seed, p["common"]), *extra]
+    ckpt = train_stage(data, out / f"run_{stage.name}", p["model"], overrides)
+    return ckpt, {"name": stage.name, "steps": stage.steps, "settings": overrides, "ships_as": stage.ships_as}
 
 
 def main(argv=None) -> int:
