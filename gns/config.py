@@ -123,6 +123,7 @@ class AugmentConfig:
     track_noise: float = 0.0           # tracking noise (Fig. 7b): std of per-frame centre noise, x its displacement
     mirror: bool = False               # mirror half the windows in x, body frame included (gns.data)
     body_symmetry: bool = False        # describe each object in a random one of its mesh's symmetric body frames
+    spin_noise: float = 0.0            # random-walk noise on each object's orientation, degrees on the last input frame
 
 
 @dataclass
@@ -311,6 +312,7 @@ def validate(cfg: Config) -> None:
          "features.canonical_mirror needs features.canonical_heading=true (the mirror is chosen in the turned frame)"),
         (cfg.augment.noise_std >= 0, "augment.noise_std must be >= 0"),
         (cfg.augment.vertex_noise >= 0, "augment.vertex_noise must be >= 0"),
+        (cfg.augment.spin_noise >= 0, "augment.spin_noise must be >= 0"),
         (cfg.augment.track_noise >= 0, "augment.track_noise must be >= 0"),
         (cfg.train.batch_size >= 1, "train.batch_size must be >= 1"),
         (cfg.train.autocast in ("none", "bf16", "auto"), "train.autocast must be 'none', 'bf16' or 'auto'"),

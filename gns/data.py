@@ -24,6 +24,14 @@ Augmentation (training only):
   noise of std noise_std. The target position is shifted by the last frame's noise, so the
   target acceleration x_{t+1} - 2 x_t + x_{t-1} asks the model to undo the noise of the last
   input velocity.
+- random-walk spin noise (`augment.spin_noise`, degrees): the same random walk on each object's
+  orientation instead of on each vertex: every input frame after the first turns the object about
+  its centre by a further small random rotation (rotation-vector components of std spin_noise /
+  sqrt(2) degrees a frame, so the last input frame is off by spin_noise a component), and the
+  target and later frames turn with the last input frame's noise. Why: a rollout's own errors
+  are rigid (shape matching removes the rest), and the costliest is a wrong spin (a tenth of a
+  degree a frame costs MOVi-A ~8 degrees, docs/accuracy.md session 9), which per-vertex noise,
+  independent from vertex to vertex, barely contains.
 Noise of the paper's robustness study (Fig. 7), off by default. It makes the training data
 themselves noisy, target included, and nothing corrects for it:
 - vertex_noise (imperfect shape): one Gaussian offset per vertex, in the body frame, std =
@@ -45,6 +53,29 @@ from gns.features import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
 from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_sizes, mapped_symmetries, ragged_arange
 from gns.spec import Floor, ModelSpec, SpecError
+
+
+def rotation_matrices(v: torch.Tensor) -> torch.Tensor:
+    """Rotation vectors (..., 3), radians -> rotation matrices (..., 3, 3) (Rodrigues)."""
+    angle = v.norm(dim=-1, keepdim=True)
+    k = v / angle.clamp_min(1e-300)
+    zero = torch.zeros_like(k[..., 0])
+    cross = torch.stack([zero, -k[..., 2], k[..., 1], k[..., 2], zero, -k[..., 0],
+                         -k[..., 1], k[..., 0], zero], dim=-1).reshape(*k.shape[:-1], 3, 3)
+    s, c = torch.sin(angle)[..., None], torch.cos(angle)[..., None]
+    return torch.eye(3, dtype=v.dtype) + s * cross + (1 - c) * (cross @ cross)
+
+
+def spin_walk(rot: torch.Tensor, spin_noise: float, rng: np.random.Generator) -> torch.Tensor:
+    """Orientations (B, frames, 3, 3) of windows whose first HISTORY frames are the inputs, each
+    input frame after the first turned about the object's centre by a random walk of small
+    rotations (std spin_noise / sqrt(HISTORY - 1) degrees a component a frame), the later frames
+    by the last input frame's (the module docstring's spin noise)."""
+    step = np.radians(spin_noise) / np.sqrt(HISTORY - 1)
+    walk = np.zeros((rot.shape[0], rot.shape[1], 3))
+    walk[:, 1:HISTORY] = np.cumsum(rng.normal(0.0, step, (rot.shape[0], HISTORY - 1, 3)), axis=1)
+    walk[:, HISTORY:] = walk[:, HISTORY - 1:HISTORY]
+    return rotation_matrices(torch.from_numpy(walk)) @ rot
 
 
 def rotation_z(theta: torch.Tensor) -> torch.Tensor:
@@ -193,7 +224,7 @@ class ObjectTracks:
 
     def batch(self, windows: torch.Tensor, rng: np.random.Generator | None = None, rotate: bool = False,
               noise_std: float = 0.0, vertex_noise: float = 0.0, track_noise: float = 0.0,
-              mirror: bool = False, body_symmetry: bool = False) -> Batch:
+              mirror: bool = False, body_symmetry: bool = False, spin_noise: float = 0.0) -> Batch:
         """The graphs of the given windows (B,), packed; augmentation and noise need `rng`.
 
         Every object of a window's scene is in the batch (one graph each, grouped by window)."""
@@ -203,6 +234,8 @@ class ObjectTracks:
             step = (pos[:, 1:] - pos[:, :-1]).norm(dim=-1)                  # (B, window - 1)
             displacement = torch.cat([step[:, :1], step], dim=1)            # (B, window)
             pos = pos + torch.from_numpy(rng.normal(0.0, 1.0, pos.shape)) * (track_noise * displacement)[..., None]
+        if spin_noise > 0:
+            rot = spin_walk(rot, spin_noise, rng)
         if rotate:
             rz = rotation_z(torch.from_numpy(rng.uniform(-np.pi, np.pi, len(windows))))[window_of]
             rot = rz[:, None] @ rot
@@ -268,7 +301,8 @@ class ObjectTracks:
 
     def sample(self, rng: np.random.Generator, batch_size: int, rotate: bool, noise_std: float,
                vertex_noise: float = 0.0, track_noise: float = 0.0, contact_fraction: float = 0.0,
-               mirror: bool = False, body_symmetry: bool = False, hard_fraction: float = 0.0) -> Batch:
+               mirror: bool = False, body_symmetry: bool = False, hard_fraction: float = 0.0,
+               spin_noise: float = 0.0) -> Batch:
         """A random batch; with hard_fraction > 0 (after set_hardness) that share of its windows,
         rounded at random, is drawn in proportion to the windows' weights; with contact_fraction > 0
         (after mark_contacts) that share of the others from the windows in contact, the rest from
@@ -287,7 +321,8 @@ class ObjectTracks:
             windows = torch.from_numpy(rng.integers(0, self.num_windows, batch_size))
         if hard is not None:
             windows = torch.cat([hard, windows])
-        return self.batch(windows, rng, rotate, noise_std, vertex_noise, track_noise, mirror, body_symmetry)
+        return self.batch(windows, rng, rotate, noise_std, vertex_noise, track_noise, mirror, body_symmetry,
+                          spin_noise)
 
     def track_vertices(self, tracks: torch.Tensor, frames: int) -> tuple[GraphBatch, torch.Tensor, torch.Tensor]:
         """For rollouts: graph, vertices (N, frames, 3) and centres (B, frames, 3) from frame 0."""

@@ -663,7 +663,7 @@ def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, wor
     batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std,
                           cfg.augment.vertex_noise, cfg.augment.track_noise,
                           cfg.train.contact_fraction, cfg.augment.mirror,
-                          cfg.augment.body_symmetry, cfg.train.hard_fraction)
+                          cfg.augment.body_symmetry, cfg.train.hard_fraction, spin_noise=cfg.augment.spin_noise)
     if world.size == 1:
         return batch, 1.0
     nodes = batch.graph.num_nodes
