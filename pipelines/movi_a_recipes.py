@@ -185,6 +185,19 @@ MOVI_A_LOW_SPOKES_CHAIN_AVG_S100 = variant(MOVI_A_SPOKES_CHAIN_AVG_S100, "low", 
 # steps on the truth give 17.0 / 23.6 (docs/accuracy.md, session 31)
 MOVI_A_LOW_DISTILLED = Stage("low_distilled", 20_000, (*MOVI_A_LOW_SPOKES_CHAIN_AVG[-1].settings,
                                                        "train.teacher_symmetrize=d2"), 40, "gns_movi_a_low_distilled")
+# session 32: the low chain at batch 64 in batch 16's wall clock. A step of 16 low graphs is mostly fixed cost:
+# batch 64 measured 25.1 against 40.8 steps/s one-step and 7.24 against 13.7 three-step (2.5x and 2.1x the
+# graphs a second), so each stage's steps and decay steps are scaled by those rates (x0.625 for the first,
+# x0.528 for the others) and its learning rate by sqrt(64 / 16) = 2 (the floor kept at 4e-5). Measured
+# against the batch-16 chain at each stage in docs/accuracy.md, session 32
+def _at_batch_64(stage: Stage, steps: int, lr: str, decay: int) -> Stage:
+    return Stage(f"b64_{stage.name}", steps, (*stage.settings, "train.batch_size=64", f"train.lr_init={lr}",
+                                              f"train.lr_decay_steps={decay}"), stage.seed)
+
+
+MOVI_A_LOW_B64 = tuple(_at_batch_64(s, *scaled) for s, scaled in zip(MOVI_A_LOW_SPOKES_CHAIN_AVG, (
+    (66_800, "1e-3", 25_000), (10_800, "4e-4", 5_280), (10_000, "4e-4", 5_280), (7_900, "4e-4", 3_960))))
+MOVI_A_LOW_B64_S100 = variant(MOVI_A_LOW_B64, "s100", (), seed_offset=100)
 # and the heading_k2 chain's K = 2 stage on top, on spokes too (its first four stages are the spokes chain's)
 MOVI_A_SPOKES_K2 = variant(MOVI_A_HEADING_K2, "spokes", SPOKES)
 
