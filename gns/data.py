@@ -47,23 +47,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from datagen.shards import Dataset, DataError, Scene
 from gns.features import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
 from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_sizes, mapped_symmetries, ragged_arange
 from gns.spec import Floor, ModelSpec, SpecError
-
-
-def rotation_matrices(v: torch.Tensor) -> torch.Tensor:
-    """Rotation vectors (..., 3), radians -> rotation matrices (..., 3, 3) (Rodrigues)."""
-    angle = v.norm(dim=-1, keepdim=True)
-    k = v / angle.clamp_min(1e-300)
-    zero = torch.zeros_like(k[..., 0])
-    cross = torch.stack([zero, -k[..., 2], k[..., 1], k[..., 2], zero, -k[..., 0],
-                         -k[..., 1], k[..., 0], zero], dim=-1).reshape(*k.shape[:-1], 3, 3)
-    s, c = torch.sin(angle)[..., None], torch.cos(angle)[..., None]
-    return torch.eye(3, dtype=v.dtype) + s * cross + (1 - c) * (cross @ cross)
 
 
 def spin_walk(rot: torch.Tensor, spin_noise: float, rng: np.random.Generator) -> torch.Tensor:
@@ -75,7 +65,8 @@ def spin_walk(rot: torch.Tensor, spin_noise: float, rng: np.random.Generator) ->
     walk = np.zeros((rot.shape[0], rot.shape[1], 3))
     walk[:, 1:HISTORY] = np.cumsum(rng.normal(0.0, step, (rot.shape[0], HISTORY - 1, 3)), axis=1)
     walk[:, HISTORY:] = walk[:, HISTORY - 1:HISTORY]
-    return rotation_matrices(torch.from_numpy(walk)) @ rot
+    turns = Rotation.from_rotvec(walk.reshape(-1, 3)).as_matrix().reshape(*walk.shape, 3)
+    return torch.from_numpy(turns) @ rot
 
 
 def rotation_z(theta: torch.Tensor) -> torch.Tensor:

@@ -93,9 +93,8 @@ Presets (measured costs on a 2-core CPU in the README):
   distill_tiny smoke test of a distilled stage: pair_tiny, then a stage taught by the pair
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, budget_pair,
 spokes_pair, spokes_pair_avg, fast, mid, spokes, mid_spokes, spokes_chain, spokes_chain_avg,
-mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, low_distilled, low_b64, low_b64_pair,
-spokes_k2,
-sphere_edges_chain, mid_sphere_edges_chain)
+mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, low_distilled, low_b64,
+low_b64_pair, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
 spokes chain alone, low_b64 and low_distilled: free flight, one network call; the spokes and low pairs
 symmetrized).
@@ -123,7 +122,8 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_MID_SPOKES_CHAIN_AVG, MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES,
                                      MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
-                                     MOVI_A_LOW_B64, MOVI_A_LOW_B64_S100, MOVI_A_LOW_DISTILLED, TINY_CHAIN, TINY_DISTILLED, TINY_MEMBER, stage_overrides)
+                                     MOVI_A_LOW_B64, MOVI_A_LOW_B64_S100, MOVI_A_LOW_DISTILLED, TINY_CHAIN,
+                                     TINY_DISTILLED, TINY_MEMBER, stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"

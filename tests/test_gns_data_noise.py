@@ -101,7 +101,8 @@ def test_spin_noise_turns_each_cube_rigidly_about_its_centre_in_a_random_walk():
     x1 = torch.cat([noisy.history, noisy.target[:, None], noisy.future], dim=1)
     graph = clean.graph
     count = torch.bincount(graph.node_graph, minlength=graph.num_graphs).to(x0.dtype)[:, None, None]
-    centre = lambda x: torch.zeros(graph.num_graphs, *x.shape[1:], dtype=x.dtype).index_add_(0, graph.node_graph, x) / count
+    def centre(x):
+        return torch.zeros(graph.num_graphs, *x.shape[1:], dtype=x.dtype).index_add_(0, graph.node_graph, x) / count
     torch.testing.assert_close(x1[:, 0], x0[:, 0], atol=1e-12, rtol=0)            # the first frame untouched
     torch.testing.assert_close(centre(x1), centre(x0), atol=1e-9, rtol=0)         # turned about the centre
     rel0, rel1 = x0 - centre(x0)[graph.node_graph], x1 - centre(x1)[graph.node_graph]
