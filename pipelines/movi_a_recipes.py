@@ -190,14 +190,21 @@ MOVI_A_LOW_DISTILLED = Stage("low_distilled", 20_000, (*MOVI_A_LOW_SPOKES_CHAIN_
 # graphs a second), so each stage's steps and decay steps are scaled by those rates (x0.625 for the first,
 # x0.528 for the others) and its learning rate by sqrt(64 / 16) = 2 (the floor kept at 4e-5). Measured
 # against the batch-16 chain at each stage in docs/accuracy.md, session 32
-def _at_batch_64(stage: Stage, steps: int, lr: str, decay: int) -> Stage:
+def _at_batch_64(stage: Stage, steps: int, lr: str, decay: int, ships_as: str = "") -> Stage:
     return Stage(f"b64_{stage.name}", steps, (*stage.settings, "train.batch_size=64", f"train.lr_init={lr}",
-                                              f"train.lr_decay_steps={decay}"), stage.seed)
+                                              f"train.lr_decay_steps={decay}"), stage.seed, ships_as)
 
 
 MOVI_A_LOW_B64 = tuple(_at_batch_64(s, *scaled) for s, scaled in zip(MOVI_A_LOW_SPOKES_CHAIN_AVG, (
-    (66_800, "1e-3", 25_000), (10_800, "4e-4", 5_280), (10_000, "4e-4", 5_280), (7_900, "4e-4", 3_960))))
-MOVI_A_LOW_B64_S100 = variant(MOVI_A_LOW_B64, "s100", (), seed_offset=100)
+    (66_800, "1e-3", 25_000), (10_800, "4e-4", 5_280), (10_000, "4e-4", 5_280),
+    (7_900, "4e-4", 3_960, "gns_movi_a_low_b64"))))
+MOVI_A_LOW_B64_S100 = variant(MOVI_A_LOW_B64, "s100", (), "gns_movi_a_low_b64_s100", seed_offset=100)
+# session 33: the distilled stage of session 31 at batch 64, taught by the batch-64 pair: its steps scaled by
+# the measured rates the same way (batch 64: 3.2 steps/s with the teacher, 205 graphs/s; batch 16: 6.8, 108), so
+# 10k steps are ~the wall clock of session 31's 20k (~52 minutes of one core)
+MOVI_A_LOW_B64_DISTILLED = Stage("b64_low_distilled", 10_000, (*MOVI_A_LOW_B64[-1].settings,
+                                                               "train.teacher_symmetrize=d2"), 40,
+                                 "gns_movi_a_low_b64_distilled")
 # and the heading_k2 chain's K = 2 stage on top, on spokes too (its first four stages are the spokes chain's)
 MOVI_A_SPOKES_K2 = variant(MOVI_A_HEADING_K2, "spokes", SPOKES)
 
