@@ -201,7 +201,8 @@ MOVI_A_LOW_B64 = tuple(_at_batch_64(s, *scaled) for s, scaled in zip(MOVI_A_LOW_
 MOVI_A_LOW_B64_S100 = variant(MOVI_A_LOW_B64, "s100", (), "gns_movi_a_low_b64_s100", seed_offset=100)
 # session 33: the distilled stage of session 31 at batch 64, taught by the batch-64 pair: its steps scaled by
 # the measured rates the same way (batch 64: 3.2 steps/s with the teacher, 205 graphs/s; batch 16: 6.8, 108), so
-# 10k steps are ~the wall clock of session 31's 20k (~52 minutes of one core)
+# 10k steps are ~the wall clock of session 31's 20k (~52 minutes of one core; 63 beside two other runs): 15.0% /
+# 22.8 deg at one call where session 31's distilled model scores 16.5 / 23.3 (docs/accuracy.md, session 33)
 MOVI_A_LOW_B64_DISTILLED = Stage("b64_low_distilled", 10_000, (*MOVI_A_LOW_B64[-1].settings,
                                                                "train.teacher_symmetrize=d2"), 40,
                                  "gns_movi_a_low_b64_distilled")

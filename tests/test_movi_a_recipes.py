@@ -9,7 +9,7 @@ from pipelines.common import CONFIGS, SETTINGS_FREE
 from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A_CANONICAL, MOVI_A_FAST, MOVI_A_HEADING,
                                      MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPHERE_EDGES_CHAIN,
                                      MOVI_A_MID_SPOKES, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN_AVG,
-                                     MOVI_A_LOW_B64, MOVI_A_LOW_B64_S100, MOVI_A_LOW_DISTILLED,
+                                     MOVI_A_LOW_B64, MOVI_A_LOW_B64_DISTILLED, MOVI_A_LOW_B64_S100, MOVI_A_LOW_DISTILLED,
                                      MOVI_A_LOW_SPOKES_CHAIN_AVG,
                                      MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
@@ -25,7 +25,7 @@ SHIPPING = (MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST +
             + MOVI_A_MID_SPOKES_CHAIN[-1:] + MOVI_A_SPOKES_CHAIN[-1:] + MOVI_A_SPOKES_CHAIN_S100[-1:]
             + MOVI_A_SPOKES_CHAIN_AVG[-1:] + MOVI_A_SPOKES_CHAIN_AVG_S100[-1:] + MOVI_A_MID_SPOKES_CHAIN_AVG[-1:]
             + MOVI_A_LOW_SPOKES_CHAIN_AVG[-1:] + MOVI_A_LOW_SPOKES_CHAIN_AVG_S100[-1:] + (MOVI_A_LOW_DISTILLED,)
-            + MOVI_A_LOW_B64[-1:] + MOVI_A_LOW_B64_S100[-1:])
+            + MOVI_A_LOW_B64[-1:] + MOVI_A_LOW_B64_S100[-1:] + (MOVI_A_LOW_B64_DISTILLED,))
 
 
 @pytest.mark.parametrize("stage", [s for s in SHIPPING if s.ships_as], ids=lambda s: s.name)
