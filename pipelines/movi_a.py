@@ -102,8 +102,8 @@ spokes_pair, spokes_pair_avg, fast, mid, spokes, mid_spokes, spokes_chain, spoke
 mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, low_distilled, low_b64,
 low_b64_pair, low_b64_distilled, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
-spokes chain alone, low_b64, low_distilled and low_b64_distilled: free flight, one network call; the spokes and low pairs
-symmetrized).
+spokes chain alone, low_b64, low_distilled and low_b64_distilled: free flight, one network call; the
+spokes and low pairs symmetrized).
 Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
 data/movi_a_4000 skips generating them again.
 """

@@ -10,8 +10,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPHERE_EDGES_CHAIN,
                                      MOVI_A_MID_SPOKES, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN_AVG,
                                      MOVI_A_LOW_B64, MOVI_A_LOW_B64_DISTILLED, MOVI_A_LOW_B64_S100, MOVI_A_LOW_DISTILLED,
-                                     MOVI_A_LOW_SPOKES_CHAIN_AVG,
-                                     MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
+                                     MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
                                      TINY_MEMBER, stage_overrides)
