@@ -90,6 +90,10 @@ Presets (measured costs on a 2-core CPU in the README):
   low_b64_distilled   low_b64_pair, then low_distilled's stage at batch 64 (10k steps, ~55-63 min on
          one core) taught by that pair, rolled out alone at one call: reproduces
          gns_movi_a_low_b64_distilled (15.0% / 22.8 deg at one call; session 33)
+  low_b128   low_b64 at batch 128 in its wall clock (steps scaled by the measured steps/s, the
+         learning rates x sqrt(2); session 34); rolled out at one call
+  low_b128_pair   low_b128 and the same chain from seed 100, as an ensemble (--parallel: one a
+         core, ~1 h 55 min), scored with d2 (session 34)
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
@@ -100,9 +104,9 @@ Presets (measured costs on a 2-core CPU in the README):
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, budget_pair,
 spokes_pair, spokes_pair_avg, fast, mid, spokes, mid_spokes, spokes_chain, spokes_chain_avg,
 mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, low_distilled, low_b64,
-low_b64_pair, low_b64_distilled, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
+low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
-spokes chain alone, low_b64, low_distilled and low_b64_distilled: free flight, one network call; the
+spokes chain alone, low_b64, low_b128, low_distilled and low_b64_distilled: free flight, one network call; the
 spokes and low pairs symmetrized).
 Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
 data/movi_a_4000 skips generating them again.
@@ -129,7 +133,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
                                      MOVI_A_LOW_B64, MOVI_A_LOW_B64_DISTILLED, MOVI_A_LOW_B64_S100,
-                                     MOVI_A_LOW_DISTILLED, TINY_CHAIN, TINY_DISTILLED, TINY_MEMBER, stage_overrides)
+                                     MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_DISTILLED, TINY_CHAIN, TINY_DISTILLED, TINY_MEMBER, stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
@@ -175,6 +179,8 @@ PRESETS = {
     "low_b64_pair": _chain_preset(MOVI_A_LOW_B64, members=(MOVI_A_LOW_B64_S100,)),
     "low_b64_distilled": _chain_preset(MOVI_A_LOW_B64, symmetrize=False, members=(MOVI_A_LOW_B64_S100,),
                                        distilled=MOVI_A_LOW_B64_DISTILLED),
+    "low_b128": _chain_preset(MOVI_A_LOW_B128, symmetrize=False),
+    "low_b128_pair": _chain_preset(MOVI_A_LOW_B128, members=(MOVI_A_LOW_B128_S100,)),
     "low_distilled": _chain_preset(MOVI_A_LOW_SPOKES_CHAIN_AVG, symmetrize=False,
                                    members=(MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,), distilled=MOVI_A_LOW_DISTILLED),
     "spokes_k2": _chain_preset(MOVI_A_SPOKES_K2, symmetrize=False),
