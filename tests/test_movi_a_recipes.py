@@ -25,7 +25,8 @@ SHIPPING = (MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST +
             + MOVI_A_MID_SPOKES_CHAIN[-1:] + MOVI_A_SPOKES_CHAIN[-1:] + MOVI_A_SPOKES_CHAIN_S100[-1:]
             + MOVI_A_SPOKES_CHAIN_AVG[-1:] + MOVI_A_SPOKES_CHAIN_AVG_S100[-1:] + MOVI_A_MID_SPOKES_CHAIN_AVG[-1:]
             + MOVI_A_LOW_SPOKES_CHAIN_AVG[-1:] + MOVI_A_LOW_SPOKES_CHAIN_AVG_S100[-1:] + (MOVI_A_LOW_DISTILLED,)
-            + MOVI_A_LOW_B64[-1:] + MOVI_A_LOW_B64_S100[-1:] + (MOVI_A_LOW_B64_DISTILLED,))
+            + MOVI_A_LOW_B64[-1:] + MOVI_A_LOW_B64_S100[-1:] + (MOVI_A_LOW_B64_DISTILLED,)
+            + MOVI_A_LOW_B128[-1:] + MOVI_A_LOW_B128_S100[-1:])
 
 
 @pytest.mark.parametrize("stage", [s for s in SHIPPING if s.ships_as], ids=lambda s: s.name)
