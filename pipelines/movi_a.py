@@ -104,10 +104,11 @@ Presets (measured costs on a 2-core CPU in the README):
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, budget_pair,
 spokes_pair, spokes_pair_avg, fast, mid, spokes, mid_spokes, spokes_chain, spokes_chain_avg,
 mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, low_distilled, low_b64,
-low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
+low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, spokes_k2, sphere_edges_chain,
+mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
-spokes chain alone, low_b64, low_b128, low_distilled and low_b64_distilled: free flight, one network call; the
-spokes and low pairs symmetrized).
+spokes chain alone, low_b64, low_b128, low_distilled and low_b64_distilled: free flight, one network
+call; the spokes and low pairs symmetrized).
 Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
 data/movi_a_4000 skips generating them again.
 """
@@ -133,7 +134,8 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
                                      MOVI_A_LOW_B64, MOVI_A_LOW_B64_DISTILLED, MOVI_A_LOW_B64_S100,
-                                     MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_DISTILLED, TINY_CHAIN, TINY_DISTILLED, TINY_MEMBER, stage_overrides)
+                                     MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_DISTILLED, TINY_CHAIN,
+                                     TINY_DISTILLED, TINY_MEMBER, stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
