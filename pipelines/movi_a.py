@@ -72,7 +72,7 @@ Presets (measured costs on a 2-core CPU in the README):
          gns_movi_a_spokes_chain_avg (18.4% / 25.4 deg at one call; docs/accuracy.md, session 26)
   spokes_pair_avg    spokes_pair the same way: with --parallel ~2 h on two cores; the shipped
          pair (gns_movi_a_spokes_chain_avg + _avg_s100) scored 15.5% / 23.5 deg symmetrized, the
-         best within the accuracy issue's budget (session 26)
+         best within the accuracy issue's budget in session 26
   low_spokes_pair_avg   low_spokes_chain_avg and the same chain from seed 100, as an ensemble:
          with --parallel ~2 h on two cores; the shipped pair (gns_movi_a_low_spokes_chain_avg +
          _s100) scored 14.7% / 22.1 deg symmetrized (15.0 / 22.2 with d1; session 29)
@@ -86,14 +86,15 @@ Presets (measured costs on a 2-core CPU in the README):
          reproduces gns_movi_a_low_b64 (16.7% / 23.7 deg; session 33)
   low_b64_pair   low_b64 and the same chain from seed 100, as an ensemble (--parallel: one a core,
          ~2 h 10 min): the shipped pair (gns_movi_a_low_b64 + _s100) scored 13.0% / 20.9 deg with d2,
-         the best within the accuracy issue's budget (session 33)
+         the best within the accuracy issue's budget in session 33
   low_b64_distilled   low_b64_pair, then low_distilled's stage at batch 64 (10k steps, ~55-63 min on
          one core) taught by that pair, rolled out alone at one call: reproduces
          gns_movi_a_low_b64_distilled (15.0% / 22.8 deg at one call; session 33)
   low_b128   low_b64 at batch 128 in its wall clock (steps scaled by the measured steps/s, the
          learning rates x sqrt(2); session 34); rolled out at one call
   low_b128_pair   low_b128 and the same chain from seed 100, as an ensemble (--parallel: one a
-         core, ~1 h 55 min), scored with d2 (session 34)
+         core, ~1 h 55 min): the shipped pair (gns_movi_a_low_b128 + _s100) scored 13.1% / 20.3 deg
+         with d2, the best within the accuracy issue's budget (session 34)
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
