@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 
 from datagen.shards import DataError
 from gns.config import ConfigError
@@ -300,6 +301,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
+    # a warning is one line for a user, not a source location and its code (restored on the way
+    # out: a program calling main() keeps its own)
+    formatwarning = warnings.formatwarning
+    warnings.formatwarning = lambda message, *_args, **_kw: f"warning: {message}\n"
     # Imported after parsing so that `gns --help` and usage errors do not wait for torch.
     from gns.rollout import DivergedError
     from gns.checkpoint import CheckpointError
@@ -324,6 +329,8 @@ def main(argv: list[str] | None = None) -> None:
     except KeyboardInterrupt as e:  # a training says the step it stopped at and saved
         print(f"error: interrupted{': ' + str(e) if str(e) else ''}", file=sys.stderr)
         raise SystemExit(130)
+    finally:
+        warnings.formatwarning = formatwarning
 
 
 if __name__ == "__main__":

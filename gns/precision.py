@@ -10,12 +10,17 @@ faster. Off a CPU (CUDA) `auto` takes bf16 where the device supports it.
 from __future__ import annotations
 
 import time
+import warnings
 
 import torch
 
 CHOICES = ("none", "bf16", "auto")
 # bf16 must be this much faster: autocast adds casts that the product alone does not show
 MARGIN = 1.15
+# bf16 asked for by name but this much slower than float32 earns a warning: a CPU without native
+# bfloat16 emulates it (session 35's AMD EPYC without avx512: rollouts 12x slower), where `auto`
+# would have kept float32
+SLOW = 0.5
 _cache: dict[tuple, float] = {}
 
 
@@ -47,12 +52,18 @@ def bf16_speedup(width: int, rows: int = 4096, repeats: int = 5, device: str | t
 
 def resolve_autocast(name: str, width: int, device: str | torch.device = "cpu", measure=bf16_speedup) -> str:
     """'none' or 'bf16' for `name` ('none', 'bf16' or 'auto'); 'auto' measures (measure(width,
-    device=...) -> float32 / bf16 time) and takes bf16 when it is at least MARGIN times faster."""
+    device=...) -> float32 / bf16 time) and takes bf16 when it is at least MARGIN times faster.
+    'bf16' on a CPU is kept but measured too, with a warning where it is less than SLOW times as fast."""
     if name not in CHOICES:
         raise ValueError(f"autocast must be one of {', '.join(CHOICES)}, got {name!r}")
+    device = torch.device(device)
+    if name == "bf16" and device.type == "cpu":
+        ratio = measure(width, device=device)
+        if ratio < SLOW:
+            warnings.warn(f"bf16 autocast measures {1 / ratio:.0f}x slower than float32 on this CPU (no native "
+                          "bfloat16): --autocast auto would keep float32 here", stacklevel=2)
     if name != "auto":
         return name
-    device = torch.device(device)
     if device.type == "cuda":
         return "bf16" if torch.cuda.is_bf16_supported() else "none"
     return "bf16" if measure(width, device=device) >= MARGIN else "none"

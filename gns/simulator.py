@@ -180,7 +180,7 @@ class LearnedSimulator(nn.Module):
         kept out of the module tree like `distribute`, so state_dict keys and checkpoints are
         unchanged. The first calls compile (tens of seconds on a CPU). autocast "auto": bf16 if it
         measures faster here (gns.precision); `self.autocast_used` says which was taken."""
-        if autocast == "auto":
+        if autocast != "none":   # auto decides here; bf16 on a CPU that emulates it warns
             device = next(self.network.parameters()).device
             autocast = resolve_autocast(autocast, self.network.decoder[0].in_features, device)
         self.autocast_used = autocast

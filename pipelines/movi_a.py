@@ -95,6 +95,9 @@ Presets (measured costs on a 2-core CPU in the README):
   low_b128_pair   low_b128 and the same chain from seed 100, as an ensemble (--parallel: one a
          core, ~1 h 55 min): the shipped pair (gns_movi_a_low_b128 + _s100) scored 13.1% / 20.3 deg
          with d2, the best within the accuracy issue's budget (session 34)
+  low_b128_5, low_b128_5_pair   low_b128 (pair) and a fifth stage of the fourth's schedule, 9,600
+         steps (~31 min on the AMD EPYC of docs/accuracy.md, ~62 on a CPU without avx512; session
+         35): the pair 12.9% / 20.5 deg with d2, position gained, rotation not (not shipped)
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
@@ -105,11 +108,11 @@ Presets (measured costs on a 2-core CPU in the README):
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, budget_pair,
 spokes_pair, spokes_pair_avg, fast, mid, spokes, mid_spokes, spokes_chain, spokes_chain_avg,
 mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, low_distilled, low_b64,
-low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, spokes_k2, sphere_edges_chain,
-mid_sphere_edges_chain)
+low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, low_b128_5, low_b128_5_pair, spokes_k2,
+sphere_edges_chain, mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
-spokes chain alone, low_b64, low_b128, low_distilled and low_b64_distilled: free flight, one network
-call; the spokes and low pairs symmetrized).
+spokes chain alone, low_b64, low_b128, low_b128_5, low_distilled and low_b64_distilled: free flight, one
+network call; the spokes and low pairs symmetrized).
 Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
 data/movi_a_4000 skips generating them again.
 """
@@ -135,8 +138,8 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
                                      MOVI_A_LOW_B64, MOVI_A_LOW_B64_DISTILLED, MOVI_A_LOW_B64_S100,
-                                     MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_DISTILLED, TINY_CHAIN,
-                                     TINY_DISTILLED, TINY_MEMBER, stage_overrides)
+                                     MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_5_S100,
+                                     MOVI_A_LOW_DISTILLED, TINY_CHAIN, TINY_DISTILLED, TINY_MEMBER, stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
@@ -184,6 +187,8 @@ PRESETS = {
                                        distilled=MOVI_A_LOW_B64_DISTILLED),
     "low_b128": _chain_preset(MOVI_A_LOW_B128, symmetrize=False),
     "low_b128_pair": _chain_preset(MOVI_A_LOW_B128, members=(MOVI_A_LOW_B128_S100,)),
+    "low_b128_5": _chain_preset(MOVI_A_LOW_B128_5, symmetrize=False),
+    "low_b128_5_pair": _chain_preset(MOVI_A_LOW_B128_5, members=(MOVI_A_LOW_B128_5_S100,)),
     "low_distilled": _chain_preset(MOVI_A_LOW_SPOKES_CHAIN_AVG, symmetrize=False,
                                    members=(MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,), distilled=MOVI_A_LOW_DISTILLED),
     "spokes_k2": _chain_preset(MOVI_A_SPOKES_K2, symmetrize=False),

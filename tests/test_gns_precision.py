@@ -1,4 +1,6 @@
 """--autocast auto: bf16 only where it measures faster (gns.precision)."""
+import warnings
+
 import pytest
 import torch
 
@@ -10,13 +12,25 @@ from test_gns_train import tiny
 
 
 def test_named_choices_pass_through_and_auto_follows_the_measurement():
-    assert resolve_autocast("none", 64) == "none" and resolve_autocast("bf16", 64) == "bf16"
+    assert resolve_autocast("none", 64) == "none" and resolve_autocast("bf16", 64, measure=lambda w, device: 1.8) == "bf16"
     assert resolve_autocast("auto", 64, measure=lambda w, device: 1.8) == "bf16"
     # a CPU where bf16 products are slower (session 6's Xeon: 0.55x), or barely faster, keeps float32
     assert resolve_autocast("auto", 64, measure=lambda w, device: 0.55) == "none"
     assert resolve_autocast("auto", 64, measure=lambda w, device: MARGIN * 0.99) == "none"
     with pytest.raises(ValueError, match="autocast"):
         resolve_autocast("fp16", 64)
+
+
+def test_bf16_by_name_is_kept_but_warns_in_one_line_where_the_cpu_emulates_it():
+    # session 35's AMD EPYC without avx512: a bf16 product 25x slower, rollouts 12x
+    with pytest.warns(UserWarning, match="10x slower than float32 on this CPU") as caught:
+        assert resolve_autocast("bf16", 64, measure=lambda w, device: 0.1) == "bf16"
+    assert "\n" not in str(caught[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert resolve_autocast("bf16", 64, measure=lambda w, device: 1.8) == "bf16"
+        assert resolve_autocast("bf16", 64, measure=lambda w, device: 0.55) == "bf16"   # slower, not emulated
+        assert resolve_autocast("none", 64, measure=lambda w, device: 0.1) == "none"
 
 
 def test_the_measurement_is_a_positive_ratio_taken_once():
@@ -40,3 +54,17 @@ def test_train_autocast_accepts_auto_and_names_the_choices_on_a_typo():
     assert tiny("train.autocast=auto").train.autocast == "auto"
     with pytest.raises(ConfigError, match="'none', 'bf16' or 'auto'"):
         tiny("train.autocast=bf32")
+
+
+def test_the_cli_shows_a_warning_as_one_line_and_leaves_the_format_as_it_found_it(monkeypatch, capsys):
+    from gns import cli
+
+    def run(args):
+        print(warnings.formatwarning("shown", UserWarning, "f.py", 1), end="")
+
+    before = warnings.formatwarning
+    parser = cli.build_parser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    monkeypatch.setattr(parser, "parse_args", lambda argv: type("A", (), {"run": staticmethod(run)})())
+    cli.main([])
+    assert capsys.readouterr().out == "warning: shown\n" and warnings.formatwarning is before

@@ -10,7 +10,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_HEADING4, MOVI_A_HEADING_K2, MOVI_A_MID, MOVI_A_MID_SPHERE_EDGES_CHAIN,
                                      MOVI_A_MID_SPOKES, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN_AVG,
                                      MOVI_A_LOW_B64, MOVI_A_LOW_B64_DISTILLED, MOVI_A_LOW_B64_S100, MOVI_A_LOW_DISTILLED,
-                                     MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100,
+                                     MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_5_S100,
                                      MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
@@ -43,11 +43,11 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
                                    MOVI_A_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES_K2,
                                    MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                    MOVI_A_MID_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_B64,
-                                   MOVI_A_LOW_B128],
+                                   MOVI_A_LOW_B128, MOVI_A_LOW_B128_5],
                          ids=["best", "canonical", "fast", "mid", "heading", "spokes", "mid_spokes", "heading4",
                               "heading_k2", "spokes_chain", "mid_spokes_chain", "spokes_k2", "sphere_edges_chain",
                               "mid_sphere_edges_chain", "spokes_chain_avg", "mid_spokes_chain_avg",
-                              "low_spokes_chain_avg", "low_b64", "low_b128"])
+                              "low_spokes_chain_avg", "low_b64", "low_b128", "low_b128_5"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
@@ -88,6 +88,19 @@ def test_a_chain_compared_with_its_control_differs_only_in_its_lever(chain, cont
         a = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(stage, None, 0))
         b = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(base, None, 0))
         assert {d.split()[0] for d in config_differences(config_to_dict(b), a)} == set(differ)
+
+
+@pytest.mark.parametrize("chain, base", [(MOVI_A_LOW_B128_5, MOVI_A_LOW_B128), (MOVI_A_LOW_B128_5_S100, MOVI_A_LOW_B128_S100)],
+                         ids=["s0", "s100"])
+def test_the_fifth_stage_is_the_fourth_schedule_again_over_more_steps(chain, base):
+    """Session 35's fifth stage (docs/accuracy.md) continues the shipped chain: the same first four
+    stages, then the fourth's settings with only the length, the decay and the seed changed."""
+    assert chain[:-1] == base
+    fourth, fifth = (build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(s, None, 0))
+                     for s in (base[-1], chain[-1]))
+    assert {d.split()[0] for d in config_differences(config_to_dict(fourth), fifth)} == {
+        "train.steps", "train.lr_decay_steps", "train.seed"}
+    assert (fifth.train.steps, fifth.train.lr_decay_steps, fifth.train.seed) == (9_600, 4_800, base[-1].seed + 1)
 
 
 def test_fresh_may_delete_the_run_folder_of_every_chain_stage():
