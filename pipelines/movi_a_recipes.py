@@ -211,11 +211,11 @@ MOVI_A_LOW_B128 = tuple(_at_batch(128, s, *scaled) for s, scaled in zip(MOVI_A_L
 MOVI_A_LOW_B128_S100 = variant(MOVI_A_LOW_B128, "s100", (), "gns_movi_a_low_b128_s100", seed_offset=100)
 
 
-def _fifth_stage(chain: tuple, seed: int) -> tuple:
-    """`chain` and one more stage of its last stage's schedule, 9,600 steps decaying over 4,800."""
+def _fifth_stage(chain: tuple) -> tuple:
+    """`chain` and one more stage of its last stage's schedule (the next seed), 9,600 steps decaying
+    over 4,800 (the later setting wins, as in `_at_batch`)."""
     last = chain[-1]
-    settings = (*(kv for kv in last.settings if not kv.startswith("train.lr_decay_steps=")), "train.lr_decay_steps=4800")
-    return chain + (Stage(f"{last.name}2", 9_600, settings, seed),)
+    return chain + (Stage(f"{last.name}2", 9_600, (*last.settings, "train.lr_decay_steps=4800"), last.seed + 1),)
 
 
 # session 35: the batch-128 chains take ~1 h 55 min of the ~2.5 h budget; a fifth stage of the fourth's schedule
@@ -223,8 +223,8 @@ def _fifth_stage(chain: tuple, seed: int) -> tuple:
 # of docs/accuracy.md, one core beside the other chain; 62 minutes on a CPU without avx512). It bought position,
 # not rotation: the pair 12.93% / 20.49 deg with d2 where its fourth stages score 13.14 / 20.29 (not shipped;
 # docs/accuracy.md, session 35)
-MOVI_A_LOW_B128_5 = _fifth_stage(MOVI_A_LOW_B128, 4)
-MOVI_A_LOW_B128_5_S100 = _fifth_stage(MOVI_A_LOW_B128_S100, 104)
+MOVI_A_LOW_B128_5 = _fifth_stage(MOVI_A_LOW_B128)
+MOVI_A_LOW_B128_5_S100 = _fifth_stage(MOVI_A_LOW_B128_S100)
 
 # session 33: the distilled stage of session 31 at batch 64, taught by the batch-64 pair: its steps scaled by
 # the measured rates the same way (batch 64: 3.2 steps/s with the teacher, 205 graphs/s; batch 16: 6.8, 108), so
