@@ -18,7 +18,7 @@ CHOICES = ("none", "bf16", "auto")
 # bf16 must be this much faster: autocast adds casts that the product alone does not show
 MARGIN = 1.15
 # bf16 asked for by name but this much slower than float32 earns a warning: a CPU without native
-# bfloat16 emulates it (session 35's AMD EPYC without avx512: rollouts 12x slower), where `auto`
+# bfloat16 emulates it (session 35's AMD EPYC without avx512: rollouts 12-14x slower), where `auto`
 # would have kept float32
 SLOW = 0.5
 _cache: dict[tuple, float] = {}
