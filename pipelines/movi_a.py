@@ -98,6 +98,8 @@ Presets (measured costs on a 2-core CPU in the README):
   low_b128_5, low_b128_5_pair   low_b128 (pair) and a fifth stage of the fourth's schedule, 9,600
          steps (~31 min on the AMD EPYC of docs/accuracy.md, ~62 on a CPU without avx512; session
          35): the pair 12.9% / 20.5 deg with d2, position gained, rotation not (not shipped)
+  low_b256, low_b256_pair   low_b128 (pair) at batch 256 in its wall clock stage by stage (steps scaled by
+         the measured steps/s, the learning rates x sqrt(2); session 36, docs/accuracy.md)
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the
@@ -108,10 +110,11 @@ Presets (measured costs on a 2-core CPU in the README):
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, budget_pair,
 spokes_pair, spokes_pair_avg, fast, mid, spokes, mid_spokes, spokes_chain, spokes_chain_avg,
 mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, low_distilled, low_b64,
-low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, low_b128_5, low_b128_5_pair, spokes_k2,
+low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, low_b128_5, low_b128_5_pair, low_b256,
+low_b256_pair, spokes_k2,
 sphere_edges_chain, mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
-spokes chain alone, low_b64, low_b128, low_b128_5, low_distilled and low_b64_distilled: free flight, one
+spokes chain alone, low_b64, low_b128, low_b128_5, low_b256, low_distilled and low_b64_distilled: free flight, one
 network call; the spokes and low pairs symmetrized).
 Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
 data/movi_a_4000 skips generating them again.
@@ -139,6 +142,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
                                      MOVI_A_LOW_B64, MOVI_A_LOW_B64_DISTILLED, MOVI_A_LOW_B64_S100,
                                      MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_5_S100,
+                                     MOVI_A_LOW_B256, MOVI_A_LOW_B256_S100,
                                      MOVI_A_LOW_DISTILLED, TINY_CHAIN, TINY_DISTILLED, TINY_MEMBER, stage_overrides)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
@@ -189,6 +193,8 @@ PRESETS = {
     "low_b128_pair": _chain_preset(MOVI_A_LOW_B128, members=(MOVI_A_LOW_B128_S100,)),
     "low_b128_5": _chain_preset(MOVI_A_LOW_B128_5, symmetrize=False),
     "low_b128_5_pair": _chain_preset(MOVI_A_LOW_B128_5, members=(MOVI_A_LOW_B128_5_S100,)),
+    "low_b256": _chain_preset(MOVI_A_LOW_B256, symmetrize=False),
+    "low_b256_pair": _chain_preset(MOVI_A_LOW_B256, members=(MOVI_A_LOW_B256_S100,)),
     "low_distilled": _chain_preset(MOVI_A_LOW_SPOKES_CHAIN_AVG, symmetrize=False,
                                    members=(MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,), distilled=MOVI_A_LOW_DISTILLED),
     "spokes_k2": _chain_preset(MOVI_A_SPOKES_K2, symmetrize=False),

@@ -11,6 +11,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_MID_SPOKES, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN_AVG,
                                      MOVI_A_LOW_B64, MOVI_A_LOW_B64_DISTILLED, MOVI_A_LOW_B64_S100, MOVI_A_LOW_DISTILLED,
                                      MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_5_S100,
+                                     MOVI_A_LOW_B256, MOVI_A_LOW_B256_S100,
                                      MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
@@ -43,11 +44,11 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
                                    MOVI_A_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES_K2,
                                    MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                    MOVI_A_MID_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_B64,
-                                   MOVI_A_LOW_B128, MOVI_A_LOW_B128_5],
+                                   MOVI_A_LOW_B128, MOVI_A_LOW_B128_5, MOVI_A_LOW_B256],
                          ids=["best", "canonical", "fast", "mid", "heading", "spokes", "mid_spokes", "heading4",
                               "heading_k2", "spokes_chain", "mid_spokes_chain", "spokes_k2", "sphere_edges_chain",
                               "mid_sphere_edges_chain", "spokes_chain_avg", "mid_spokes_chain_avg",
-                              "low_spokes_chain_avg", "low_b64", "low_b128", "low_b128_5"])
+                              "low_spokes_chain_avg", "low_b64", "low_b128", "low_b128_5", "low_b256"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
@@ -76,9 +77,12 @@ def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     (MOVI_A_LOW_B128, MOVI_A_LOW_B64, ("train.batch_size", "train.lr_init", "train.lr_decay_steps", "train.steps")),
     (MOVI_A_LOW_B128_S100, MOVI_A_LOW_B64_S100, ("train.batch_size", "train.lr_init", "train.lr_decay_steps",
                                                  "train.steps")),
+    (MOVI_A_LOW_B256, MOVI_A_LOW_B128, ("train.batch_size", "train.lr_init", "train.lr_decay_steps", "train.steps")),
+    (MOVI_A_LOW_B256_S100, MOVI_A_LOW_B128_S100, ("train.batch_size", "train.lr_init", "train.lr_decay_steps",
+                                                  "train.steps")),
 ], ids=["heading", "spokes_chain", "mid_spokes_chain", "spokes_k2", "sphere_edges_chain", "mid_sphere_edges_chain",
         "spokes_chain_avg", "spokes_chain_avg_s100", "mid_spokes_chain_avg", "low_spokes_chain_avg",
-        "low_spokes_chain_avg_s100", "low_b64", "low_b128", "low_b128_s100"])
+        "low_spokes_chain_avg_s100", "low_b64", "low_b128", "low_b128_s100", "low_b256", "low_b256_s100"])
 def test_a_chain_compared_with_its_control_differs_only_in_its_lever(chain, control, differ):
     """The A/Bs of docs/accuracy.md compare these chains stage by stage (the heading chain with
     `budget`, session 18; the spokes chains with `heading4`, session 20; the sphere-edges chains with
