@@ -99,7 +99,8 @@ Presets (measured costs on a 2-core CPU in the README):
          steps (~31 min on the AMD EPYC of docs/accuracy.md, ~62 on a CPU without avx512; session
          35): the pair 12.9% / 20.5 deg with d2, position gained, rotation not (not shipped)
   low_b256, low_b256_pair   low_b128 (pair) at batch 256 in its wall clock stage by stage (steps scaled by
-         the measured steps/s, the learning rates x sqrt(2); session 36, docs/accuracy.md)
+         the measured steps/s, the learning rates x sqrt(2); session 36): run through the first stage
+         only, level with batch 128 there (the pair 14.5% / 21.5 deg with d2 against 14.2 / 21.7)
   paper  9000 training scenes, the paper's model (L=10, K=3, latent 128), 1M steps: days on a CPU
   multi_tiny   smoke test of several objects a scene (2-3), collision edges between them
   multi_small  400 training scenes of 3-6 objects, the CPU model, 8000 steps (~45 min); the

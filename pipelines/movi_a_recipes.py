@@ -212,7 +212,8 @@ MOVI_A_LOW_B128_S100 = variant(MOVI_A_LOW_B128, "s100", (), "gns_movi_a_low_b128
 # session 36: the same again at batch 256, in batch 128's wall clock stage by stage. Measured on the two cores at
 # once: one-step 9.2 against 15.8 steps/s on the AMD EPYC of session 34 (4.7 against 8.4 on a CPU without avx512:
 # 1.12x the graphs), three-step 1.35 against 2.6 on the latter (1.04x the graphs: little left to gain there); the
-# learning rates x sqrt(2). Measured against batch 128 in docs/accuracy.md, session 36
+# learning rates x sqrt(2). Run through the first stage only, where it was level with batch 128 (the pair 14.5% /
+# 21.5 deg with d2 against 14.2 / 21.7; docs/accuracy.md, session 36): the later stages were never run
 MOVI_A_LOW_B256 = tuple(_at_batch(256, s, *scaled) for s, scaled in zip(MOVI_A_LOW_SPOKES_CHAIN_AVG, (
     (24_500, "2e-3", 9_140), (3_330, "8e-4", 1_630), (3_770, "8e-4", 1_990), (2_980, "8e-4", 1_490))))
 MOVI_A_LOW_B256_S100 = variant(MOVI_A_LOW_B256, "s100", (), seed_offset=100)
