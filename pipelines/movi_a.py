@@ -112,11 +112,10 @@ The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, b
 spokes_pair, spokes_pair_avg, fast, mid, spokes, mid_spokes, spokes_chain, spokes_chain_avg,
 mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, low_distilled, low_b64,
 low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, low_b128_5, low_b128_5_pair, low_b256,
-low_b256_pair, spokes_k2,
-sphere_edges_chain, mid_sphere_edges_chain)
+low_b256_pair, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
 are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
-spokes chain alone, low_b64, low_b128, low_b128_5, low_b256, low_distilled and low_b64_distilled: free flight, one
-network call; the spokes and low pairs symmetrized).
+spokes chain alone, low_b64, low_b128, low_b128_5, low_b256, low_distilled and low_b64_distilled:
+free flight, one network call; the spokes and low pairs symmetrized).
 Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
 data/movi_a_4000 skips generating them again.
 """
