@@ -159,6 +159,11 @@ class TrainConfig:
     # With features.frame_stride k > 1, train on windows starting at every frame (k phases of each
     # scene), not only at multiples of k: k times the windows from the same data.
     all_phases: bool = False
+    # > 0: train on the dataset's first this many train scenes only (0: all of them). Datagen keys
+    # each scene by (seed, split, index), so the first N of a larger dataset are the N-scene dataset
+    # of the same seed: a chain can start on a few scenes and go on to more, and a training-set size
+    # curve needs one dataset
+    scenes: int = 0
     loss: str = "mse"                  # "mse" (paper), "huber" or "l1" on the normalised acceleration
     huber_delta: float = 1.0           # huber: quadratic within this many normalised units
     # > 0: each node's loss weighted by its object's size^-p (normalised to mean 1 over the
@@ -327,6 +332,7 @@ def validate(cfg: Config) -> None:
         (cfg.train.loss in ("mse", "huber", "l1"), "train.loss must be 'mse', 'huber' or 'l1'"),
         (cfg.model.inertial_prior in INERTIAL_PRIORS, "model.inertial_prior must be 'linear' or 'rigid'"),
         (cfg.train.huber_delta > 0, "train.huber_delta must be > 0"),
+        (cfg.train.scenes >= 0, "train.scenes must be >= 0 (0: all train scenes)"),
         (cfg.train.size_weight >= 0, "train.size_weight must be >= 0"),
         (cfg.train.rigid_loss >= 0, "train.rigid_loss must be >= 0"),
         (0 <= cfg.train.teacher_weight <= 1, "train.teacher_weight must be in [0, 1]"),

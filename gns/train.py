@@ -369,12 +369,15 @@ def run_provenance(data_dir: str | Path, fingerprint: str, step: int, earlier: d
 def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTracks, ObjectTracks | None]:
     """Feature spec, train tracks and (if validating and present) valid tracks of a dataset."""
     dataset = Dataset(data_dir, stride=cfg.features.frame_stride)
-    scenes = dataset.load("train")
+    limit = cfg.train.scenes or None
+    scenes = dataset.load("train", limit)
+    if limit is not None and len(scenes) < limit:
+        raise ConfigError(f"train.scenes={limit}, but {data_dir} holds {len(scenes)} train scenes")
     k = cfg.features.frame_stride
     if k > 1 and cfg.train.all_phases:
         # read at stride k from frame 0 only, a scene gives 1/k of its windows; starting at each
         # of frames 0 .. k-1 gives them all (as many windows as at stride 1)
-        full = Dataset(data_dir).load("train")
+        full = Dataset(data_dir).load("train", limit)
         scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
     settings = graph_settings(cfg.features)
     unknown = sorted(set(settings["keep_surface"]) - set(dataset.meshes))

@@ -124,7 +124,8 @@ def test_training_with_both_levers_resumes_exactly(tmp_path):
     assert metrics(tmp_path / "a")[-1]["loss"] == metrics(tmp_path / "b")[-1]["loss"]
 
 
-@pytest.mark.parametrize("key", ["train.unroll_steps=0", "train.contact_fraction=1.5", "train.contact_threshold=0"])
+@pytest.mark.parametrize("key", ["train.unroll_steps=0", "train.contact_fraction=1.5", "train.contact_threshold=0",
+                                 "train.scenes=-1"])
 def test_bad_lever_values_are_one_line_errors(key):
     with pytest.raises(ConfigError, match=key.split("=")[0]):
         build_config(path=TINY, overrides=[key])
@@ -449,6 +450,21 @@ def test_all_phases_gives_a_strided_model_every_window_of_the_data(tmp_path):
     ds = Dataset(data)
     sc = ds.load("train")[0]
     assert np.array_equal(phased.positions[6:12].numpy(), sc.positions[1::2, 0])
+
+
+def test_train_scenes_trains_on_the_first_scenes_exactly_as_a_dataset_of_that_many(tmp_path):
+    from gns.train import load_data
+    large = write_toss_dataset(tmp_path / "large", train=6, valid=1, frames=10)
+    small = write_toss_dataset(tmp_path / "small", train=3, valid=1, frames=10)
+    spec_part, part, _ = load_data(large, tiny("train.scenes=3"))
+    spec_small, whole, _ = load_data(small, tiny())
+    assert part.num_scenes == whole.num_scenes == 3 and part.num_windows == whole.num_windows
+    assert torch.equal(part.positions, whole.positions)
+    assert spec_part.ranges == spec_small.ranges          # the ranges kept with the model are the subset's
+    _, every, _ = load_data(large, tiny("train.scenes=0"))
+    assert every.num_scenes == 6
+    with pytest.raises(ConfigError, match="train.scenes=7, but .* holds 6 train scenes"):
+        load_data(large, tiny("train.scenes=7"))
 
 
 def test_size_weights_make_a_small_objects_error_count_as_its_share_of_its_size(tmp_path):

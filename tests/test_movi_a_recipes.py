@@ -11,7 +11,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_MID_SPOKES, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN_AVG,
                                      MOVI_A_LOW_B64, MOVI_A_LOW_B64_DISTILLED, MOVI_A_LOW_B64_S100, MOVI_A_LOW_DISTILLED,
                                      MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_5_S100,
-                                     MOVI_A_LOW_B256, MOVI_A_LOW_B256_S100,
+                                     MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_S100, MOVI_A_LOW_B256, MOVI_A_LOW_B256_S100,
                                      MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
@@ -27,7 +27,8 @@ SHIPPING = (MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST +
             + MOVI_A_SPOKES_CHAIN_AVG[-1:] + MOVI_A_SPOKES_CHAIN_AVG_S100[-1:] + MOVI_A_MID_SPOKES_CHAIN_AVG[-1:]
             + MOVI_A_LOW_SPOKES_CHAIN_AVG[-1:] + MOVI_A_LOW_SPOKES_CHAIN_AVG_S100[-1:] + (MOVI_A_LOW_DISTILLED,)
             + MOVI_A_LOW_B64[-1:] + MOVI_A_LOW_B64_S100[-1:] + (MOVI_A_LOW_B64_DISTILLED,)
-            + MOVI_A_LOW_B128[-1:] + MOVI_A_LOW_B128_S100[-1:])
+            + MOVI_A_LOW_B128[-1:] + MOVI_A_LOW_B128_S100[-1:] + MOVI_A_LOW_B128_D32[-1:]
+            + MOVI_A_LOW_B128_D32_S100[-1:])
 
 
 @pytest.mark.parametrize("stage", [s for s in SHIPPING if s.ships_as], ids=lambda s: s.name)
@@ -44,11 +45,12 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
                                    MOVI_A_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES_K2,
                                    MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                    MOVI_A_MID_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_B64,
-                                   MOVI_A_LOW_B128, MOVI_A_LOW_B128_5, MOVI_A_LOW_B256],
+                                   MOVI_A_LOW_B128, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_D32, MOVI_A_LOW_B256],
                          ids=["best", "canonical", "fast", "mid", "heading", "spokes", "mid_spokes", "heading4",
                               "heading_k2", "spokes_chain", "mid_spokes_chain", "spokes_k2", "sphere_edges_chain",
                               "mid_sphere_edges_chain", "spokes_chain_avg", "mid_spokes_chain_avg",
-                              "low_spokes_chain_avg", "low_b64", "low_b128", "low_b128_5", "low_b256"])
+                              "low_spokes_chain_avg", "low_b64", "low_b128", "low_b128_5", "low_b128_d32",
+                              "low_b256"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
@@ -105,6 +107,24 @@ def test_the_fifth_stage_is_the_fourth_schedule_again_over_more_steps(chain, bas
     assert {d.split()[0] for d in config_differences(config_to_dict(fourth), fifth)} == {
         "train.steps", "train.lr_decay_steps", "train.seed"}
     assert (fifth.train.steps, fifth.train.lr_decay_steps, fifth.train.seed) == (9_600, 4_800, base[-1].seed + 1)
+
+
+@pytest.mark.parametrize("chain, base", [(MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_5),
+                                         (MOVI_A_LOW_B128_D32_S100, MOVI_A_LOW_B128_5_S100)], ids=["s0", "s100"])
+def test_the_more_scenes_chain_is_the_fifth_stage_chain_on_its_data(chain, base):
+    """Session 37's A/B (docs/accuracy.md): the pipeline generates 32,000 scenes, of which the first
+    four stages keep to the first 4000 (the scenes every other chain trains on) and the fifth takes
+    all; nothing else differs from session 35's fifth-stage chain."""
+    assert len(chain) == len(base)
+    for stage, control in zip(chain, base):
+        a = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(stage, None, 0))
+        b = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(control, None, 0))
+        differ = config_differences(config_to_dict(b), a)
+        assert differ == ([] if stage is chain[-1] else ["train.scenes is 0 in the checkpoint, 4000 now"])
+    assert chain[-1].ships_as.startswith("gns_movi_a_low_b128_d32") and not any(s.ships_as for s in chain[:-1])
+    from pipelines.movi_a import PRESETS
+    assert PRESETS["low_b128_d32_pair"]["counts"]["train"] == 32_000
+    assert PRESETS["low_b128_pair"]["counts"] == {**PRESETS["low_b128_d32_pair"]["counts"], "train": 4000}
 
 
 def test_fresh_may_delete_the_run_folder_of_every_chain_stage():

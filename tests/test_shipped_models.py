@@ -4,6 +4,7 @@ from pathlib import Path
 
 import pytest
 
+from gns.checkpoint import read_checkpoint
 from gns.evaluate import checkpoint_of, evaluate_run, shipped_models
 from gns.train import load_model
 
@@ -110,7 +111,7 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
               "gns_movi_a_mid_spokes_chain_avg", "gns_movi_a_low_spokes_chain_avg",
               "gns_movi_a_low_spokes_chain_avg_s100", "gns_movi_a_low_distilled", "gns_movi_a_low_b64",
               "gns_movi_a_low_b64_s100", "gns_movi_a_low_b64_distilled", "gns_movi_a_low_b128",
-              "gns_movi_a_low_b128_s100")
+              "gns_movi_a_low_b128_s100", "gns_movi_a_low_b128_d32", "gns_movi_a_low_b128_d32_s100")
     assert {*movi_a, "gns_diagnostic_45"} <= set(shipped_models())
     data = tmp_path / "movi"
     assert datagen(["toss", "--shapes", "beveled_cube,cylinder,sphere", "--scenes", "1", "--test", "6",
@@ -136,7 +137,8 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
         assert not cfg.features.surface_edges and cfg.features.centre_node and cfg.features.mesh_vertices == vertices
     for name in ("gns_movi_a_low_spokes_chain_avg", "gns_movi_a_low_spokes_chain_avg_s100", "gns_movi_a_low_distilled",
                  "gns_movi_a_low_b64", "gns_movi_a_low_b64_s100", "gns_movi_a_low_b64_distilled",
-                 "gns_movi_a_low_b128", "gns_movi_a_low_b128_s100"):
+                 "gns_movi_a_low_b128", "gns_movi_a_low_b128_s100", "gns_movi_a_low_b128_d32",
+                 "gns_movi_a_low_b128_d32_s100"):
         sim, cfg = load_model(checkpoint_of(name))
         assert (sim.lowest_vertices, sim.highest_vertices) == (12, 4) and not cfg.features.surface_edges
     # the batch-64 chain (sessions 32-33)
@@ -145,6 +147,9 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     # and at batch 128 (session 34)
     assert all(load_model(checkpoint_of(n))[1].train.batch_size == 128
                for n in ("gns_movi_a_low_b128", "gns_movi_a_low_b128_s100"))
+    # and its fifth stage on the 32,000 scenes of the README's command (session 37): their fingerprint
+    for name in ("gns_movi_a_low_b128_d32", "gns_movi_a_low_b128_d32_s100"):
+        assert read_checkpoint(checkpoint_of(name))["provenance"]["data"]["fingerprint"].startswith("e1f9d1245f249ff2")
     # trained on the symmetrized low pair's answers (session 31)
     for name in ("gns_movi_a_low_distilled", "gns_movi_a_low_b64_distilled"):
         assert load_model(checkpoint_of(name))[1].train.teacher_symmetrize == "d2"
