@@ -98,11 +98,11 @@ Presets (measured costs on a 2-core CPU in the README):
   low_b128_5, low_b128_5_pair   low_b128 (pair) and a fifth stage of the fourth's schedule, 9,600
          steps (~31 min on the AMD EPYC of docs/accuracy.md, ~62 on a CPU without avx512; session
          35): the pair 12.9% / 20.5 deg with d2, position gained, rotation not (not shipped)
-  low_b128_d32, low_b128_d32_pair   low_b128_5 (pair) with the fifth stage on 32,000 scenes (the
-         data of the other chains are their first 4000, which the first four stages keep to:
-         train.scenes; session 37): generates 32,000 training scenes (~3 min on two workers); the
-         shipped pair (gns_movi_a_low_b128_d32 + _s100) scored 12.3% / 20.0 deg with d2, the best
-         within the accuracy issue's budget
+  low_b128_d32, low_b128_d32_pair   low_b128_5 (pair) with the fifth stage on 32,000 scenes: it
+         generates them (~3 min on two workers); their first 4000 are the other chains' scenes, and
+         the first four stages keep to those (train.scenes=4000; session 37). The shipped pair
+         (gns_movi_a_low_b128_d32 + _s100) scored 12.3% / 20.0 deg with d2, the best within the
+         accuracy issue's budget
   low_b256, low_b256_pair   low_b128 (pair) at batch 256 in its wall clock stage by stage (steps scaled by
          the measured steps/s, the learning rates x sqrt(2); session 36): run through the first stage
          only, level with batch 128 there (the pair 14.5% / 21.5 deg with d2 against 14.2 / 21.7)
