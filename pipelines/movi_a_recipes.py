@@ -14,7 +14,7 @@ files; the stage times are one core of the AMD EPYC of docs/accuracy.md (beside 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 # every stage of the MOVi-A chains: the data's own windows, half of each batch drawn from windows in
 # contact, the signed floor feature clipped at 1.5, bf16 where it measures faster, compiled
@@ -241,13 +241,9 @@ MOVI_A_LOW_B128_5_S100 = _fifth_stage(MOVI_A_LOW_B128_S100)
 # first four stages on their first 4000 (train.scenes). The pair 12.3% / 20.0 deg with d2 where the fifth stage on
 # 4000 scores 12.9 / 20.4; on 1200 new scenes 12.2 / 18.8 against the shipped pair's 13.4 / 20.0
 # (docs/accuracy.md, session 37)
-def _first_scenes(stage: Stage, scenes: int) -> Stage:
-    return Stage(stage.name, stage.steps, (*stage.settings, f"train.scenes={scenes}"), stage.seed)
-
-
-_FIFTH = MOVI_A_LOW_B128_5[-1]
-MOVI_A_LOW_B128_D32 = (*(_first_scenes(s, 4000) for s in MOVI_A_LOW_B128),
-                       Stage(f"{_FIFTH.name}_d32", _FIFTH.steps, _FIFTH.settings, _FIFTH.seed, "gns_movi_a_low_b128_d32"))
+MOVI_A_LOW_B128_D32 = (*(replace(s, settings=(*s.settings, "train.scenes=4000"), ships_as="") for s in MOVI_A_LOW_B128),
+                       replace(MOVI_A_LOW_B128_5[-1], name=f"{MOVI_A_LOW_B128_5[-1].name}_d32",
+                               ships_as="gns_movi_a_low_b128_d32"))
 MOVI_A_LOW_B128_D32_S100 = variant(MOVI_A_LOW_B128_D32, "s100", (), "gns_movi_a_low_b128_d32_s100", seed_offset=100)
 
 # session 33: the distilled stage of session 31 at batch 64, taught by the batch-64 pair: its steps scaled by
