@@ -257,6 +257,15 @@ MOVI_A_LOW_B128_D32_6 = (*MOVI_A_LOW_B128_D32[:-1], replace(MOVI_A_LOW_B128_D32[
 MOVI_A_LOW_B128_D32_6_S100 = variant(MOVI_A_LOW_B128_D32_6, "s100", (), "gns_movi_a_low_b128_d32_6_s100",
                                      seed_offset=100)
 
+# session 39: the same stage a third time (the next seed) from where the sixth ended, ~29 min on the two cores at
+# once: each member gains 0.4-0.6 points and 0.7-0.9 degrees at one call again; the pair 11.4% / 18.6 deg with d2
+# (11.3 / 17.6 on 1200 new scenes). ~3 h 27 min in all (docs/accuracy.md, session 39)
+MOVI_A_LOW_B128_D32_7 = (*MOVI_A_LOW_B128_D32_6[:-1], replace(MOVI_A_LOW_B128_D32_6[-1], ships_as=""),
+                         replace(MOVI_A_LOW_B128_D32[-1], name=f"{MOVI_A_LOW_B128_D32[-1].name}_7",
+                                 seed=MOVI_A_LOW_B128_D32_6[-1].seed + 1, ships_as="gns_movi_a_low_b128_d32_7"))
+MOVI_A_LOW_B128_D32_7_S100 = variant(MOVI_A_LOW_B128_D32_7, "s100", (), "gns_movi_a_low_b128_d32_7_s100",
+                                     seed_offset=100)
+
 # session 33: the distilled stage of session 31 at batch 64, taught by the batch-64 pair: its steps scaled by
 # the measured rates the same way (batch 64: 3.2 steps/s with the teacher, 205 graphs/s; batch 16: 6.8, 108), so
 # 10k steps are ~the wall clock of session 31's 20k (~52 minutes of one core; 63 beside two other runs): 15.0% /

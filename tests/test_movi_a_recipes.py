@@ -13,6 +13,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_5_S100,
                                      MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_S100, MOVI_A_LOW_B128_D32_6,
                                      MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_DISTILLED, MOVI_A_LOW_B256,
+                                     MOVI_A_LOW_B128_D32_7, MOVI_A_LOW_B128_D32_7_S100,
                                      MOVI_A_LOW_B256_S100,
                                      MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
@@ -30,7 +31,8 @@ SHIPPING = (MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST +
             + MOVI_A_LOW_SPOKES_CHAIN_AVG[-1:] + MOVI_A_LOW_SPOKES_CHAIN_AVG_S100[-1:] + (MOVI_A_LOW_DISTILLED,)
             + MOVI_A_LOW_B64[-1:] + MOVI_A_LOW_B64_S100[-1:] + (MOVI_A_LOW_B64_DISTILLED,)
             + MOVI_A_LOW_B128[-1:] + MOVI_A_LOW_B128_S100[-1:] + MOVI_A_LOW_B128_D32[-1:]
-            + MOVI_A_LOW_B128_D32_S100[-1:] + MOVI_A_LOW_B128_D32_6[-1:] + MOVI_A_LOW_B128_D32_6_S100[-1:])
+            + MOVI_A_LOW_B128_D32_S100[-1:] + MOVI_A_LOW_B128_D32_6[-1:] + MOVI_A_LOW_B128_D32_6_S100[-1:]
+            + MOVI_A_LOW_B128_D32_7[-1:] + MOVI_A_LOW_B128_D32_7_S100[-1:])
 
 
 @pytest.mark.parametrize("stage", [s for s in SHIPPING if s.ships_as], ids=lambda s: s.name)
@@ -48,12 +50,12 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
                                    MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                    MOVI_A_MID_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_B64,
                                    MOVI_A_LOW_B128, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_6,
-                                   MOVI_A_LOW_B256],
+                                   MOVI_A_LOW_B128_D32_7, MOVI_A_LOW_B256],
                          ids=["best", "canonical", "fast", "mid", "heading", "spokes", "mid_spokes", "heading4",
                               "heading_k2", "spokes_chain", "mid_spokes_chain", "spokes_k2", "sphere_edges_chain",
                               "mid_sphere_edges_chain", "spokes_chain_avg", "mid_spokes_chain_avg",
                               "low_spokes_chain_avg", "low_b64", "low_b128", "low_b128_5", "low_b128_d32",
-                              "low_b128_d32_6", "low_b256"])
+                              "low_b128_d32_6", "low_b128_d32_7", "low_b256"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
@@ -132,16 +134,19 @@ def test_the_more_scenes_chain_is_the_fifth_stage_chain_on_its_data(chain, base)
 
 
 @pytest.mark.parametrize("chain, base", [(MOVI_A_LOW_B128_D32_6, MOVI_A_LOW_B128_D32),
-                                         (MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_S100)], ids=["s0", "s100"])
-def test_the_sixth_stage_is_the_fifth_again_from_where_it_ended(chain, base):
-    """Session 38: the d32 chain's run folders unchanged (a finished d32 pipeline resumes into the
-    sixth stage), then its last stage once more with the next seed and nothing else changed."""
+                                         (MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_S100),
+                                         (MOVI_A_LOW_B128_D32_7, MOVI_A_LOW_B128_D32_6),
+                                         (MOVI_A_LOW_B128_D32_7_S100, MOVI_A_LOW_B128_D32_6_S100)],
+                         ids=["6_s0", "6_s100", "7_s0", "7_s100"])
+def test_the_sixth_and_seventh_stages_are_the_fifth_again_from_where_it_ended(chain, base):
+    """Sessions 38-39: the shorter chain's run folders unchanged (a finished pipeline resumes into
+    the next stage), then its last stage once more with the next seed and nothing else changed."""
     assert [s.name for s in chain[:-1]] == [s.name for s in base] and not any(s.ships_as for s in chain[:-1])
     fifth, sixth = (build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(s, None, 0))
                     for s in (base[-1], chain[-1]))
     assert config_differences(config_to_dict(fifth), sixth) == [f"train.seed is {fifth.train.seed} in the checkpoint, "
                                                                 f"{fifth.train.seed + 1} now"]
-    assert chain[-1].ships_as.startswith("gns_movi_a_low_b128_d32_6")
+    assert chain[-1].ships_as.startswith(f"gns_movi_a_low_b128_d32_{len(chain) - len(MOVI_A_LOW_B128_D32) + 5}")
 
 
 def test_the_d32_distilled_stage_is_the_batch_64_one_taught_by_the_sixth_stage_pair():
