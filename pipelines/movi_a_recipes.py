@@ -246,23 +246,29 @@ MOVI_A_LOW_B128_D32 = (*(replace(s, settings=(*s.settings, "train.scenes=4000"),
                                ships_as="gns_movi_a_low_b128_d32"))
 MOVI_A_LOW_B128_D32_S100 = variant(MOVI_A_LOW_B128_D32, "s100", (), "gns_movi_a_low_b128_d32_s100", seed_offset=100)
 
+
+def _d32_again(chain: tuple, n: int) -> tuple:
+    """`chain` (shipping nothing now), then the d32 stage once more from where it ended: the next
+    seed, run folder <d32 stage>_n, shipped as gns_movi_a_low_b128_d32_n. The earlier stages' run
+    folders stay the chain's, so a finished pipeline of the shorter chain resumes into stage n."""
+    d32 = MOVI_A_LOW_B128_D32[-1]
+    return (*chain[:-1], replace(chain[-1], ships_as=""),
+            replace(d32, name=f"{d32.name}_{n}", seed=chain[-1].seed + 1, ships_as=f"gns_movi_a_low_b128_d32_{n}"))
+
+
 # session 38: the d32 stage once more (its schedule, the next seed) on the 32,000 scenes from where it ended, ~29 min on
 # the two cores at once (an AMD EPYC with avx512_bf16). Each member gains ~1 point and 0.7-0.9 degrees at one call; the
 # pair 11.8% / 19.5 deg with d2 where d32's scores 12.3 / 19.9, and on 1200 new scenes 11.8 / 18.1 against 12.2 / 18.8.
 # ~2 h 58 min in all, past the accuracy issue's ~2.5 h: the next step on the path to the paper (docs/accuracy.md,
 # session 38)
-MOVI_A_LOW_B128_D32_6 = (*MOVI_A_LOW_B128_D32[:-1], replace(MOVI_A_LOW_B128_D32[-1], ships_as=""),
-                         replace(MOVI_A_LOW_B128_D32[-1], name=f"{MOVI_A_LOW_B128_D32[-1].name}_6",
-                                 seed=MOVI_A_LOW_B128_D32[-1].seed + 1, ships_as="gns_movi_a_low_b128_d32_6"))
+MOVI_A_LOW_B128_D32_6 = _d32_again(MOVI_A_LOW_B128_D32, 6)
 MOVI_A_LOW_B128_D32_6_S100 = variant(MOVI_A_LOW_B128_D32_6, "s100", (), "gns_movi_a_low_b128_d32_6_s100",
                                      seed_offset=100)
 
 # session 39: the same stage a third time (the next seed) from where the sixth ended, ~29 min on the two cores at
 # once: each member gains 0.4-0.6 points and 0.7-0.9 degrees at one call again; the pair 11.4% / 18.6 deg with d2
 # (11.3 / 17.6 on 1200 new scenes). ~3 h 27 min in all (docs/accuracy.md, session 39)
-MOVI_A_LOW_B128_D32_7 = (*MOVI_A_LOW_B128_D32_6[:-1], replace(MOVI_A_LOW_B128_D32_6[-1], ships_as=""),
-                         replace(MOVI_A_LOW_B128_D32[-1], name=f"{MOVI_A_LOW_B128_D32[-1].name}_7",
-                                 seed=MOVI_A_LOW_B128_D32_6[-1].seed + 1, ships_as="gns_movi_a_low_b128_d32_7"))
+MOVI_A_LOW_B128_D32_7 = _d32_again(MOVI_A_LOW_B128_D32_6, 7)
 MOVI_A_LOW_B128_D32_7_S100 = variant(MOVI_A_LOW_B128_D32_7, "s100", (), "gns_movi_a_low_b128_d32_7_s100",
                                      seed_offset=100)
 

@@ -12,9 +12,8 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_LOW_B64, MOVI_A_LOW_B64_DISTILLED, MOVI_A_LOW_B64_S100, MOVI_A_LOW_DISTILLED,
                                      MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_5_S100,
                                      MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_S100, MOVI_A_LOW_B128_D32_6,
-                                     MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_DISTILLED, MOVI_A_LOW_B256,
-                                     MOVI_A_LOW_B128_D32_7, MOVI_A_LOW_B128_D32_7_S100,
-                                     MOVI_A_LOW_B256_S100,
+                                     MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_7, MOVI_A_LOW_B128_D32_7_S100,
+                                     MOVI_A_LOW_B128_D32_DISTILLED, MOVI_A_LOW_B256, MOVI_A_LOW_B256_S100,
                                      MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                      MOVI_A_SPOKES_CHAIN_AVG_S100, MOVI_A_SPOKES_CHAIN_S100, MOVI_A_SPOKES_K2,
@@ -132,7 +131,6 @@ def test_the_more_scenes_chain_is_the_fifth_stage_chain_on_its_data(chain, base)
     assert PRESETS["low_b128_pair"]["counts"] == {**PRESETS["low_b128_d32_pair"]["counts"], "train": 4000}
 
 
-
 @pytest.mark.parametrize("chain, base", [(MOVI_A_LOW_B128_D32_6, MOVI_A_LOW_B128_D32),
                                          (MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_S100),
                                          (MOVI_A_LOW_B128_D32_7, MOVI_A_LOW_B128_D32_6),
@@ -142,10 +140,10 @@ def test_the_sixth_and_seventh_stages_are_the_fifth_again_from_where_it_ended(ch
     """Sessions 38-39: the shorter chain's run folders unchanged (a finished pipeline resumes into
     the next stage), then its last stage once more with the next seed and nothing else changed."""
     assert [s.name for s in chain[:-1]] == [s.name for s in base] and not any(s.ships_as for s in chain[:-1])
-    fifth, sixth = (build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(s, None, 0))
-                    for s in (base[-1], chain[-1]))
-    assert config_differences(config_to_dict(fifth), sixth) == [f"train.seed is {fifth.train.seed} in the checkpoint, "
-                                                                f"{fifth.train.seed + 1} now"]
+    before, again = (build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(s, None, 0))
+                     for s in (base[-1], chain[-1]))
+    assert config_differences(config_to_dict(before), again) == [f"train.seed is {before.train.seed} in the checkpoint, "
+                                                                 f"{before.train.seed + 1} now"]
     assert chain[-1].ships_as.startswith(f"gns_movi_a_low_b128_d32_{len(chain) - len(MOVI_A_LOW_B128_D32) + 5}")
 
 
@@ -160,6 +158,7 @@ def test_the_d32_distilled_stage_is_the_batch_64_one_taught_by_the_sixth_stage_p
     preset = PRESETS["low_b128_d32_distilled"]
     assert preset["chain"] is MOVI_A_LOW_B128_D32_6 and preset["members"] == (MOVI_A_LOW_B128_D32_6_S100,)
     assert preset["distilled"] is MOVI_A_LOW_B128_D32_DISTILLED and preset["counts"]["train"] == 32_000
+
 
 def test_fresh_may_delete_the_run_folder_of_every_chain_stage():
     """`--fresh` deletes a folder only if it holds nothing but the pipeline's outputs: a chain
