@@ -109,7 +109,13 @@ Presets (measured costs on a 2-core CPU in the README):
          scored 11.8% / 19.5 deg with d2
   low_b128_d32_7, low_b128_d32_7_pair   the same stage a third time (the next seed, ~29 min;
          session 39): the shipped pair (gns_movi_a_low_b128_d32_7 + _s100) scored 11.4% / 18.6 deg
-         with d2, the most accurate here, ~3 h 27 min in all
+         with d2, ~3 h 27 min in all
+  low_b128_d32_8, low_b128_d32_8_pair   the same stage a fourth time (the next seed, ~29 min;
+         session 40): the shipped pair (gns_movi_a_low_b128_d32_8 + _s100) scored 11.0% / 18.2 deg
+         with d2, ~3 h 56 min in all
+  low_b128_d32_9, low_b128_d32_9_pair   and a fifth time (session 40): 10.8% / 17.6 deg, ~4 h 25 min
+  low_b128_d32_10, low_b128_d32_10_pair   and a sixth time (session 40): 10.7% / 17.3 deg with d2
+         (10.6 / 16.7 on 1200 new scenes), the most accurate here, ~4 h 54 min in all
   low_b128_d32_distilled   low_b128_d32_6_pair, then low_b64_distilled's stage (10k steps at batch
          64, ~54 min with a second seed on the other core) taught by that pair on the 32,000 scenes,
          rolled out alone at one call: no gain over its student (13.8% / 21.0 deg against 13.9 /
@@ -126,16 +132,18 @@ Presets (measured costs on a 2-core CPU in the README):
   distill_tiny smoke test of a distilled stage: pair_tiny, then a stage taught by the pair
 The chains (budget, canonical, heading, heading4, heading_k2, budget_pf, best, best_pair, budget_pair,
 spokes_pair, spokes_pair_avg, fast, mid, spokes, mid_spokes, spokes_chain, spokes_chain_avg,
-mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, low_distilled, low_b64,
-low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, low_b128_5, low_b128_5_pair, low_b128_d32,
-low_b128_d32_pair, low_b128_d32_6, low_b128_d32_6_pair, low_b128_d32_7, low_b128_d32_7_pair,
-low_b128_d32_distilled, low_b256, low_b256_pair, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain)
-are scored as their models are, with free flight and symmetrized rollouts (fast, mid and every
-spokes chain alone, low_b64, low_b128, low_b128_5, low_b128_d32, low_b128_d32_6, low_b128_d32_7,
-low_b256 and the distilled ones: free flight, one network call; the spokes and low pairs symmetrized).
-Their data are the README's data/movi_a_4000 (the same config and seed): a link OUT/data ->
-data/movi_a_4000 skips generating them again (the low_b128_d32 ones': data/movi_a_32000, the README's
-command with --scenes 32000).
+mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_avg, low_distilled,
+low_b64, low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, low_b128_5, low_b128_5_pair,
+low_b128_d32, low_b128_d32_pair, low_b128_d32_6, low_b128_d32_6_pair, low_b128_d32_7,
+low_b128_d32_7_pair, low_b128_d32_8, low_b128_d32_8_pair, low_b128_d32_9, low_b128_d32_9_pair,
+low_b128_d32_10, low_b128_d32_10_pair, low_b128_d32_distilled, low_b256, low_b256_pair, spokes_k2,
+sphere_edges_chain, mid_sphere_edges_chain) are scored as their models are, with free flight and
+symmetrized rollouts (fast, mid and every spokes chain alone, low_b64, low_b128, low_b128_5,
+low_b128_d32, low_b128_d32_6, low_b128_d32_7, low_b128_d32_8, low_b128_d32_9, low_b128_d32_10, low_b256
+and the distilled ones: free flight, one network call; the spokes and low pairs symmetrized). Their data
+are the README's data/movi_a_4000 (the same config and seed): a link OUT/data -> data/movi_a_4000 skips
+generating them again (the low_b128_d32 ones': data/movi_a_32000, the README's command with --scenes
+32000).
 """
 from __future__ import annotations
 
@@ -163,6 +171,9 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_S100, MOVI_A_LOW_B128_D32_6,
                                      MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_DISTILLED,
                                      MOVI_A_LOW_B128_D32_7, MOVI_A_LOW_B128_D32_7_S100,
+                                     MOVI_A_LOW_B128_D32_8, MOVI_A_LOW_B128_D32_8_S100,
+                                     MOVI_A_LOW_B128_D32_9, MOVI_A_LOW_B128_D32_9_S100,
+                                     MOVI_A_LOW_B128_D32_10, MOVI_A_LOW_B128_D32_10_S100,
                                      MOVI_A_LOW_B256, MOVI_A_LOW_B256_S100,
                                      MOVI_A_LOW_DISTILLED, TINY_CHAIN, TINY_DISTILLED, TINY_MEMBER, stage_overrides)
 
@@ -220,6 +231,13 @@ PRESETS = {
     "low_b128_d32_6_pair": _chain_preset(MOVI_A_LOW_B128_D32_6, members=(MOVI_A_LOW_B128_D32_6_S100,), scenes=32_000),
     "low_b128_d32_7": _chain_preset(MOVI_A_LOW_B128_D32_7, symmetrize=False, scenes=32_000),
     "low_b128_d32_7_pair": _chain_preset(MOVI_A_LOW_B128_D32_7, members=(MOVI_A_LOW_B128_D32_7_S100,), scenes=32_000),
+    "low_b128_d32_8": _chain_preset(MOVI_A_LOW_B128_D32_8, symmetrize=False, scenes=32_000),
+    "low_b128_d32_8_pair": _chain_preset(MOVI_A_LOW_B128_D32_8, members=(MOVI_A_LOW_B128_D32_8_S100,), scenes=32_000),
+    "low_b128_d32_9": _chain_preset(MOVI_A_LOW_B128_D32_9, symmetrize=False, scenes=32_000),
+    "low_b128_d32_9_pair": _chain_preset(MOVI_A_LOW_B128_D32_9, members=(MOVI_A_LOW_B128_D32_9_S100,), scenes=32_000),
+    "low_b128_d32_10": _chain_preset(MOVI_A_LOW_B128_D32_10, symmetrize=False, scenes=32_000),
+    "low_b128_d32_10_pair": _chain_preset(MOVI_A_LOW_B128_D32_10, members=(MOVI_A_LOW_B128_D32_10_S100,),
+                                          scenes=32_000),
     "low_b128_d32_distilled": _chain_preset(MOVI_A_LOW_B128_D32_6, symmetrize=False,
                                             members=(MOVI_A_LOW_B128_D32_6_S100,),
                                             distilled=MOVI_A_LOW_B128_D32_DISTILLED, scenes=32_000),

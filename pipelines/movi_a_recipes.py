@@ -272,6 +272,19 @@ MOVI_A_LOW_B128_D32_7 = _d32_again(MOVI_A_LOW_B128_D32_6, 7)
 MOVI_A_LOW_B128_D32_7_S100 = variant(MOVI_A_LOW_B128_D32_7, "s100", (), "gns_movi_a_low_b128_d32_7_s100",
                                      seed_offset=100)
 
+# session 40: the same stage a fourth, fifth and sixth time (the next seed each) from where the one before ended, ~29
+# min each on the two cores at once: the pair with d2 11.0% / 18.2 deg, 10.8 / 17.6, then 10.7 / 17.3 (10.6 / 16.7 on
+# 1200 new scenes, the paper's rotation); ~3 h 56 min, ~4 h 25 min, ~4 h 54 min in all (docs/accuracy.md, session 40)
+MOVI_A_LOW_B128_D32_8 = _d32_again(MOVI_A_LOW_B128_D32_7, 8)
+MOVI_A_LOW_B128_D32_8_S100 = variant(MOVI_A_LOW_B128_D32_8, "s100", (), "gns_movi_a_low_b128_d32_8_s100",
+                                     seed_offset=100)
+MOVI_A_LOW_B128_D32_9 = _d32_again(MOVI_A_LOW_B128_D32_8, 9)
+MOVI_A_LOW_B128_D32_9_S100 = variant(MOVI_A_LOW_B128_D32_9, "s100", (), "gns_movi_a_low_b128_d32_9_s100",
+                                     seed_offset=100)
+MOVI_A_LOW_B128_D32_10 = _d32_again(MOVI_A_LOW_B128_D32_9, 10)
+MOVI_A_LOW_B128_D32_10_S100 = variant(MOVI_A_LOW_B128_D32_10, "s100", (), "gns_movi_a_low_b128_d32_10_s100",
+                                      seed_offset=100)
+
 # session 33: the distilled stage of session 31 at batch 64, taught by the batch-64 pair: its steps scaled by
 # the measured rates the same way (batch 64: 3.2 steps/s with the teacher, 205 graphs/s; batch 16: 6.8, 108), so
 # 10k steps are ~the wall clock of session 31's 20k (~52 minutes of one core; 63 beside two other runs): 15.0% /
