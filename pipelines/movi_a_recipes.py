@@ -256,34 +256,30 @@ def _d32_again(chain: tuple, n: int) -> tuple:
             replace(d32, name=f"{d32.name}_{n}", seed=chain[-1].seed + 1, ships_as=f"gns_movi_a_low_b128_d32_{n}"))
 
 
+def _d32_pair(chain: tuple, n: int) -> tuple:
+    """_d32_again of `chain` and its seed-100 twin, shipped as gns_movi_a_low_b128_d32_n[_s100]."""
+    again = _d32_again(chain, n)
+    return again, variant(again, "s100", (), f"gns_movi_a_low_b128_d32_{n}_s100", seed_offset=100)
+
+
 # session 38: the d32 stage once more (its schedule, the next seed) on the 32,000 scenes from where it ended, ~29 min on
 # the two cores at once (an AMD EPYC with avx512_bf16). Each member gains ~1 point and 0.7-0.9 degrees at one call; the
 # pair 11.8% / 19.5 deg with d2 where d32's scores 12.3 / 19.9, and on 1200 new scenes 11.8 / 18.1 against 12.2 / 18.8.
 # ~2 h 58 min in all, past the accuracy issue's ~2.5 h: the next step on the path to the paper (docs/accuracy.md,
 # session 38)
-MOVI_A_LOW_B128_D32_6 = _d32_again(MOVI_A_LOW_B128_D32, 6)
-MOVI_A_LOW_B128_D32_6_S100 = variant(MOVI_A_LOW_B128_D32_6, "s100", (), "gns_movi_a_low_b128_d32_6_s100",
-                                     seed_offset=100)
+MOVI_A_LOW_B128_D32_6, MOVI_A_LOW_B128_D32_6_S100 = _d32_pair(MOVI_A_LOW_B128_D32, 6)
 
 # session 39: the same stage a third time (the next seed) from where the sixth ended, ~29 min on the two cores at
 # once: each member gains 0.4-0.6 points and 0.7-0.9 degrees at one call again; the pair 11.4% / 18.6 deg with d2
 # (11.3 / 17.6 on 1200 new scenes). ~3 h 27 min in all (docs/accuracy.md, session 39)
-MOVI_A_LOW_B128_D32_7 = _d32_again(MOVI_A_LOW_B128_D32_6, 7)
-MOVI_A_LOW_B128_D32_7_S100 = variant(MOVI_A_LOW_B128_D32_7, "s100", (), "gns_movi_a_low_b128_d32_7_s100",
-                                     seed_offset=100)
+MOVI_A_LOW_B128_D32_7, MOVI_A_LOW_B128_D32_7_S100 = _d32_pair(MOVI_A_LOW_B128_D32_6, 7)
 
 # session 40: the same stage a fourth, fifth and sixth time (the next seed each) from where the one before ended, ~29
 # min each on the two cores at once: the pair with d2 11.0% / 18.2 deg, 10.8 / 17.6, then 10.7 / 17.3 (10.6 / 16.7 on
 # 1200 new scenes, the paper's rotation); ~3 h 56 min, ~4 h 25 min, ~4 h 54 min in all (docs/accuracy.md, session 40)
-MOVI_A_LOW_B128_D32_8 = _d32_again(MOVI_A_LOW_B128_D32_7, 8)
-MOVI_A_LOW_B128_D32_8_S100 = variant(MOVI_A_LOW_B128_D32_8, "s100", (), "gns_movi_a_low_b128_d32_8_s100",
-                                     seed_offset=100)
-MOVI_A_LOW_B128_D32_9 = _d32_again(MOVI_A_LOW_B128_D32_8, 9)
-MOVI_A_LOW_B128_D32_9_S100 = variant(MOVI_A_LOW_B128_D32_9, "s100", (), "gns_movi_a_low_b128_d32_9_s100",
-                                     seed_offset=100)
-MOVI_A_LOW_B128_D32_10 = _d32_again(MOVI_A_LOW_B128_D32_9, 10)
-MOVI_A_LOW_B128_D32_10_S100 = variant(MOVI_A_LOW_B128_D32_10, "s100", (), "gns_movi_a_low_b128_d32_10_s100",
-                                      seed_offset=100)
+MOVI_A_LOW_B128_D32_8, MOVI_A_LOW_B128_D32_8_S100 = _d32_pair(MOVI_A_LOW_B128_D32_7, 8)
+MOVI_A_LOW_B128_D32_9, MOVI_A_LOW_B128_D32_9_S100 = _d32_pair(MOVI_A_LOW_B128_D32_8, 9)
+MOVI_A_LOW_B128_D32_10, MOVI_A_LOW_B128_D32_10_S100 = _d32_pair(MOVI_A_LOW_B128_D32_9, 10)
 
 # session 33: the distilled stage of session 31 at batch 64, taught by the batch-64 pair: its steps scaled by
 # the measured rates the same way (batch 64: 3.2 steps/s with the teacher, 205 graphs/s; batch 16: 6.8, 108), so
