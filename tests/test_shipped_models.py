@@ -115,7 +115,7 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
               "gns_movi_a_low_b128_d32_6", "gns_movi_a_low_b128_d32_6_s100", "gns_movi_a_low_b128_d32_7",
               "gns_movi_a_low_b128_d32_7_s100", "gns_movi_a_low_b128_d32_8", "gns_movi_a_low_b128_d32_8_s100",
               "gns_movi_a_low_b128_d32_9", "gns_movi_a_low_b128_d32_9_s100", "gns_movi_a_low_b128_d32_10",
-              "gns_movi_a_low_b128_d32_10_s100")
+              "gns_movi_a_low_b128_d32_10_s100", "gns_movi_a_low_b128_d32_11", "gns_movi_a_low_b128_d32_11_s100")
     assert {*movi_a, "gns_diagnostic_45"} <= set(shipped_models())
     data = tmp_path / "movi"
     assert datagen(["toss", "--shapes", "beveled_cube,cylinder,sphere", "--scenes", "1", "--test", "6",
@@ -145,7 +145,8 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
                  "gns_movi_a_low_b128_d32_s100", "gns_movi_a_low_b128_d32_6", "gns_movi_a_low_b128_d32_6_s100",
                  "gns_movi_a_low_b128_d32_7", "gns_movi_a_low_b128_d32_7_s100", "gns_movi_a_low_b128_d32_8",
                  "gns_movi_a_low_b128_d32_8_s100", "gns_movi_a_low_b128_d32_9", "gns_movi_a_low_b128_d32_9_s100",
-                 "gns_movi_a_low_b128_d32_10", "gns_movi_a_low_b128_d32_10_s100"):
+                 "gns_movi_a_low_b128_d32_10", "gns_movi_a_low_b128_d32_10_s100", "gns_movi_a_low_b128_d32_11",
+                 "gns_movi_a_low_b128_d32_11_s100"):
         sim, cfg = load_model(checkpoint_of(name))
         assert (sim.lowest_vertices, sim.highest_vertices) == (12, 4) and not cfg.features.surface_edges
     # the batch-64 chain (sessions 32-33)
@@ -155,14 +156,15 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     assert all(load_model(checkpoint_of(n))[1].train.batch_size == 128
                for n in ("gns_movi_a_low_b128", "gns_movi_a_low_b128_s100"))
     # and its fifth stage on the 32,000 scenes of the README's command (session 37), and the sixth
-    # to tenth stages on the same command's scenes written again on later machines (sessions
+    # to eleventh stages on the same command's scenes written again on later machines (sessions
     # 38-40): another fingerprint, the same first 4000 scenes and test shards (docs/accuracy.md, session 38)
     for names, fingerprint in ((("gns_movi_a_low_b128_d32", "gns_movi_a_low_b128_d32_s100"), "e1f9d1245f249ff2"),
                                (("gns_movi_a_low_b128_d32_6", "gns_movi_a_low_b128_d32_6_s100",
                                  "gns_movi_a_low_b128_d32_7", "gns_movi_a_low_b128_d32_7_s100",
                                  "gns_movi_a_low_b128_d32_8", "gns_movi_a_low_b128_d32_8_s100",
                                  "gns_movi_a_low_b128_d32_9", "gns_movi_a_low_b128_d32_9_s100",
-                                 "gns_movi_a_low_b128_d32_10", "gns_movi_a_low_b128_d32_10_s100"), "872d32be76c0d532")):
+                                 "gns_movi_a_low_b128_d32_10", "gns_movi_a_low_b128_d32_10_s100",
+                                 "gns_movi_a_low_b128_d32_11", "gns_movi_a_low_b128_d32_11_s100"), "872d32be76c0d532")):
         for name in names:
             data = read_checkpoint(checkpoint_of(name))["provenance"]["data"]
             assert data["path"] == "data/movi_a_32000" and data["fingerprint"].startswith(fingerprint), name
