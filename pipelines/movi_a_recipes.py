@@ -283,6 +283,9 @@ MOVI_A_LOW_B128_D32_10, MOVI_A_LOW_B128_D32_10_S100 = _d32_pair(MOVI_A_LOW_B128_
 # and a seventh time (session 40, the last 29 min): 10.5% / 16.9 deg with d2, below the paper's rotation on the 400
 # test scenes too (10.4 / 16.5 on the 1200 new ones); ~5 h 23 min in all
 MOVI_A_LOW_B128_D32_11, MOVI_A_LOW_B128_D32_11_S100 = _d32_pair(MOVI_A_LOW_B128_D32_10, 11)
+# stage n -> (the chain through it, its seed-100 twin): what the presets and tests derive from
+MOVI_A_LOW_B128_D32_AGAIN = {n: (globals()[f"MOVI_A_LOW_B128_D32_{n}"], globals()[f"MOVI_A_LOW_B128_D32_{n}_S100"])
+                             for n in range(6, 12)}
 
 # session 33: the distilled stage of session 31 at batch 64, taught by the batch-64 pair: its steps scaled by
 # the measured rates the same way (batch 64: 3.2 steps/s with the teacher, 205 graphs/s; batch 16: 6.8, 108), so

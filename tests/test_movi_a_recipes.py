@@ -12,10 +12,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_LOW_B64, MOVI_A_LOW_B64_DISTILLED, MOVI_A_LOW_B64_S100, MOVI_A_LOW_DISTILLED,
                                      MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_5_S100,
                                      MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_S100, MOVI_A_LOW_B128_D32_6,
-                                     MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_7, MOVI_A_LOW_B128_D32_7_S100,
-                                     MOVI_A_LOW_B128_D32_8, MOVI_A_LOW_B128_D32_8_S100, MOVI_A_LOW_B128_D32_9,
-                                     MOVI_A_LOW_B128_D32_9_S100, MOVI_A_LOW_B128_D32_10, MOVI_A_LOW_B128_D32_10_S100,
-                                     MOVI_A_LOW_B128_D32_11, MOVI_A_LOW_B128_D32_11_S100,
+                                     MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_AGAIN,
                                      MOVI_A_LOW_B128_D32_DISTILLED, MOVI_A_LOW_B256, MOVI_A_LOW_B256_S100,
                                      MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
@@ -33,11 +30,8 @@ SHIPPING = (MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST +
             + MOVI_A_LOW_SPOKES_CHAIN_AVG[-1:] + MOVI_A_LOW_SPOKES_CHAIN_AVG_S100[-1:] + (MOVI_A_LOW_DISTILLED,)
             + MOVI_A_LOW_B64[-1:] + MOVI_A_LOW_B64_S100[-1:] + (MOVI_A_LOW_B64_DISTILLED,)
             + MOVI_A_LOW_B128[-1:] + MOVI_A_LOW_B128_S100[-1:] + MOVI_A_LOW_B128_D32[-1:]
-            + MOVI_A_LOW_B128_D32_S100[-1:] + MOVI_A_LOW_B128_D32_6[-1:] + MOVI_A_LOW_B128_D32_6_S100[-1:]
-            + MOVI_A_LOW_B128_D32_7[-1:] + MOVI_A_LOW_B128_D32_7_S100[-1:] + MOVI_A_LOW_B128_D32_8[-1:]
-            + MOVI_A_LOW_B128_D32_8_S100[-1:] + MOVI_A_LOW_B128_D32_9[-1:] + MOVI_A_LOW_B128_D32_9_S100[-1:]
-            + MOVI_A_LOW_B128_D32_10[-1:] + MOVI_A_LOW_B128_D32_10_S100[-1:] + MOVI_A_LOW_B128_D32_11[-1:]
-            + MOVI_A_LOW_B128_D32_11_S100[-1:])
+            + MOVI_A_LOW_B128_D32_S100[-1:]
+            + tuple(stages[-1] for pair in MOVI_A_LOW_B128_D32_AGAIN.values() for stages in pair))
 
 
 @pytest.mark.parametrize("stage", [s for s in SHIPPING if s.ships_as], ids=lambda s: s.name)
@@ -54,15 +48,13 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
                                    MOVI_A_SPOKES_CHAIN, MOVI_A_MID_SPOKES_CHAIN, MOVI_A_SPOKES_K2,
                                    MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                    MOVI_A_MID_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_B64,
-                                   MOVI_A_LOW_B128, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_6,
-                                   MOVI_A_LOW_B128_D32_7, MOVI_A_LOW_B128_D32_8, MOVI_A_LOW_B128_D32_9,
-                                   MOVI_A_LOW_B128_D32_10, MOVI_A_LOW_B128_D32_11, MOVI_A_LOW_B256],
+                                   MOVI_A_LOW_B128, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_D32,
+                                   *(chain for chain, _ in MOVI_A_LOW_B128_D32_AGAIN.values()), MOVI_A_LOW_B256],
                          ids=["best", "canonical", "fast", "mid", "heading", "spokes", "mid_spokes", "heading4",
                               "heading_k2", "spokes_chain", "mid_spokes_chain", "spokes_k2", "sphere_edges_chain",
                               "mid_sphere_edges_chain", "spokes_chain_avg", "mid_spokes_chain_avg",
                               "low_spokes_chain_avg", "low_b64", "low_b128", "low_b128_5", "low_b128_d32",
-                              "low_b128_d32_6", "low_b128_d32_7", "low_b128_d32_8", "low_b128_d32_9",
-                              "low_b128_d32_10", "low_b128_d32_11", "low_b256"])
+                              *(f"low_b128_d32_{n}" for n in MOVI_A_LOW_B128_D32_AGAIN), "low_b256"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
@@ -139,20 +131,14 @@ def test_the_more_scenes_chain_is_the_fifth_stage_chain_on_its_data(chain, base)
     assert PRESETS["low_b128_pair"]["counts"] == {**PRESETS["low_b128_d32_pair"]["counts"], "train": 4000}
 
 
-@pytest.mark.parametrize("chain, base", [(MOVI_A_LOW_B128_D32_6, MOVI_A_LOW_B128_D32),
-                                         (MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_S100),
-                                         (MOVI_A_LOW_B128_D32_7, MOVI_A_LOW_B128_D32_6),
-                                         (MOVI_A_LOW_B128_D32_7_S100, MOVI_A_LOW_B128_D32_6_S100),
-                                         (MOVI_A_LOW_B128_D32_8, MOVI_A_LOW_B128_D32_7),
-                                         (MOVI_A_LOW_B128_D32_8_S100, MOVI_A_LOW_B128_D32_7_S100),
-                                         (MOVI_A_LOW_B128_D32_9, MOVI_A_LOW_B128_D32_8),
-                                         (MOVI_A_LOW_B128_D32_9_S100, MOVI_A_LOW_B128_D32_8_S100),
-                                         (MOVI_A_LOW_B128_D32_10, MOVI_A_LOW_B128_D32_9),
-                                         (MOVI_A_LOW_B128_D32_10_S100, MOVI_A_LOW_B128_D32_9_S100),
-                                         (MOVI_A_LOW_B128_D32_11, MOVI_A_LOW_B128_D32_10),
-                                         (MOVI_A_LOW_B128_D32_11_S100, MOVI_A_LOW_B128_D32_10_S100)],
-                         ids=["6_s0", "6_s100", "7_s0", "7_s100", "8_s0", "8_s100", "9_s0", "9_s100", "10_s0",
-                              "10_s100", "11_s0", "11_s100"])
+# each stage's shorter chain and twin: the d32 pair's, then the stage before's
+_BEFORE = {6: (MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_S100),
+           **{n + 1: pair for n, pair in MOVI_A_LOW_B128_D32_AGAIN.items()}}
+
+
+@pytest.mark.parametrize("chain, base", [(pair[k], _BEFORE[n][k]) for n, pair in MOVI_A_LOW_B128_D32_AGAIN.items()
+                                         for k in (0, 1)],
+                         ids=[f"{n}_{seed}" for n in MOVI_A_LOW_B128_D32_AGAIN for seed in ("s0", "s100")])
 def test_the_later_stages_are_the_fifth_again_from_where_it_ended(chain, base):
     """Sessions 38-40: the shorter chain's run folders unchanged (a finished pipeline resumes into
     the next stage), then its last stage once more with the next seed and nothing else changed."""

@@ -9,6 +9,8 @@ from gns.evaluate import checkpoint_of, evaluate_run, shipped_models
 from gns.train import load_model
 
 CUBES = Path(__file__).parent / "data" / "contactnets"
+# the d32 stage again, sessions 38-40: stage n and its seed-100 twin for n = 6 to 11
+D32_AGAIN = tuple(f"gns_movi_a_low_b128_d32_{n}{twin}" for n in range(6, 12) for twin in ("", "_s100"))
 
 
 def test_the_real_cube_models_are_shipped_and_load_by_name():
@@ -112,10 +114,7 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
               "gns_movi_a_low_spokes_chain_avg_s100", "gns_movi_a_low_distilled", "gns_movi_a_low_b64",
               "gns_movi_a_low_b64_s100", "gns_movi_a_low_b64_distilled", "gns_movi_a_low_b128",
               "gns_movi_a_low_b128_s100", "gns_movi_a_low_b128_d32", "gns_movi_a_low_b128_d32_s100",
-              "gns_movi_a_low_b128_d32_6", "gns_movi_a_low_b128_d32_6_s100", "gns_movi_a_low_b128_d32_7",
-              "gns_movi_a_low_b128_d32_7_s100", "gns_movi_a_low_b128_d32_8", "gns_movi_a_low_b128_d32_8_s100",
-              "gns_movi_a_low_b128_d32_9", "gns_movi_a_low_b128_d32_9_s100", "gns_movi_a_low_b128_d32_10",
-              "gns_movi_a_low_b128_d32_10_s100", "gns_movi_a_low_b128_d32_11", "gns_movi_a_low_b128_d32_11_s100")
+              *D32_AGAIN)
     assert {*movi_a, "gns_diagnostic_45"} <= set(shipped_models())
     data = tmp_path / "movi"
     assert datagen(["toss", "--shapes", "beveled_cube,cylinder,sphere", "--scenes", "1", "--test", "6",
@@ -142,11 +141,7 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     for name in ("gns_movi_a_low_spokes_chain_avg", "gns_movi_a_low_spokes_chain_avg_s100", "gns_movi_a_low_distilled",
                  "gns_movi_a_low_b64", "gns_movi_a_low_b64_s100", "gns_movi_a_low_b64_distilled",
                  "gns_movi_a_low_b128", "gns_movi_a_low_b128_s100", "gns_movi_a_low_b128_d32",
-                 "gns_movi_a_low_b128_d32_s100", "gns_movi_a_low_b128_d32_6", "gns_movi_a_low_b128_d32_6_s100",
-                 "gns_movi_a_low_b128_d32_7", "gns_movi_a_low_b128_d32_7_s100", "gns_movi_a_low_b128_d32_8",
-                 "gns_movi_a_low_b128_d32_8_s100", "gns_movi_a_low_b128_d32_9", "gns_movi_a_low_b128_d32_9_s100",
-                 "gns_movi_a_low_b128_d32_10", "gns_movi_a_low_b128_d32_10_s100", "gns_movi_a_low_b128_d32_11",
-                 "gns_movi_a_low_b128_d32_11_s100"):
+                 "gns_movi_a_low_b128_d32_s100", *D32_AGAIN):
         sim, cfg = load_model(checkpoint_of(name))
         assert (sim.lowest_vertices, sim.highest_vertices) == (12, 4) and not cfg.features.surface_edges
     # the batch-64 chain (sessions 32-33)
@@ -159,12 +154,7 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     # to eleventh stages on the same command's scenes written again on later machines (sessions
     # 38-40): another fingerprint, the same first 4000 scenes and test shards (docs/accuracy.md, session 38)
     for names, fingerprint in ((("gns_movi_a_low_b128_d32", "gns_movi_a_low_b128_d32_s100"), "e1f9d1245f249ff2"),
-                               (("gns_movi_a_low_b128_d32_6", "gns_movi_a_low_b128_d32_6_s100",
-                                 "gns_movi_a_low_b128_d32_7", "gns_movi_a_low_b128_d32_7_s100",
-                                 "gns_movi_a_low_b128_d32_8", "gns_movi_a_low_b128_d32_8_s100",
-                                 "gns_movi_a_low_b128_d32_9", "gns_movi_a_low_b128_d32_9_s100",
-                                 "gns_movi_a_low_b128_d32_10", "gns_movi_a_low_b128_d32_10_s100",
-                                 "gns_movi_a_low_b128_d32_11", "gns_movi_a_low_b128_d32_11_s100"), "872d32be76c0d532")):
+                               (D32_AGAIN, "872d32be76c0d532")):
         for name in names:
             data = read_checkpoint(checkpoint_of(name))["provenance"]["data"]
             assert data["path"] == "data/movi_a_32000" and data["fingerprint"].startswith(fingerprint), name
