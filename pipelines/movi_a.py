@@ -118,6 +118,9 @@ Presets (measured costs on a 2-core CPU in the README):
          (10.6 / 16.7 on 1200 new scenes), ~4 h 54 min in all
   low_b128_d32_11, low_b128_d32_11_pair   and a seventh time (session 40): 10.5% / 16.9 deg with d2
          (10.4 / 16.5 on 1200 new scenes), the most accurate here, ~5 h 23 min in all
+  low_b128_all32, low_b128_all32_pair   low_b128_d32 (pair) with the first four stages on all 32,000
+         scenes too (the same steps, seeds and schedules, so the same ~2 h 29 min; session 41): the
+         A/B of the first stages' data within the accuracy issue's budget
   low_b128_d32_distilled   low_b128_d32_6_pair, then low_b64_distilled's stage (10k steps at batch
          64, ~54 min with a second seed on the other core) taught by that pair on the 32,000 scenes,
          rolled out alone at one call: no gain over its student (13.8% / 21.0 deg against 13.9 /
@@ -138,13 +141,13 @@ mid_spokes_chain, mid_spokes_chain_avg, low_spokes_chain_avg, low_spokes_pair_av
 low_b64, low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, low_b128_5, low_b128_5_pair,
 low_b128_d32, low_b128_d32_pair, low_b128_d32_6, low_b128_d32_6_pair, low_b128_d32_7,
 low_b128_d32_7_pair, low_b128_d32_8, low_b128_d32_8_pair, low_b128_d32_9, low_b128_d32_9_pair,
-low_b128_d32_10, low_b128_d32_10_pair, low_b128_d32_11, low_b128_d32_11_pair, low_b128_d32_distilled,
-low_b256, low_b256_pair, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain) are scored as their
+low_b128_d32_10, low_b128_d32_10_pair, low_b128_d32_11, low_b128_d32_11_pair, low_b128_all32,
+low_b128_all32_pair, low_b128_d32_distilled, low_b256, low_b256_pair, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain) are scored as their
 models are, with free flight and symmetrized rollouts (fast, mid and every spokes chain alone, low_b64,
 low_b128, low_b128_5, low_b128_d32, low_b128_d32_6, low_b128_d32_7, low_b128_d32_8, low_b128_d32_9,
-low_b128_d32_10, low_b128_d32_11, low_b256 and the distilled ones: free flight, one network call; the
+low_b128_d32_10, low_b128_d32_11, low_b128_all32, low_b256 and the distilled ones: free flight, one network call; the
 spokes and low pairs symmetrized). Their data are the README's data/movi_a_4000 (the same config and
-seed): a link OUT/data -> data/movi_a_4000 skips generating them again (the low_b128_d32 ones':
+seed): a link OUT/data -> data/movi_a_4000 skips generating them again (the low_b128_d32 and all32 ones':
 data/movi_a_32000, the README's command with --scenes 32000).
 """
 from __future__ import annotations
@@ -172,7 +175,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_5_S100,
                                      MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_S100, MOVI_A_LOW_B128_D32_6,
                                      MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_DISTILLED,
-                                     MOVI_A_LOW_B128_D32_AGAIN,
+                                     MOVI_A_LOW_B128_D32_AGAIN, MOVI_A_LOW_B128_ALL32, MOVI_A_LOW_B128_ALL32_S100,
                                      MOVI_A_LOW_B256, MOVI_A_LOW_B256_S100,
                                      MOVI_A_LOW_DISTILLED, TINY_CHAIN, TINY_DISTILLED, TINY_MEMBER, stage_overrides)
 
@@ -229,6 +232,8 @@ PRESETS = {
     **{f"low_b128_d32_{n}{suffix}": _chain_preset(chain, symmetrize=bool(suffix), members=(twin,) if suffix else (),
                                                    scenes=32_000)
        for n, (chain, twin) in MOVI_A_LOW_B128_D32_AGAIN.items() for suffix in ("", "_pair")},
+    "low_b128_all32": _chain_preset(MOVI_A_LOW_B128_ALL32, symmetrize=False, scenes=32_000),
+    "low_b128_all32_pair": _chain_preset(MOVI_A_LOW_B128_ALL32, members=(MOVI_A_LOW_B128_ALL32_S100,), scenes=32_000),
     "low_b128_d32_distilled": _chain_preset(MOVI_A_LOW_B128_D32_6, symmetrize=False,
                                             members=(MOVI_A_LOW_B128_D32_6_S100,),
                                             distilled=MOVI_A_LOW_B128_D32_DISTILLED, scenes=32_000),

@@ -13,6 +13,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_LOW_B128, MOVI_A_LOW_B128_S100, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_5_S100,
                                      MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_S100, MOVI_A_LOW_B128_D32_6,
                                      MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_AGAIN,
+                                     MOVI_A_LOW_B128_ALL32, MOVI_A_LOW_B128_ALL32_S100,
                                      MOVI_A_LOW_B128_D32_DISTILLED, MOVI_A_LOW_B256, MOVI_A_LOW_B256_S100,
                                      MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
@@ -49,12 +50,14 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
                                    MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_MID_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
                                    MOVI_A_MID_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_B64,
                                    MOVI_A_LOW_B128, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_D32,
-                                   *(chain for chain, _ in MOVI_A_LOW_B128_D32_AGAIN.values()), MOVI_A_LOW_B256],
+                                   *(chain for chain, _ in MOVI_A_LOW_B128_D32_AGAIN.values()), MOVI_A_LOW_B128_ALL32,
+                                   MOVI_A_LOW_B256],
                          ids=["best", "canonical", "fast", "mid", "heading", "spokes", "mid_spokes", "heading4",
                               "heading_k2", "spokes_chain", "mid_spokes_chain", "spokes_k2", "sphere_edges_chain",
                               "mid_sphere_edges_chain", "spokes_chain_avg", "mid_spokes_chain_avg",
                               "low_spokes_chain_avg", "low_b64", "low_b128", "low_b128_5", "low_b128_d32",
-                              *(f"low_b128_d32_{n}" for n in MOVI_A_LOW_B128_D32_AGAIN), "low_b256"])
+                              *(f"low_b128_d32_{n}" for n in MOVI_A_LOW_B128_D32_AGAIN), "low_b128_all32",
+                              "low_b256"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
@@ -129,6 +132,22 @@ def test_the_more_scenes_chain_is_the_fifth_stage_chain_on_its_data(chain, base)
     from pipelines.movi_a import PRESETS
     assert PRESETS["low_b128_d32_pair"]["counts"]["train"] == 32_000
     assert PRESETS["low_b128_pair"]["counts"] == {**PRESETS["low_b128_d32_pair"]["counts"], "train": 4000}
+
+
+@pytest.mark.parametrize("chain, base", [(MOVI_A_LOW_B128_ALL32, MOVI_A_LOW_B128_D32),
+                                         (MOVI_A_LOW_B128_ALL32_S100, MOVI_A_LOW_B128_D32_S100)], ids=["s0", "s100"])
+def test_the_all_scenes_chain_is_the_d32_chain_without_the_4000_limit(chain, base):
+    """Session 41's A/B (docs/accuracy.md): the d32 chain's steps, seeds and schedules, every stage on
+    all 32,000 scenes; its own run folders (a d32 pipeline's runs are not taken for it), nothing shipped."""
+    assert len(chain) == len(base) and not any(s.ships_as for s in chain)
+    assert not {s.name for s in chain} & {s.name for s in base}
+    for stage, control in zip(chain, base):
+        a = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(stage, None, 0))
+        b = build_config(path=CONFIGS / "gns_cpu.toml", overrides=stage_overrides(control, None, 0))
+        assert config_differences(config_to_dict(b), a) == ([] if stage is chain[-1] else
+                                                            ["train.scenes is 4000 in the checkpoint, 0 now"])
+    from pipelines.movi_a import PRESETS
+    assert PRESETS["low_b128_all32_pair"]["counts"] == PRESETS["low_b128_d32_pair"]["counts"]
 
 
 # each stage's shorter chain and twin: the d32 pair's, then the stage before's
