@@ -102,7 +102,7 @@ Presets (measured costs on a 2-core CPU in the README):
          generates them (~3 min on two workers); their first 4000 are the other chains' scenes, and
          the first four stages keep to those (train.scenes=4000; session 37). The shipped pair
          (gns_movi_a_low_b128_d32 + _s100) scored 12.3% / 20.0 deg with d2, the best within the
-         accuracy issue's budget
+         accuracy issue's budget until session 41
   low_b128_d32_6, low_b128_d32_6_pair   low_b128_d32 (pair) and its fifth stage once more (the next
          seed, ~29 min on an AMD EPYC with avx512_bf16; session 38): past the accuracy issue's ~2.5 h,
          the next step on the path to the paper. The shipped pair (gns_movi_a_low_b128_d32_6 + _s100)
@@ -119,8 +119,9 @@ Presets (measured costs on a 2-core CPU in the README):
   low_b128_d32_11, low_b128_d32_11_pair   and a seventh time (session 40): 10.5% / 16.9 deg with d2
          (10.4 / 16.5 on 1200 new scenes), the most accurate here, ~5 h 23 min in all
   low_b128_all32, low_b128_all32_pair   low_b128_d32 (pair) with the first four stages on all 32,000
-         scenes too (the same steps, seeds and schedules, so the same ~2 h 29 min; session 41): the
-         A/B of the first stages' data within the accuracy issue's budget
+         scenes too (the same steps, seeds and schedules, ~2 h 21 min here; session 41). The shipped
+         pair (gns_movi_a_low_b128_all32 + _s100) scored 11.4% / 17.6 deg with d2, the best within the
+         accuracy issue's budget
   low_b128_d32_distilled   low_b128_d32_6_pair, then low_b64_distilled's stage (10k steps at batch
          64, ~54 min with a second seed on the other core) taught by that pair on the 32,000 scenes,
          rolled out alone at one call: no gain over its student (13.8% / 21.0 deg against 13.9 /

@@ -11,6 +11,8 @@ from gns.train import load_model
 CUBES = Path(__file__).parent / "data" / "contactnets"
 # the d32 stage again, sessions 38-40: stage n and its seed-100 twin for n = 6 to 11
 D32_AGAIN = tuple(f"gns_movi_a_low_b128_d32_{n}{twin}" for n in range(6, 12) for twin in ("", "_s100"))
+# the d32 chain with every stage on the 32,000 scenes (session 41)
+ALL32 = ("gns_movi_a_low_b128_all32", "gns_movi_a_low_b128_all32_s100")
 
 
 def test_the_real_cube_models_are_shipped_and_load_by_name():
@@ -114,7 +116,7 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
               "gns_movi_a_low_spokes_chain_avg_s100", "gns_movi_a_low_distilled", "gns_movi_a_low_b64",
               "gns_movi_a_low_b64_s100", "gns_movi_a_low_b64_distilled", "gns_movi_a_low_b128",
               "gns_movi_a_low_b128_s100", "gns_movi_a_low_b128_d32", "gns_movi_a_low_b128_d32_s100",
-              *D32_AGAIN)
+              *D32_AGAIN, *ALL32)
     assert {*movi_a, "gns_diagnostic_45"} <= set(shipped_models())
     data = tmp_path / "movi"
     assert datagen(["toss", "--shapes", "beveled_cube,cylinder,sphere", "--scenes", "1", "--test", "6",
@@ -141,7 +143,7 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
     for name in ("gns_movi_a_low_spokes_chain_avg", "gns_movi_a_low_spokes_chain_avg_s100", "gns_movi_a_low_distilled",
                  "gns_movi_a_low_b64", "gns_movi_a_low_b64_s100", "gns_movi_a_low_b64_distilled",
                  "gns_movi_a_low_b128", "gns_movi_a_low_b128_s100", "gns_movi_a_low_b128_d32",
-                 "gns_movi_a_low_b128_d32_s100", *D32_AGAIN):
+                 "gns_movi_a_low_b128_d32_s100", *D32_AGAIN, *ALL32):
         sim, cfg = load_model(checkpoint_of(name))
         assert (sim.lowest_vertices, sim.highest_vertices) == (12, 4) and not cfg.features.surface_edges
     # the batch-64 chain (sessions 32-33)
@@ -152,9 +154,10 @@ def test_the_movi_a_and_diagnostic_models_are_shipped_and_roll_out(tmp_path, cap
                for n in ("gns_movi_a_low_b128", "gns_movi_a_low_b128_s100"))
     # and its fifth stage on the 32,000 scenes of the README's command (session 37), and the sixth
     # to eleventh stages on the same command's scenes written again on later machines (sessions
-    # 38-40): another fingerprint, the same first 4000 scenes and test shards (docs/accuracy.md, session 38)
+    # 38-40) and the chain with every stage on them (session 41): another fingerprint, the same first 4000
+    # scenes and test shards (docs/accuracy.md, session 38)
     for names, fingerprint in ((("gns_movi_a_low_b128_d32", "gns_movi_a_low_b128_d32_s100"), "e1f9d1245f249ff2"),
-                               (D32_AGAIN, "872d32be76c0d532")):
+                               (D32_AGAIN + ALL32, "872d32be76c0d532")):
         for name in names:
             data = read_checkpoint(checkpoint_of(name))["provenance"]["data"]
             assert data["path"] == "data/movi_a_32000" and data["fingerprint"].startswith(fingerprint), name
