@@ -291,8 +291,7 @@ MOVI_A_LOW_B128_D32_AGAIN = {n: (globals()[f"MOVI_A_LOW_B128_D32_{n}"], globals(
 # steps, seeds and schedules, so the same work (~2 h 21 min on the two cores at once here). The pair 11.4% / 17.6 deg
 # with d2 where the d32 pair scores 12.3 / 19.9, and on 1200 new scenes 10.9 / 17.3 against 12.2 / 18.8: the best
 # within the accuracy issue's budget (docs/accuracy.md, session 41)
-MOVI_A_LOW_B128_ALL32 = variant(tuple(replace(s, settings=tuple(x for x in s.settings if x != "train.scenes=4000"))
-                                      for s in MOVI_A_LOW_B128_D32), "all32", (), "gns_movi_a_low_b128_all32")
+MOVI_A_LOW_B128_ALL32 = variant((*MOVI_A_LOW_B128, MOVI_A_LOW_B128_D32[-1]), "all32", (), "gns_movi_a_low_b128_all32")
 MOVI_A_LOW_B128_ALL32_S100 = variant(MOVI_A_LOW_B128_ALL32, "s100", (), "gns_movi_a_low_b128_all32_s100", seed_offset=100)
 
 # session 33: the distilled stage of session 31 at batch 64, taught by the batch-64 pair: its steps scaled by
