@@ -10,7 +10,12 @@ batched, in each variant asked:
             update, the network runs on the others (`gns eval --free-flight`)
   sleep     resting objects keep their pose and leave the network call (`--sleep`)
   bf16      the network under bfloat16 autocast (`--autocast bf16`)
-  compile   the network through torch.compile (`--compile`; compiled before timing)
+  compile   the network through torch.compile, its weights read at every call (what training
+            compiles; compiled before timing)
+  freeze    compile with inductor's freezing, the weights taken as constants at the first call
+            (what `gns eval --compile` runs since session 42)
+  clearD    free flight's clearance D above the floor (`--free-clearance D`; default the floor
+            clip): e.g. free+clear0.5
   sym       each step averaged over the floor's 4 mirror symmetries (`--symmetrize`): the most
             accurate rollouts, at 4x the network's work
   d1, c2, c4, d4, r1, r2, r4
@@ -54,16 +59,26 @@ from gns.symmetry import SYMMETRY_GROUPS  # noqa: E402
 from gns.train import load_model, read_checkpoint  # noqa: E402
 
 GROUPS = tuple(g for g in (*SYMMETRY_GROUPS, *RANDOM_TURNS) if g != "d2")   # --symmetrize GROUP; "sym" is d2
-KNOWN = ("plain", "free", "sleep", "bf16", "compile", "sym", *GROUPS)
+KNOWN = ("plain", "free", "sleep", "bf16", "compile", "freeze", "sym", *GROUPS)
+
+
+def clearance(part: str) -> float | None:
+    """The height D of a variant part "clearD" (free flight's clearance), else None."""
+    try:
+        return float(part[5:]) if part.startswith("clear") and float(part[5:]) >= 0 else None
+    except ValueError:
+        return None
 
 
 def parse_variants(text: str) -> list[tuple[str, set[str]]]:
     out = []
     for name in text.split(","):
         parts = set(name.strip().split("+"))
-        unknown = parts - set(KNOWN)
+        unknown = {p for p in parts - set(KNOWN) if clearance(p) is None}
         if unknown:
-            raise SystemExit(f"error: unknown variant part {sorted(unknown)[0]!r}; known: {', '.join(KNOWN)}")
+            raise SystemExit(f"error: unknown variant part {sorted(unknown)[0]!r}; known: {', '.join(KNOWN)}, clearD")
+        if any(clearance(p) is not None for p in parts) and "free" not in parts:
+            raise SystemExit(f"error: variant {name.strip()!r}: clearD sets free flight's height, it needs free")
         groups = sorted(parts & {"sym", *GROUPS})
         if len(groups) > 1:
             raise SystemExit(f"error: variant {name.strip()!r} averages over {' and '.join(groups)}; one group a variant")
@@ -87,15 +102,18 @@ class Roller:
     """Rolls the scenes out with one model in one variant: number type, compiled network
     (compiled once, reused), symmetrized steps and rollout options."""
 
-    def __init__(self, sim, scenes, ds):
-        self.sim, self.scenes, self.ds = sim, scenes, ds
+    def __init__(self, sim, scenes, ds, batch: int):
+        self.sim, self.scenes, self.ds, self.batch = sim, scenes, ds, batch
 
     def __call__(self, parts: set[str]):
         for model in (self.sim, *self.sim.members):
-            model.set_speed("bf16" if "bf16" in parts else "none", "compile" in parts)
+            model.set_speed("bf16" if "bf16" in parts else "none", bool(parts & {"compile", "freeze"}),
+                            freeze="freeze" in parts)
         groups = [p for p in parts if p in GROUPS] + (["d2"] if "sym" in parts else [])
         self.sim.symmetrize = groups[0] if groups else False
+        self.sim.free_clearance = next((clearance(p) for p in parts if clearance(p) is not None), None)
         return rollout_scenes(self.sim, self.scenes, self.ds.meshes, self.ds.frame_rate, progress=False,
+                              batch_tracks=self.batch,
                               free_flight="free" in parts, sleep=Sleep() if "sleep" in parts else None)
 
 
@@ -236,6 +254,9 @@ def main(argv=None) -> int:
     p.add_argument("--data", help="a datagen toss dataset (its config and seed remake the scenes)")
     p.add_argument("--split", default="test")
     p.add_argument("--limit", type=int, help="first N scenes only")
+    p.add_argument("--batch", type=int, default=1024,
+                   help="objects rolled out together (default 1024: MOVi-A's 400 test scenes in one batch; "
+                        "before session 42 256, two batches)")
     p.add_argument("--repeats", type=int, default=3, help="timed repeats, best taken (default 3)")
     p.add_argument("--variants", default="plain,free,bf16,free+bf16,compile,free+bf16+compile",
                    help="comma list of +-joined parts: " + ", ".join(KNOWN))
@@ -268,7 +289,7 @@ def main(argv=None) -> int:
         if ds.stride != 1:
             raise SystemExit(f"error: {run} steps at a stride of the data's frames; this benchmark compares "
                              "at the data's own rate")
-        runs.append((run, Roller(sim, scenes, ds)))
+        runs.append((run, Roller(sim, scenes, ds, a.batch)))
     # one model keeps the variant names short; several name theirs
     jobs = [(name if len(runs) == 1 else f"{run} {name}", roller, parts)
             for run, roller in runs for name, parts in variants]
@@ -276,11 +297,12 @@ def main(argv=None) -> int:
     timings = timed_rounds(jobs, specs, cfg, a.repeats)
     rows = result_rows(*timings, jobs, scenes, ds, cfg)
     print(f"{len(scenes)} {a.split} scenes of {a.data} ({ds.frame_rate:g} fps), model {', '.join(a.run)}; "
-          f"one thread, best of {a.repeats}; GNS scenes batched")
+          f"one thread, best of {a.repeats}; GNS scenes batched, {a.batch} objects a batch")
     print_table(rows)
     if a.json:
         Path(a.json).write_text(json.dumps({"run": a.run, "data": a.data, "split": a.split, "scenes": len(scenes),
-                                            "repeats": a.repeats, "rows": rows}, indent=2, default=float) + "\n")
+                                            "repeats": a.repeats, "batch": a.batch, "rows": rows}, indent=2,
+                                           default=float) + "\n")
     if a.plot:
         print(f"plot: {plot_rows(rows, a.run, a.plot)}")
     return 0

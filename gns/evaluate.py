@@ -45,10 +45,14 @@ def write_json(path: str | Path, obj) -> None:
 
 def load_simulator(run: str | Path, device: str | torch.device = "cpu", symmetrize: bool = False,
                    body_frames: bool = False, autocast: str = "none", compile: bool = False,
-                   ensemble: Sequence[str | Path] = (), turn_seed: int = 0) -> tuple:
+                   ensemble: Sequence[str | Path] = (), turn_seed: int = 0,
+                   free_clearance: float | None = None) -> tuple:
     """The model of `run` (folder, checkpoint or shipped name) set up for rollouts, with the runs
-    of `ensemble` as members whose predictions each step averages (LearnedSimulator.set_ensemble).
+    of `ensemble` as members whose predictions each step averages (LearnedSimulator.set_ensemble);
+    `free_clearance`: free flight's height above the floor (LearnedSimulator.free_flight_clip).
     Returns (simulator, its saved checkpoint)."""
+    if free_clearance is not None and not free_clearance >= 0:
+        raise ConfigError(f"free flight clearance must be a height >= 0 above the floor, not {free_clearance}")
     if symmetrize not in RANDOM_TURNS:
         try:
             symmetry_group(symmetrize)   # a bad group is one line now, not an error at the first step
@@ -57,10 +61,11 @@ def load_simulator(run: str | Path, device: str | torch.device = "cpu", symmetri
     checkpoints = [read_checkpoint(checkpoint_of(r)) for r in (run, *ensemble)]
     sim, *members = [load_model(saved, device)[0] for saved in checkpoints]
     for model in (sim, *members):
-        model.set_speed(autocast, compile)
+        model.set_speed(autocast, compile, freeze=compile)   # rollouts only: the weights stay as loaded
     sim.symmetrize = symmetrize   # members follow the model's symmetrization (set_ensemble)
     sim.body_frames = body_frames
     sim.turn_seed = turn_seed
+    sim.free_clearance = free_clearance
     if members:
         try:
             sim.set_ensemble(members)
@@ -75,7 +80,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                  at_data_rate: bool = False, body_frames: bool = False,
                  device: str = "cpu", free_flight: bool = False, autocast: str = "none",
                  compile: bool = False, ensemble: Sequence[str | Path] = (),
-                 turn_seed: int = 0) -> tuple[dict, list, list, Dataset]:
+                 turn_seed: int = 0, free_clearance: float | None = None) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it (with `ensemble`, the
     predictions averaged with those runs' at every step: load_simulator).
 
@@ -88,7 +93,8 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     """
     device = parse_device(device, "--device")
     ckpt = checkpoint_of(run)
-    sim, saved = load_simulator(ckpt, device, symmetrize, body_frames, autocast, compile, ensemble, turn_seed)
+    sim, saved = load_simulator(ckpt, device, symmetrize, body_frames, autocast, compile, ensemble, turn_seed,
+                                free_clearance)
     if plots_dir is not None:
         check_writable(plots_dir, "plots folder")
     spec = ModelSpec.from_dict(saved["spec"])
@@ -114,7 +120,8 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                    outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
                    diverged_scenes=diverged, num_diverged=len(diverged), symmetrize=symmetrize,
                    body_frames=body_frames, at_data_rate=at_data_rate, model_stride=model_stride,
-                   free_flight=free_flight, object_steps=counts, autocast=autocast,
+                   free_flight=free_flight, free_clearance=sim.free_flight_clip if free_flight else None,
+                   object_steps=counts, autocast=autocast,
                    autocast_used=sim.autocast_used, compile=compile,
                    ensemble=[str(r) for r in ensemble], device=str(device), **provenance_of(saved, ds))
     if symmetrize in RANDOM_TURNS:

@@ -83,6 +83,20 @@ RANDOM_TURNS = {"r1": 1, "r2": 2, "r4": 4}
 IMAGE_NODES = 32768  # most nodes in one network call of symmetrized images (predict_acceleration)
 
 
+class _Frozen(nn.Module):
+    """The network to compile with inductor's freezing (set_speed(freeze=True)). torch.compile
+    caches compiled code per code object, and two compiles of the network itself would share it:
+    the frozen one would run the unfrozen graph or the other way round, whichever came first.
+    This forward is a code object of its own, so its compiled graphs are its own."""
+
+    def __init__(self, network: nn.Module):
+        super().__init__()
+        self.network = network
+
+    def forward(self, *args: torch.Tensor) -> torch.Tensor:
+        return self.network(*args)
+
+
 def _pose_where(mask: torch.Tensor, a: tuple, b: tuple) -> tuple[torch.Tensor, torch.Tensor]:
     """Per object, pose a (R (G, 3, 3), t (G, 3)) where mask (G,) is True, else pose b."""
     return torch.where(mask[:, None, None], a[0], b[0]), torch.where(mask[:, None], a[1], b[1])
@@ -109,6 +123,7 @@ class LearnedSimulator(nn.Module):
     symmetrize: bool | str = False  # average predictions over SYMMETRY_GROUPS (True: "d2"; rollouts; not saved)
     body_frames: bool = False  # and over each object's equivalent body frames (graph.symmetries)
     turn_seed: int = 0  # the random headings of symmetrize="r1"/"r2"/"r4" (not saved)
+    free_clearance: float | None = None  # free flight's height above the floor (None: the floor clip; not saved)
     autocast: torch.dtype | None = None  # the network (only) runs in this dtype under autocast (train.autocast)
     autocast_used: str = "none"  # what set_speed took: "none" or "bf16" ("auto" resolved)
 
@@ -173,13 +188,19 @@ class LearnedSimulator(nn.Module):
         checkpoints stay those of one process; eval mode calls the network directly."""
         self.__dict__["_parallel"] = wrapper
 
-    def set_speed(self, autocast: str = "none", compile: bool = False) -> None:
+    def set_speed(self, autocast: str = "none", compile: bool = False, freeze: bool = False) -> None:
         """How the network runs: autocast "bf16" (the network only, under bfloat16 autocast) or
         "none"; `compile` through torch.compile (dynamic shapes: every batch has its own node and
         edge counts), compiled once and reused when switched on again. The compiled module is
         kept out of the module tree like `distribute`, so state_dict keys and checkpoints are
         unchanged. The first calls compile (tens of seconds on a CPU). autocast "auto": bf16 if it
-        measures faster here (gns.precision); `self.autocast_used` says which was taken."""
+        measures faster here (gns.precision); `self.autocast_used` says which was taken.
+
+        `freeze` (with `compile`, for rollouts of a trained model only): inductor's freezing, which
+        takes the weights as constants at the first call and lays them out for the CPU's matrix
+        kernels once (~10% off a rollout here, docs/speed.md, session 42). Weights changed after
+        that call are not seen, so a training never freezes; in training mode the unfrozen
+        compile (or the plain network) runs."""
         if autocast != "none":   # auto decides here; bf16 on a CPU that emulates it warns
             device = next(self.network.parameters()).device
             autocast = resolve_autocast(autocast, self.network.decoder[0].in_features, device)
@@ -187,13 +208,29 @@ class LearnedSimulator(nn.Module):
         self.autocast = torch.bfloat16 if autocast == "bf16" else None
         if compile and "_compiled_cache" not in self.__dict__:
             self.__dict__["_compiled_cache"] = torch.compile(self.network, dynamic=True)
+        if compile and freeze and "_frozen_cache" not in self.__dict__:
+            self.__dict__["_frozen_cache"] = torch.compile(_Frozen(self.network), dynamic=True)
         self.__dict__["_compiled"] = self.__dict__["_compiled_cache"] if compile else None
+        self.__dict__["_frozen"] = self.__dict__["_frozen_cache"] if compile and freeze else None
 
     def run_network(self, *args: torch.Tensor) -> torch.Tensor:
         wrapper = self.__dict__.get("_parallel")
         compiled = self.__dict__.get("_compiled")
-        network = wrapper if wrapper is not None and self.training else \
-            (self.network if compiled is None else compiled)
+        frozen = None if self.training or torch.is_grad_enabled() else self.__dict__.get("_frozen")
+        if frozen is not None:
+            network = frozen
+        elif wrapper is not None and self.training:
+            network = wrapper
+        else:
+            network = self.network if compiled is None else compiled
+        if frozen is None:
+            return self._call(network, args)
+        # freezing is read when a call compiles (the first, or a shape that recompiles); torch.compile's
+        # options do not carry it there
+        with torch._inductor.config.patch(freezing=True):
+            return self._call(network, args)
+
+    def _call(self, network, args: tuple) -> torch.Tensor:
         if self.autocast is None:
             return network(*args)
         # features, normalisers, the integrator and shape matching stay outside, in float32/float64
@@ -319,7 +356,13 @@ class LearnedSimulator(nn.Module):
     @property
     def free_flight_clip(self) -> float:
         """How far above the floor an object must stay to be in free flight: the largest floor
-        clip of this model and its ensemble members (beyond it no member's network sees the floor)."""
+        clip of this model and its ensemble members (beyond it no member's network sees the floor,
+        so the exact update is what the network would approximate), or `free_clearance` if set.
+        A clearance below the clip also takes the band where the network sees the floor but no
+        vertex can reach it within the step (now or after the ballistic step): fewer object-steps
+        in the network, at an accuracy measured in docs/speed.md (session 42)."""
+        if self.free_clearance is not None:
+            return float(self.free_clearance)
         return max([self.layout.floor_clip] + [m.layout.floor_clip for m in self.members])
 
     def predict_acceleration(self, history: torch.Tensor, graph: GraphBatch) -> torch.Tensor:

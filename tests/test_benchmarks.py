@@ -136,3 +136,16 @@ def test_bench_learned_vs_physics_front_and_replot(tmp_path):
         bench.main(["--replot", str(tmp_path / "b.json")])
     with pytest.raises(SystemExit):
         bench.main(["--data", str(tmp_path)])
+
+
+def test_bench_learned_vs_physics_reads_a_free_flight_clearance_and_refuses_a_bad_one():
+    import pytest
+    spec = importlib.util.spec_from_file_location("bench_lvp", BENCH.parent / "bench_learned_vs_physics.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    [(name, parts)] = bench.parse_variants("free+d1+bf16+freeze+clear0.5")
+    assert [bench.clearance(p) for p in sorted(parts) if bench.clearance(p) is not None] == [0.5]
+    for bad, message in (("free+clearx", "unknown variant part 'clearx'"), ("free+clear-1", "unknown variant part"),
+                         ("bf16+clear0.5", "clearD sets free flight's height, it needs free")):
+        with pytest.raises(SystemExit, match=message):
+            bench.parse_variants(bad)

@@ -141,6 +141,53 @@ def test_objects_near_each_other_stay_in_the_network_and_far_ones_leave_it():
     assert sim.rollout_counts == {"object_steps": 3, "network": 2, "free_flight": 1, "asleep": 0}
 
 
+def test_a_clearance_below_the_floor_clip_frees_an_object_that_cannot_reach_the_floor_within_the_step():
+    """The floor clip (0.5 here) is where the network stops seeing the floor; with a clearance of
+    0.1 an object 0.3 up that stays above 0.1 after the ballistic step flies exactly, one that
+    the step would bring below 0.1 stays in the network."""
+    sim = untrained()
+    assert sim.free_flight_clip == 0.5
+    lib = MeshLibrary(meshes("cube"))
+    one = lib.pack(lib.shape_ids(["cube"]), torch.ones(1, dtype=torch.float64), torch.ones(1), torch.ones(1))
+    low = float(one.rest[:, 2].min())
+    dt = 1.0 / FRAME_RATE
+
+    def frames_at(height, vz):   # no spin: the lowest vertex is the bottom face, `height` up at t
+        return torch.stack([one.rest + torch.tensor([0.0, 0.0, height - low + vz * (k - 2) * dt
+                                                     - 0.5 * G * ((k - 2) * dt) ** 2], dtype=torch.float64)
+                            for k in range(3)], dim=1)
+
+    slow, fast = frames_at(0.3, 0.0), frames_at(0.3, -3.0)   # bottom after the step: 0.27; -0.02
+    for clearance, counts in ((None, (1, 1)), (0.1, (0, 1))):
+        sim.free_clearance = clearance
+        for history, network in zip((slow, fast), counts):
+            pred = sim.rollout(history, one, 1, free_flight=True)
+            assert sim.rollout_counts["network"] == network
+            if not network:   # exactly ballistic: the bottom face 0.3 - g dt^2 / 2 up, whatever the weights
+                assert float(pred[0, :, 2].min()) == pytest.approx(0.3 - 0.5 * G * dt * dt, abs=1e-9)
+
+
+def test_a_frozen_network_rolls_out_as_the_eager_one_for_each_member_and_trains_unfrozen():
+    """Freezing bakes the weights into the compiled graph; two models of one class must not share
+    one graph (each rolls out as its own eager network), and training must not run it."""
+    torch.set_num_threads(1)
+    ms = meshes("beveled_cube", "cylinder", "sphere")
+    sc = resting_scene("cylinder", 1.4, ms, floor_z=0.0)
+    sc.positions[:, 0, 0] += np.arange(sc.num_frames) * 0.1   # sliding on the floor: the network at work
+    graph, history, _ = ObjectTracks([sc], MeshLibrary(ms)).track_vertices(torch.arange(1), 3)
+    a, b = load_model(MODEL)[0], load_model(MODEL)[0]
+    with torch.no_grad():
+        b.network.decoder[-1].weight.mul_(3.0)
+    eager = [m.rollout(history, graph, 4) for m in (a, b)]
+    assert float((eager[0] - eager[1]).abs().max()) > 1e-3   # the two do differ
+    for m, want in zip((a, b), eager):
+        m.set_speed(compile=True, freeze=True)
+        np.testing.assert_allclose(m.rollout(history, graph, 4).numpy(), want.numpy(), rtol=0, atol=1e-5)
+    a.train()
+    a.loss(history, history[:, -1], graph).backward()
+    assert all(p.grad is not None for p in a.network.parameters())
+
+
 def test_sleeping_objects_stay_out_of_the_network_and_keep_their_pose():
     torch.set_num_threads(1)
     sim, _ = load_model(MODEL)
@@ -170,7 +217,8 @@ def test_eval_records_free_flight_bf16_and_the_share_of_object_steps(tmp_path, c
     from gns.cli import main
     data = str(write_toss_dataset(tmp_path / "d", train=2, valid=3, frames=12))
     out = {}
-    for name, extra in (("plain", []), ("fast", ["--free-flight", "--autocast", "bf16"])):
+    for name, extra in (("plain", []), ("fast", ["--free-flight", "--autocast", "bf16"]),
+                        ("near", ["--free-flight", "--free-clearance", "0.05"])):
         main(["eval", "--run", str(MODEL), "--data", data, "--split", "valid", "--json", str(tmp_path / f"{name}.json"),
               *extra])
         out[name] = json.loads((tmp_path / f"{name}.json").read_text())
@@ -181,6 +229,23 @@ def test_eval_records_free_flight_bf16_and_the_share_of_object_steps(tmp_path, c
     assert plain["object_steps"]["network"] == plain["object_steps"]["object_steps"] == 3 * 9
     assert fast["object_steps"]["free_flight"] > 0  # the fixture's cubes start 1.5-3 units up
     assert fast["object_steps"]["network"] + fast["object_steps"]["free_flight"] == 3 * 9
+    # a clearance below the model's floor clip: recorded, and no more object-steps in the network
+    near = out["near"]
+    assert fast["free_clearance"] == pytest.approx(0.5) and near["free_clearance"] == 0.05  # the clip, 0.5
+    assert near["object_steps"]["network"] <= fast["object_steps"]["network"]
+
+
+def test_free_clearance_needs_free_flight_and_a_height(tmp_path, capsys):
+    from gns_fixtures import write_toss_dataset
+    from gns.cli import main
+    data = str(write_toss_dataset(tmp_path / "d", train=2, valid=1, frames=8))
+    for extra, message in ((["--free-clearance", "0.2"], "--free-clearance sets free flight's height: it needs "
+                                                         "--free-flight"),
+                           (["--free-flight", "--free-clearance", "-1"], "free flight clearance must be a height "
+                                                                           ">= 0 above the floor, not -1.0")):
+        with pytest.raises(SystemExit):
+            main(["eval", "--run", str(MODEL), "--data", data, "--split", "valid", *extra])
+        assert message in capsys.readouterr().err
 
 
 def test_a_compiled_network_rolls_out_as_the_eager_one():
