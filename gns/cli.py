@@ -207,7 +207,9 @@ def _add_rollout_args(p) -> None:
                         "Intel Xeon with avx512_bf16 and no AMX; auto: bf16 where a matrix product of the network's "
                         "shape measures faster on this machine (benchmarks/bench_learned_vs_physics.py measures rollouts)")
     p.add_argument("--compile", action="store_true",
-                   help="run the network through torch.compile (the first steps compile, tens of seconds)")
+                   help="run the network through torch.compile with inductor's freezing (the weights as constants, "
+                        "laid out once for the CPU's matrix kernels: ~6%% faster rollouts than compiling alone, "
+                        "docs/speed.md session 42); the first steps compile, tens of seconds")
     p.add_argument("--free-flight", action="store_true",
                    help="objects out of reach of the floor and of other objects follow the exact inertial update "
                         "(gravity, constant spin) instead of the network, which then runs only on the others")

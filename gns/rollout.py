@@ -119,12 +119,13 @@ def scene_batches(scenes: list[Scene], batch_tracks: int) -> list[list[int]]:
     them are rebuilt from the predicted positions at every step: batches hold whole scenes."""
     scene_length = torch.tensor([sc.num_frames for sc in scenes])
     order = torch.argsort(scene_length, stable=True).tolist()
-    batches, current = [], []
+    batches, current, objects = [], [], 0
     for i in order:
         current.append(i)
-        if sum(scenes[j].num_objects for j in current) >= batch_tracks:
+        objects += scenes[i].num_objects   # a running count: summing the batch again made this quadratic
+        if objects >= batch_tracks:
             batches.append(current)
-            current = []
+            current, objects = [], 0
     if current:
         batches.append(current)
     return batches

@@ -294,6 +294,23 @@ MOVI_A_LOW_B128_D32_AGAIN = {n: (globals()[f"MOVI_A_LOW_B128_D32_{n}"], globals(
 MOVI_A_LOW_B128_ALL32 = variant((*MOVI_A_LOW_B128, MOVI_A_LOW_B128_D32[-1]), "all32", (), "gns_movi_a_low_b128_all32")
 MOVI_A_LOW_B128_ALL32_S100 = variant(MOVI_A_LOW_B128_ALL32, "s100", (), "gns_movi_a_low_b128_all32_s100", seed_offset=100)
 
+
+def _all32_again(chain: tuple, n: int, ships_as: str = "") -> tuple:
+    """`chain` (shipping nothing now), then its last stage, the d32 stage, once more from where it ended: the next
+    seed, run folder <the all32 chain's last stage>_n."""
+    last = MOVI_A_LOW_B128_ALL32_S100[-1]
+    return (*chain[:-1], replace(chain[-1], ships_as=""),
+            replace(last, name=f"{last.name}_{n}", seed=chain[-1].seed + 1, ships_as=ships_as))
+
+
+# session 42: the seed-100 member of the all32 chain alone, the d32 stage three times more from where it ended (~29 min
+# each on one core, the other free), for the speed issue: with d1 (two network calls a step) 11.4% / 17.8 deg, 11.1 /
+# 17.5, then 11.1 / 17.6 (10.6 / 16.6 on 1200 new scenes) at 1.01-1.03x PyBullet's throughput, more accurate than
+# the all32 pair with d2 (11.4 / 17.7 at 0.29-0.30x); ~3 h 48 min of one core in all (docs/speed.md, session 42)
+MOVI_A_LOW_B128_ALL32_6_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_S100, 6)
+MOVI_A_LOW_B128_ALL32_7_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_6_S100, 7)
+MOVI_A_LOW_B128_ALL32_8_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_7_S100, 8, "gns_movi_a_low_b128_all32_8_s100")
+
 # session 33: the distilled stage of session 31 at batch 64, taught by the batch-64 pair: its steps scaled by
 # the measured rates the same way (batch 64: 3.2 steps/s with the teacher, 205 graphs/s; batch 16: 6.8, 108), so
 # 10k steps are ~the wall clock of session 31's 20k (~52 minutes of one core; 63 beside two other runs): 15.0% /
