@@ -198,7 +198,7 @@ class LearnedSimulator(nn.Module):
 
         `freeze` (with `compile`, for rollouts of a trained model only): inductor's freezing, which
         takes the weights as constants at the first call and lays them out for the CPU's matrix
-        kernels once (~10% off a rollout here, docs/speed.md, session 42). Weights changed after
+        kernels once (6-7% off a rollout here, docs/speed.md, session 42). Weights changed after
         that call are not seen, so a training never freezes; in training mode the unfrozen
         compile (or the plain network) runs."""
         if autocast != "none":   # auto decides here; bf16 on a CPU that emulates it warns
@@ -218,17 +218,13 @@ class LearnedSimulator(nn.Module):
         compiled = self.__dict__.get("_compiled")
         frozen = None if self.training or torch.is_grad_enabled() else self.__dict__.get("_frozen")
         if frozen is not None:
-            network = frozen
-        elif wrapper is not None and self.training:
-            network = wrapper
-        else:
-            network = self.network if compiled is None else compiled
-        if frozen is None:
-            return self._call(network, args)
-        # freezing is read when a call compiles (the first, or a shape that recompiles); torch.compile's
-        # options do not carry it there
-        with torch._inductor.config.patch(freezing=True):
-            return self._call(network, args)
+            # freezing is read when a call compiles (the first, or a shape that recompiles); torch.compile's
+            # options do not carry it there
+            with torch._inductor.config.patch(freezing=True):
+                return self._call(frozen, args)
+        network = wrapper if wrapper is not None and self.training else \
+            (self.network if compiled is None else compiled)
+        return self._call(network, args)
 
     def _call(self, network, args: tuple) -> torch.Tensor:
         if self.autocast is None:
