@@ -78,7 +78,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     import time
 
     from gns.evaluate import check_ranges, checkpoint_of, load_simulator, load_split, provenance_of
-    from gns.rollout import (DivergedError, check_output, diverged_line, rollout_scenes, scene_label,
+    from gns.rollout import (DivergedError, check_output, diverged_line, rollout_scenes, scene_label, warm_up,
                              write_rollouts)
     from gns.spec import ModelSpec
     from gns.train import parse_device
@@ -93,9 +93,10 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(args.data, args.split, args.limit, spec.frame_rate)
     check_ranges(spec, ds, scenes)
+    options = dict(shape_matching=not args.no_shape_matching, sleep=_sleep(args), free_flight=args.free_flight)
+    warmup = warm_up(sim, scenes, ds.meshes, ds.frame_rate, args.batch, **options) if args.compile else None
     t0 = time.perf_counter()
-    pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=not args.no_shape_matching,
-                          batch_tracks=args.batch, sleep=_sleep(args), free_flight=args.free_flight)
+    pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, batch_tracks=args.batch, **options)
     seconds = time.perf_counter() - t0
     diverged = [scene_label(sc, i) for i, (p, sc) in enumerate(zip(pred, scenes)) if "diverged_at_frame" in p.attrs]
     if len(diverged) == len(pred):
@@ -105,14 +106,16 @@ def cmd_rollout(args: argparse.Namespace) -> None:
         print(diverged_line(diverged, len(pred), f"not written (listed in {args.out}/metadata.json)"), file=sys.stderr)
     info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]),
             "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
-            "given_frames": 3, "seconds": seconds,
+            "given_frames": 3, "seconds": seconds, "warmup_seconds": warmup,
             "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize, "body_frames": args.body_frames,
             "free_flight": args.free_flight, "free_clearance": sim.free_flight_clip if args.free_flight else None,
             "autocast": args.autocast, "compile": args.compile,
             "ensemble": list(args.ensemble), "object_steps": sim.rollout_counts, "turn_seed": args.turn_seed,
             **provenance_of(saved, ds)}
     write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
-    print(f"rolled out {len(pred)} scenes in {seconds:.2f} s; wrote {len(pred) - len(diverged)} to {args.out}")
+    print(f"rolled out {len(pred)} scenes in {seconds:.2f} s"
+          + (f" (after {warmup:.1f} s compiling, not counted)" if warmup is not None else "")
+          + f"; wrote {len(pred) - len(diverged)} to {args.out}")
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
@@ -133,6 +136,8 @@ def cmd_eval(args: argparse.Namespace) -> None:
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched"
+          + (f" (after {results['warmup_seconds']:.1f} s compiling on a first batch, not counted)"
+             if results.get("warmup_seconds") is not None else "")
           + (f"; --autocast auto measured and took {'bf16' if results['autocast_used'] == 'bf16' else 'float32'}"
              if args.autocast == "auto" else ""))
     c = results.get("object_steps") or {}
@@ -175,7 +180,9 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--limit", type=int, metavar="N", help="only the first N scenes")
     p.add_argument("--threads", type=int, default=1, metavar="T",
                    help="torch threads (default 1: on a shared machine more wait on each other)")
-    p.add_argument("--batch", type=int, default=256, metavar="B", help="object tracks rolled out together (default 256)")
+    p.add_argument("--batch", type=int, default=1024, metavar="B",
+                   help="object tracks rolled out together (default 1024: the 400 test scenes of MOVi-A in one "
+                        "batch, 10-20%% faster than 256, docs/speed.md session 42; smaller if memory is short)")
     p.add_argument("--device", default="cpu", metavar="DEV", help="cpu, cuda or cuda:N (default cpu)")
     p.add_argument("--no-shape-matching", action="store_true",
                    help="feed raw predictions back (the paper's -sm ablation); default projects onto the rigid shape")
@@ -209,7 +216,8 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--compile", action="store_true",
                    help="run the network through torch.compile with inductor's freezing (the weights as constants, "
                         "laid out once for the CPU's matrix kernels: ~6%% faster rollouts than compiling alone, "
-                        "docs/speed.md session 42); the first steps compile, tens of seconds")
+                        "docs/speed.md session 42); the first steps compile, tens of seconds, on a first batch rolled out before "
+                        "the timed rollouts and not counted in their wall clock")
     p.add_argument("--free-flight", action="store_true",
                    help="objects out of reach of the floor and of other objects follow the exact inertial update "
                         "(gravity, constant spin) instead of the network, which then runs only on the others")

@@ -15,7 +15,7 @@ from datagen.atomic import atomic_file
 from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
-from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene
+from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene, warm_up
 from gns.simulator import RANDOM_TURNS
 from gns.symmetry import symmetry_group
 from gns.data import feature_spec
@@ -76,7 +76,7 @@ def load_simulator(run: str | Path, device: str | torch.device = "cpu", symmetri
 
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
                  shape_matching: bool = True, plots_dir: str | Path | None = None, progress: bool = True,
-                 batch_tracks: int = 256, sleep=None, symmetrize: bool = False,
+                 batch_tracks: int = 1024, sleep=None, symmetrize: bool = False,
                  at_data_rate: bool = False, body_frames: bool = False,
                  device: str = "cpu", free_flight: bool = False, autocast: str = "none",
                  compile: bool = False, ensemble: Sequence[str | Path] = (),
@@ -100,9 +100,11 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(data, split, limit, spec.frame_rate)
     warnings = check_ranges(spec, ds, scenes)
+    options = dict(shape_matching=shape_matching, sleep=sleep, free_flight=free_flight)
+    warmup = warm_up(sim, scenes, ds.meshes, ds.frame_rate, batch_tracks, **options) if compile else None
     t0 = time.perf_counter()
-    pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, shape_matching=shape_matching,
-                          batch_tracks=batch_tracks, progress=progress, sleep=sleep, free_flight=free_flight)
+    pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, batch_tracks=batch_tracks, progress=progress,
+                          **options)
     seconds = time.perf_counter() - t0
     counts = dict(sim.rollout_counts)
     kept = [i for i, p in enumerate(pred) if "diverged_at_frame" not in p.attrs]
@@ -121,7 +123,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                    diverged_scenes=diverged, num_diverged=len(diverged), symmetrize=symmetrize,
                    body_frames=body_frames, at_data_rate=at_data_rate, model_stride=model_stride,
                    free_flight=free_flight, free_clearance=sim.free_flight_clip if free_flight else None,
-                   object_steps=counts, autocast=autocast,
+                   object_steps=counts, autocast=autocast, warmup_seconds=warmup,
                    autocast_used=sim.autocast_used, compile=compile,
                    ensemble=[str(r) for r in ensemble], device=str(device), **provenance_of(saved, ds))
     if symmetrize in RANDOM_TURNS:
