@@ -124,7 +124,10 @@ Presets (measured costs on a 2-core CPU in the README):
          accuracy issue's budget
   low_b128_all32_8_s100   the seed-100 chain of low_b128_all32 alone with the d32 stage three times more
          (the next seeds, ~29 min each on one core; session 42), rolled out with d1 (two network calls
-         a step): the shipped gns_movi_a_low_b128_all32_8_s100, the speed issue's model (docs/speed.md)
+         a step): the shipped gns_movi_a_low_b128_all32_8_s100 (docs/speed.md)
+  low_b128_all32_11_s100   that chain with the d32 stage three times more again (session 43, ~5 h 15 min
+         of one core in all), with d1: the shipped gns_movi_a_low_b128_all32_11_s100, the speed issue's
+         model, 10.8% / 16.2 deg at PyBullet's throughput (docs/speed.md)
   low_b128_d32_distilled   low_b128_d32_6_pair, then low_b64_distilled's stage (10k steps at batch
          64, ~54 min with a second seed on the other core) taught by that pair on the 32,000 scenes,
          rolled out alone at one call: no gain over its student (13.8% / 21.0 deg against 13.9 /
@@ -146,11 +149,11 @@ low_b64, low_b64_pair, low_b64_distilled, low_b128, low_b128_pair, low_b128_5, l
 low_b128_d32, low_b128_d32_pair, low_b128_d32_6, low_b128_d32_6_pair, low_b128_d32_7,
 low_b128_d32_7_pair, low_b128_d32_8, low_b128_d32_8_pair, low_b128_d32_9, low_b128_d32_9_pair,
 low_b128_d32_10, low_b128_d32_10_pair, low_b128_d32_11, low_b128_d32_11_pair, low_b128_all32,
-low_b128_all32_pair, low_b128_all32_8_s100, low_b128_d32_distilled, low_b256, low_b256_pair, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain) are scored as their
+low_b128_all32_pair, low_b128_all32_8_s100, low_b128_all32_11_s100, low_b128_d32_distilled, low_b256, low_b256_pair, spokes_k2, sphere_edges_chain, mid_sphere_edges_chain) are scored as their
 models are, with free flight and symmetrized rollouts (fast, mid and every spokes chain alone, low_b64,
 low_b128, low_b128_5, low_b128_d32, low_b128_d32_6, low_b128_d32_7, low_b128_d32_8, low_b128_d32_9,
 low_b128_d32_10, low_b128_d32_11, low_b128_all32, low_b256 and the distilled ones: free flight, one network call; the
-spokes and low pairs symmetrized; low_b128_all32_8_s100 with d1). Their data are the README's data/movi_a_4000 (the same config and
+spokes and low pairs symmetrized; low_b128_all32_8_s100 and _11_s100 with d1). Their data are the README's data/movi_a_4000 (the same config and
 seed): a link OUT/data -> data/movi_a_4000 skips generating them again (the low_b128_d32 and all32 ones':
 data/movi_a_32000, the README's command with --scenes 32000).
 """
@@ -180,7 +183,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_S100, MOVI_A_LOW_B128_D32_6,
                                      MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_DISTILLED,
                                      MOVI_A_LOW_B128_D32_AGAIN, MOVI_A_LOW_B128_ALL32, MOVI_A_LOW_B128_ALL32_S100,
-                                     MOVI_A_LOW_B128_ALL32_8_S100,
+                                     MOVI_A_LOW_B128_ALL32_8_S100, MOVI_A_LOW_B128_ALL32_11_S100,
                                      MOVI_A_LOW_B256, MOVI_A_LOW_B256_S100,
                                      MOVI_A_LOW_DISTILLED, TINY_CHAIN, TINY_DISTILLED, TINY_MEMBER, stage_overrides)
 
@@ -240,6 +243,7 @@ PRESETS = {
     "low_b128_all32": _chain_preset(MOVI_A_LOW_B128_ALL32, symmetrize=False, scenes=32_000),
     "low_b128_all32_pair": _chain_preset(MOVI_A_LOW_B128_ALL32, members=(MOVI_A_LOW_B128_ALL32_S100,), scenes=32_000),
     "low_b128_all32_8_s100": _chain_preset(MOVI_A_LOW_B128_ALL32_8_S100, symmetrize="d1", scenes=32_000),
+    "low_b128_all32_11_s100": _chain_preset(MOVI_A_LOW_B128_ALL32_11_S100, symmetrize="d1", scenes=32_000),
     "low_b128_d32_distilled": _chain_preset(MOVI_A_LOW_B128_D32_6, symmetrize=False,
                                             members=(MOVI_A_LOW_B128_D32_6_S100,),
                                             distilled=MOVI_A_LOW_B128_D32_DISTILLED, scenes=32_000),

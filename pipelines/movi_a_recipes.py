@@ -310,6 +310,11 @@ def _all32_again(chain: tuple, n: int, ships_as: str = "") -> tuple:
 MOVI_A_LOW_B128_ALL32_6_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_S100, 6)
 MOVI_A_LOW_B128_ALL32_7_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_6_S100, 7)
 MOVI_A_LOW_B128_ALL32_8_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_7_S100, 8, "gns_movi_a_low_b128_all32_8_s100")
+# session 43: that chain three stages further (the next seeds), with d1 11.1 / 17.2, 10.9 / 16.7, then 10.8 / 16.2
+# (10.x / 16.x on 1200 new scenes) at PyBullet's throughput; ~5 h 15 min of one core in all (docs/speed.md, session 43)
+MOVI_A_LOW_B128_ALL32_9_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_8_S100, 9)
+MOVI_A_LOW_B128_ALL32_10_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_9_S100, 10)
+MOVI_A_LOW_B128_ALL32_11_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_10_S100, 11, "gns_movi_a_low_b128_all32_11_s100")
 
 # session 33: the distilled stage of session 31 at batch 64, taught by the batch-64 pair: its steps scaled by
 # the measured rates the same way (batch 64: 3.2 steps/s with the teacher, 205 graphs/s; batch 16: 6.8, 108), so

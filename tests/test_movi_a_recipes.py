@@ -16,6 +16,7 @@ from pipelines.movi_a_recipes import (COMMON, MOVI_A_BEST, MOVI_A_BUDGET, MOVI_A
                                      MOVI_A_LOW_B128_D32, MOVI_A_LOW_B128_D32_S100, MOVI_A_LOW_B128_D32_6,
                                      MOVI_A_LOW_B128_D32_6_S100, MOVI_A_LOW_B128_D32_AGAIN,
                                      MOVI_A_LOW_B128_ALL32, MOVI_A_LOW_B128_ALL32_S100, MOVI_A_LOW_B128_ALL32_8_S100,
+                                     MOVI_A_LOW_B128_ALL32_11_S100,
                                      MOVI_A_LOW_B128_D32_DISTILLED, MOVI_A_LOW_B256, MOVI_A_LOW_B256_S100,
                                      MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG_S100,
                                      MOVI_A_SPHERE_EDGES_CHAIN, MOVI_A_SPOKES, MOVI_A_SPOKES_CHAIN, MOVI_A_SPOKES_CHAIN_AVG,
@@ -35,7 +36,8 @@ SHIPPING = (MOVI_A_BEST + MOVI_A_MID_SPOKES + MOVI_A_SPOKES[-1:] + MOVI_A_FAST +
             + MOVI_A_LOW_B128[-1:] + MOVI_A_LOW_B128_S100[-1:] + MOVI_A_LOW_B128_D32[-1:]
             + MOVI_A_LOW_B128_D32_S100[-1:]
             + tuple(stages[-1] for pair in MOVI_A_LOW_B128_D32_AGAIN.values() for stages in pair)
-            + MOVI_A_LOW_B128_ALL32[-1:] + MOVI_A_LOW_B128_ALL32_S100[-1:] + MOVI_A_LOW_B128_ALL32_8_S100[-1:])
+            + MOVI_A_LOW_B128_ALL32[-1:] + MOVI_A_LOW_B128_ALL32_S100[-1:] + MOVI_A_LOW_B128_ALL32_8_S100[-1:]
+            + MOVI_A_LOW_B128_ALL32_11_S100[-1:])
 
 
 @pytest.mark.parametrize("stage", [s for s in SHIPPING if s.ships_as], ids=lambda s: s.name)
@@ -54,13 +56,13 @@ def test_each_stage_has_the_settings_of_the_model_it_reproduces(stage):
                                    MOVI_A_MID_SPOKES_CHAIN_AVG, MOVI_A_LOW_SPOKES_CHAIN_AVG, MOVI_A_LOW_B64,
                                    MOVI_A_LOW_B128, MOVI_A_LOW_B128_5, MOVI_A_LOW_B128_D32,
                                    *(chain for chain, _ in MOVI_A_LOW_B128_D32_AGAIN.values()), MOVI_A_LOW_B128_ALL32,
-                                   MOVI_A_LOW_B128_ALL32_8_S100, MOVI_A_LOW_B256],
+                                   MOVI_A_LOW_B128_ALL32_8_S100, MOVI_A_LOW_B128_ALL32_11_S100, MOVI_A_LOW_B256],
                          ids=["best", "canonical", "fast", "mid", "heading", "spokes", "mid_spokes", "heading4",
                               "heading_k2", "spokes_chain", "mid_spokes_chain", "spokes_k2", "sphere_edges_chain",
                               "mid_sphere_edges_chain", "spokes_chain_avg", "mid_spokes_chain_avg",
                               "low_spokes_chain_avg", "low_b64", "low_b128", "low_b128_5", "low_b128_d32",
                               *(f"low_b128_d32_{n}" for n in MOVI_A_LOW_B128_D32_AGAIN), "low_b128_all32",
-                              "low_b128_all32_8_s100", "low_b256"])
+                              "low_b128_all32_8_s100", "low_b128_all32_11_s100", "low_b256"])
 def test_every_stage_builds_a_config_and_the_chain_only_adds_levers(chain):
     previous = None
     for stage in chain:
@@ -154,19 +156,26 @@ def test_the_all_scenes_chain_is_the_d32_chain_without_the_4000_limit(chain, bas
     assert PRESETS["low_b128_all32_pair"]["counts"] == PRESETS["low_b128_d32_pair"]["counts"]
 
 
-def test_the_speed_issues_chain_is_the_all_scenes_member_with_its_last_stage_three_times_more():
-    """Session 42 (docs/speed.md): the seed-100 all32 chain, then its d32 stage again with the next seed each
-    time, from where the one before ended; only the last stage ships; resumes the all32 chain's run folders."""
-    chain, base = MOVI_A_LOW_B128_ALL32_8_S100, MOVI_A_LOW_B128_ALL32_S100
-    assert chain[:len(base) - 1] == base[:-1] and len(chain) == len(base) + 3
+@pytest.mark.parametrize("chain, n, ships_as", [(MOVI_A_LOW_B128_ALL32_8_S100, 8, "gns_movi_a_low_b128_all32_8_s100"),
+                                                (MOVI_A_LOW_B128_ALL32_11_S100, 11, "gns_movi_a_low_b128_all32_11_s100")],
+                         ids=["8", "11"])
+def test_the_speed_issues_chain_is_the_all_scenes_member_with_its_last_stage_again_and_again(chain, n, ships_as):
+    """Sessions 42-43 (docs/speed.md): the seed-100 all32 chain, then its d32 stage again with the next seed each
+    time, from where the one before ended (stages 6 to n); only the last stage ships; resumes the all32 chain's
+    run folders, and the longer chain the shorter one's."""
+    base = MOVI_A_LOW_B128_ALL32_S100
+    assert chain[:len(base) - 1] == base[:-1] and len(chain) == len(base) + n - 5
     d32 = base[-1]
     assert chain[len(base) - 1] == replace(d32, ships_as="")
     for k, stage in enumerate(chain[len(base):], 1):
         assert (stage.settings, stage.steps, stage.seed) == (d32.settings, d32.steps, d32.seed + k)
     assert len({s.name for s in chain}) == len(chain)
-    assert [s.ships_as for s in chain if s.ships_as] == ["gns_movi_a_low_b128_all32_8_s100"]
+    assert [s.ships_as for s in chain if s.ships_as] == [ships_as]
+    shorter = MOVI_A_LOW_B128_ALL32_8_S100
+    if n > 8:
+        assert chain[:len(shorter) - 1] == shorter[:-1] and chain[len(shorter) - 1] == replace(shorter[-1], ships_as="")
     from pipelines.movi_a import PRESETS
-    preset = PRESETS["low_b128_all32_8_s100"]
+    preset = PRESETS[ships_as.removeprefix("gns_movi_a_")]
     assert preset["chain"] == chain and preset["rollout"]["symmetrize"] == "d1" and not preset["members"]
 
 

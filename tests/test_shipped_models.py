@@ -11,8 +11,10 @@ from gns.train import load_model
 CUBES = Path(__file__).parent / "data" / "contactnets"
 # the d32 stage again, sessions 38-40: stage n and its seed-100 twin for n = 6 to 11
 D32_AGAIN = tuple(f"gns_movi_a_low_b128_d32_{n}{twin}" for n in range(6, 12) for twin in ("", "_s100"))
-# the d32 chain with every stage on the 32,000 scenes (session 41), and its seed-100 member three stages on (session 42)
-ALL32 = ("gns_movi_a_low_b128_all32", "gns_movi_a_low_b128_all32_s100", "gns_movi_a_low_b128_all32_8_s100")
+# the d32 chain with every stage on the 32,000 scenes (session 41), and its seed-100 member three and six stages on
+# (sessions 42-43)
+ALL32 = ("gns_movi_a_low_b128_all32", "gns_movi_a_low_b128_all32_s100", "gns_movi_a_low_b128_all32_8_s100",
+         "gns_movi_a_low_b128_all32_11_s100")
 
 
 def test_the_real_cube_models_are_shipped_and_load_by_name():
