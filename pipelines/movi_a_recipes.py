@@ -311,7 +311,8 @@ MOVI_A_LOW_B128_ALL32_6_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_S100, 6)
 MOVI_A_LOW_B128_ALL32_7_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_6_S100, 7)
 MOVI_A_LOW_B128_ALL32_8_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_7_S100, 8, "gns_movi_a_low_b128_all32_8_s100")
 # session 43: that chain three stages further (the next seeds), with d1 11.1 / 17.2, 10.9 / 16.7, then 10.8 / 16.2
-# (10.x / 16.x on 1200 new scenes) at PyBullet's throughput; ~5 h 15 min of one core in all (docs/speed.md, session 43)
+# (10.1 / 16.0 on 1200 new scenes; over all 1600 level with the d32_11 pair's d2 in position, 0.5 deg better) at
+# PyBullet's throughput; ~5 h 15 min of one core in all (docs/speed.md, session 43)
 MOVI_A_LOW_B128_ALL32_9_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_8_S100, 9)
 MOVI_A_LOW_B128_ALL32_10_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_9_S100, 10)
 MOVI_A_LOW_B128_ALL32_11_S100 = _all32_again(MOVI_A_LOW_B128_ALL32_10_S100, 11, "gns_movi_a_low_b128_all32_11_s100")
