@@ -10,6 +10,7 @@ features.
 from __future__ import annotations
 
 import math
+import types
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -87,13 +88,18 @@ class _Frozen(nn.Module):
     """The network to compile with inductor's freezing (set_speed(freeze=True)). torch.compile
     caches compiled code per code object, and two compiles of the network itself would share it:
     the frozen one would run the unfrozen graph or the other way round, whichever came first.
-    This forward is a code object of its own, so its compiled graphs are its own."""
+    Each instance's forward is a code object of its own, so its compiled graphs are its own: a
+    frozen graph holds one model's weights, and on a shared code object the ninth model of a
+    process (an ensemble, a benchmark, a script scoring many runs) passed dynamo's
+    recompile_limit (8) and silently ran eager."""
 
     def __init__(self, network: nn.Module):
         super().__init__()
         self.network = network
+        f = type(self)._forward
+        self.forward = types.MethodType(types.FunctionType(f.__code__.replace(), f.__globals__, "forward"), self)
 
-    def forward(self, *args: torch.Tensor) -> torch.Tensor:
+    def _forward(self, *args: torch.Tensor) -> torch.Tensor:
         return self.network(*args)
 
 
