@@ -149,3 +149,34 @@ def test_bench_learned_vs_physics_reads_a_free_flight_clearance_and_refuses_a_ba
                          ("bf16+clear0.5", "clearD sets free flight's height, it needs free")):
         with pytest.raises(SystemExit, match=message):
             bench.parse_variants(bad)
+
+
+def test_compare_rollouts_pairs_the_scenes_and_a_setting_against_itself_differs_by_nothing(tmp_path, capsys):
+    import json
+
+    import pytest
+    from datagen.cli import main as datagen_main
+    spec = importlib.util.spec_from_file_location("compare", BENCH.parent / "compare_rollouts.py")
+    compare = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(compare)
+    model = str(Path(__file__).parent / "data" / "gns_movi_a_small.pt")
+    for seed, name in ((8, "d"), (9, "e")):
+        assert datagen_main(["toss", "--out", str(tmp_path / name), "--scenes", "0", "--test", "3", "--valid", "2",
+                             "--seed", str(seed), "--shapes", "cube,sphere", "--quiet"]) == 0
+    sets = ["--data", str(tmp_path / "d"), "--data", f"{tmp_path / 'e'}:valid"]
+    assert compare.main(["--a", f"{model}:d1", "--b", model, *sets, "--free-flight", "--resamples", "200",
+                         "--json", str(tmp_path / "c.json")]) == 0
+    rows = json.loads((tmp_path / "c.json").read_text())["rows"]
+    assert [(r["split"], r["scenes"]) for r in rows] == [("test", 3), ("valid", 2), ("", 5)]
+    for r in rows:
+        pos = r["position_error_pct"]
+        assert pos["low"] <= pos["A_minus_B"] <= pos["high"]
+        assert pos["A_minus_B"] == pytest.approx(pos["A"] - pos["B"], abs=1e-9)   # paired: the means' difference
+    assert rows[0]["position_error_pct"]["A_minus_B"] != 0.0    # symmetrizing changes the rollouts
+    assert "| all (5) |" in capsys.readouterr().out
+    assert compare.main(["--a", model, "--b", model, *sets[:2], "--json", str(tmp_path / "s.json")]) == 0
+    same = json.loads((tmp_path / "s.json").read_text())["rows"][-1]["rotation_error_deg"]
+    assert (same["A_minus_B"], same["low"], same["high"]) == (0.0, 0.0, 0.0)
+    for bad, message in ((f"{model}:d3", "unknown symmetry group 'd3'"), (f"{model}+", "an empty run name")):
+        with pytest.raises(SystemExit, match=message):
+            compare.main(["--a", bad, "--b", model, *sets[:2]])
