@@ -84,14 +84,13 @@ RANDOM_TURNS = {"r1": 1, "r2": 2, "r4": 4}
 IMAGE_NODES = 32768  # most nodes in one network call of symmetrized images (predict_acceleration)
 
 
-class _Frozen(nn.Module):
-    """The network to compile with inductor's freezing (set_speed(freeze=True)). torch.compile
-    caches compiled code per code object, and two compiles of the network itself would share it:
-    the frozen one would run the unfrozen graph or the other way round, whichever came first.
-    Each instance's forward is a code object of its own, so its compiled graphs are its own: a
-    frozen graph holds one model's weights, and on a shared code object the ninth model of a
-    process (an ensemble, a benchmark, a script scoring many runs) passed dynamo's
-    recompile_limit (8) and silently ran eager."""
+class _OwnCode(nn.Module):
+    """The network as torch.compile should see it (set_speed). torch.compile caches compiled code
+    per code object, up to dynamo's recompile_limit (8) entries, then runs eager, silently; the
+    network's own forward is one code object for every model of the class. So two compiles of one
+    network (frozen for rollouts, unfrozen for training) would share graphs, whichever came first,
+    and the ninth compiled model of a process (an ensemble, a benchmark, a script scoring many
+    runs; found scoring 12 in one) ran eager. Each instance's forward is a code object of its own."""
 
     def __init__(self, network: nn.Module):
         super().__init__()
@@ -213,9 +212,9 @@ class LearnedSimulator(nn.Module):
         self.autocast_used = autocast
         self.autocast = torch.bfloat16 if autocast == "bf16" else None
         if compile and "_compiled_cache" not in self.__dict__:
-            self.__dict__["_compiled_cache"] = torch.compile(self.network, dynamic=True)
+            self.__dict__["_compiled_cache"] = torch.compile(_OwnCode(self.network), dynamic=True)
         if compile and freeze and "_frozen_cache" not in self.__dict__:
-            self.__dict__["_frozen_cache"] = torch.compile(_Frozen(self.network), dynamic=True)
+            self.__dict__["_frozen_cache"] = torch.compile(_OwnCode(self.network), dynamic=True)
         self.__dict__["_compiled"] = self.__dict__["_compiled_cache"] if compile else None
         self.__dict__["_frozen"] = self.__dict__["_frozen_cache"] if compile and freeze else None
 

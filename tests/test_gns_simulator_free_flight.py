@@ -189,6 +189,10 @@ def test_a_frozen_network_rolls_out_as_the_eager_one_for_each_member_and_trains_
             m.set_speed(compile=True, freeze=True)
             np.testing.assert_allclose(m.rollout(history, graph, 4).numpy(), want.numpy(), rtol=0, atol=1e-5)
     assert counters["stats"]["unique_graphs"] - graphs == 2
+    for m in (a, b):
+        m.set_speed(compile=True)   # the unfrozen compiles (training's) get code objects of their own too
+    codes = [m.__dict__[k]._orig_mod.forward.__code__ for m in (a, b) for k in ("_frozen_cache", "_compiled_cache")]
+    assert len({id(c) for c in codes}) == 4
     a.train()
     a.loss(history, history[:, -1], graph).backward()
     assert all(p.grad is not None for p in a.network.parameters())
