@@ -1,9 +1,10 @@
 """Two rollout settings on the same scenes, scene by scene: the paired difference of their errors with
 a bootstrap 95% interval, per set of scenes and over all of them.
 
-A model's mean on 400 MOVi-A scenes moves with the sample of scenes (one model on four sets of 400 from
-the same generator: 9.9 to 10.8 points), more than many differences worth knowing; each scene's error, though, is largely the scene's (small, fast or spinning
-objects are hard for any model), so the per-scene difference A - B is far less noisy than either mean.
+A model's mean on 400 MOVi-A scenes moves with the sample of scenes (one model on four sets of 400
+from the same generator: 9.9 to 10.8 points), more than many differences worth knowing; each scene's
+error, though, is largely the scene's (small, fast or spinning objects are hard for any model), so
+the per-scene difference A - B is far less noisy than either mean.
 An interval that excludes 0 says which is better on scenes like these (docs/speed.md, session 43).
 
     python benchmarks/compare_rollouts.py --a gns_movi_a_low_b128_all32_11_s100:d1 \\
