@@ -75,10 +75,8 @@ def _threads(n: int) -> None:
 
 
 def cmd_rollout(args: argparse.Namespace) -> None:
-    import time
-
     from gns.evaluate import check_ranges, checkpoint_of, load_simulator, load_split, provenance_of
-    from gns.rollout import (DivergedError, check_output, diverged_line, rollout_scenes, scene_label, warm_up,
+    from gns.rollout import (DivergedError, check_output, diverged_line, scene_label, timed_rollout,
                              write_rollouts)
     from gns.spec import ModelSpec
     from gns.train import parse_device
@@ -93,11 +91,9 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(args.data, args.split, args.limit, spec.frame_rate)
     check_ranges(spec, ds, scenes)
-    options = dict(shape_matching=not args.no_shape_matching, sleep=_sleep(args), free_flight=args.free_flight)
-    warmup = warm_up(sim, scenes, ds.meshes, ds.frame_rate, args.batch, **options) if args.compile else None
-    t0 = time.perf_counter()
-    pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, batch_tracks=args.batch, **options)
-    seconds = time.perf_counter() - t0
+    pred, seconds, warmup = timed_rollout(sim, scenes, ds.meshes, ds.frame_rate, args.batch, args.compile,
+                                          shape_matching=not args.no_shape_matching, sleep=_sleep(args),
+                                          free_flight=args.free_flight)
     diverged = [scene_label(sc, i) for i, (p, sc) in enumerate(zip(pred, scenes)) if "diverged_at_frame" in p.attrs]
     if len(diverged) == len(pred):
         raise DivergedError(f"every rollout diverged ({len(pred)} scenes: positions became inf or NaN); "

@@ -15,7 +15,7 @@ from datagen.atomic import atomic_file
 from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
-from gns.rollout import diverged_line, rollout_scenes, split_diverged, upsample_scene, warm_up
+from gns.rollout import diverged_line, split_diverged, timed_rollout, upsample_scene
 from gns.simulator import RANDOM_TURNS
 from gns.symmetry import symmetry_group
 from gns.data import feature_spec
@@ -100,12 +100,8 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(data, split, limit, spec.frame_rate)
     warnings = check_ranges(spec, ds, scenes)
-    options = dict(shape_matching=shape_matching, sleep=sleep, free_flight=free_flight)
-    warmup = warm_up(sim, scenes, ds.meshes, ds.frame_rate, batch_tracks, **options) if compile else None
-    t0 = time.perf_counter()
-    pred = rollout_scenes(sim, scenes, ds.meshes, ds.frame_rate, batch_tracks=batch_tracks, progress=progress,
-                          **options)
-    seconds = time.perf_counter() - t0
+    pred, seconds, warmup = timed_rollout(sim, scenes, ds.meshes, ds.frame_rate, batch_tracks, compile, progress,
+                                          shape_matching=shape_matching, sleep=sleep, free_flight=free_flight)
     counts = dict(sim.rollout_counts)
     kept = [i for i, p in enumerate(pred) if "diverged_at_frame" not in p.attrs]
     pred, scenes, diverged = split_diverged(pred, scenes)

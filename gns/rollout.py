@@ -109,17 +109,23 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
     return predicted_scenes(scenes, positions, quaternions, 1.0 / frame_rate)
 
 
-def warm_up(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, frame_rate: float, batch_tracks: int,
-            **options) -> float:
-    """Roll out the first batch of `scenes` once and return its seconds: a compiled network
-    compiles at its first calls (tens of seconds on a CPU, several times the rollouts of 400
-    MOVi-A scenes), which a timed rollout that follows should not count. Nothing is kept but the
-    compiled graphs (the next rollout_scenes resets the counts and the headings)."""
+def timed_rollout(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, frame_rate: float, batch_tracks: int,
+                  compile: bool = False, progress: bool = True, **options) -> tuple[list[Scene], float, float | None]:
+    """rollout_scenes, its wall-clock seconds, and (with `compile`) the seconds of a first batch
+    rolled out before the clock starts: a compiled network compiles at its first calls (tens of
+    seconds on a CPU, several times the rollouts of 400 MOVi-A scenes), which the timed rollout
+    should not count. Nothing of the first batch is kept but the compiled graphs (rollout_scenes
+    resets the counts and the headings)."""
+    warmup = None
+    if compile:
+        t0 = time.perf_counter()
+        first = scene_batches(scenes, batch_tracks)[0]
+        rollout_scenes(sim, [scenes[i] for i in first], meshes, frame_rate, batch_tracks=batch_tracks,
+                       progress=False, **options)
+        warmup = time.perf_counter() - t0
     t0 = time.perf_counter()
-    first = scene_batches(scenes, batch_tracks)[0]
-    rollout_scenes(sim, [scenes[i] for i in first], meshes, frame_rate, batch_tracks=batch_tracks,
-                   progress=False, **options)
-    return time.perf_counter() - t0
+    pred = rollout_scenes(sim, scenes, meshes, frame_rate, batch_tracks=batch_tracks, progress=progress, **options)
+    return pred, time.perf_counter() - t0, warmup
 
 
 def scene_batches(scenes: list[Scene], batch_tracks: int) -> list[list[int]]:
