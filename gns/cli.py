@@ -311,6 +311,21 @@ def add_plot_parser(sub) -> None:
     c.set_defaults(run=cmd_plot_curves)
 
 
+def cmd_models(args: argparse.Namespace) -> None:
+    from gns import zoo
+    print(zoo.format_card(args.name) if args.name else zoo.format_list())
+
+
+def add_models_parser(sub) -> None:
+    m = sub.add_parser("models", help="list the pretrained models of the zoo, or print one's card",
+                       description="The zoo: a few trained models named by purpose. Without NAME, one line "
+                                   "each; with NAME, its card: data, the command that retrains it, scores with "
+                                   "the exact eval command, speed, limits and the rollout options it was scored "
+                                   "with (which gns eval, gns rollout and gns.load use unless told otherwise).")
+    m.add_argument("name", nargs="?", metavar="NAME", help="a zoo model's name, e.g. movi_a")
+    m.set_defaults(run=cmd_models)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gns", description="Graph network simulator for rigid bodies.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -318,6 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_eval_parsers(sub)
     add_export_parser(sub)
     add_plot_parser(sub)
+    add_models_parser(sub)
     return parser
 
 
@@ -330,11 +346,13 @@ def main(argv: list[str] | None = None) -> None:
     # Imported after parsing so that `gns --help` and usage errors do not wait for torch.
     from gns.rollout import DivergedError
     from gns.checkpoint import CheckpointError
+    from gns.options import OptionsError
     from gns.train import TrainingError
+    from gns.zoo import ZooError
 
     try:
         args.run(args)
-    except (DataError, ConfigError, CheckpointError) as e:
+    except (DataError, ConfigError, CheckpointError, ZooError, OptionsError) as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(EXIT_BAD_INPUT)
     except (TrainingError, DivergedError) as e:

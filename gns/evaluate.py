@@ -23,13 +23,8 @@ from gns.features import HISTORY
 from gns.ranges import outside_training
 from gns.config import ConfigError
 from gns.spec import ModelSpec
-from gns.checkpoint import SHIPPED_MODELS, CheckpointError, checkpoint_of, load_model, read_checkpoint
+from gns.checkpoint import CheckpointError, checkpoint_of, load_model, read_checkpoint
 from gns.train import parse_device
-
-
-def shipped_models() -> list[str]:
-    """Names of the trained models shipped with the package (gns/models/*.pt, docs/accuracy.md)."""
-    return sorted(p.stem for p in SHIPPED_MODELS.glob("*.pt"))
 
 
 def _worst_first(per_scene: list[float]) -> list[int]:
