@@ -21,7 +21,7 @@ set -x
 "$work/venv/bin/python" -c "import gns; m = gns.load('run'); \
 out = m.rollout(shapes=m.shapes[:1], positions=[[0, 0, 2]], quaternions=[[1, 0, 0, 0]], velocities=[[5, 0, 0]], \
 friction=0.5, restitution=0.5, steps=3); assert out.positions.shape == (4, 1, 3)"
-"$work/venv/bin/python" -c "import gns; out = gns.load('gns_real_cubes_n16').rollout(shapes=['cube'], scales=2.0, \
+"$work/venv/bin/python" -c "import gns; out = gns.load('real_cubes_16').rollout(shapes=['cube'], scales=2.0, \
 positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]], steps=3); assert out.positions.shape == (4, 1, 3)"
 "$work/venv/bin/python" -m pipelines.movi_a --preset tiny --out movi_tiny --workers 1
 test -s eval.json && test -s movi_tiny/report.md

@@ -1,6 +1,6 @@
 """Where a model's rollout error sits: spread over scenes, and rotation against position.
 
-    python -m pipelines.error_breakdown --run gns_movi_a_k3 --data data/movi_a_4000 --free-flight --symmetrize \
+    python -m pipelines.error_breakdown --run movi_a --data data/movi_a_4000 --free-flight --symmetrize \
         [--split test|train|valid] [--limit N] [--autocast bf16] [--json FILE]
 
 Rolls out a split as `gns eval` does and prints three tables:

@@ -11,7 +11,7 @@ material is off by that much: the floor a learned model's error is to be read ag
 (docs/accuracy.md, session 9).
 
     python -m pipelines.movi_a_sensitivity --data data/movi_a_4000 [--split test] [--limit N] [--out DIR]
-        [--run gns_movi_a_rigidloss ...]   # also the learned models' rollouts, in the same table
+        [--run movi_a ...]   # also the learned models' rollouts, in the same table
 
 Perturbations (each scene draws its own random directions and signs from --seed and its index):
   turn E deg       the pose turned by E degrees about a random axis through the centre of mass

@@ -17,7 +17,8 @@ A GNS with a time step of k frames starts from frames 0, k and 2k: it sees the t
 
 Stages are skipped on a rerun when done (datasets, trainings by step, fits and evaluations by
 what they were made from). Writes report.md, results.json, plots/accuracy.png; with --export,
-the trained models as small files (gns export) named gns_real_cubes_n<N>.pt.
+the trained models as small files (gns export) named real_cubes_n<N>.pt and real_cubes_mujoco_n<N>.pt
+(the zoo's real_cubes is real_cubes_n256, its real_cubes_16 real_cubes_mujoco_n16).
 """
 from __future__ import annotations
 
@@ -52,11 +53,11 @@ RIGID_LOSS = ("train.rigid_loss=1",)
 # MOVi-A's floor feature, seen from farther and signed (docs/accuracy.md, sessions 18-19): a stride-8
 # step moves a cube 0.6 half-widths at the median, more than the default clip of 0.5. At 256 tosses
 # two seeds measured 7.25 and 7.14% / 7.1 deg against 7.62 and 7.98% / 7.2-7.5 for the rigid loss
-# alone, and 0.4 points better on 104 other held-out tosses; gns_real_cubes_n256_floor is its seed 1.
+# alone, and 0.4 points better on 104 other held-out tosses; (not shipped).
 FLOOR = ("features.floor_clip=1.5", "features.floor_signed=true")
 # Ten message-passing steps instead of five (docs/accuracy.md, session 22): at 256 tosses five seeds
 # measured 7.09% / 7.17 deg on the test tosses (mean) against 7.24 / 7.20 for eight seeds of five steps,
-# and 7.77% against 8.20 over 200 other held-out tosses; gns_real_cubes_n256_deep is its seed 0.
+# and 7.77% against 8.20 over 200 other held-out tosses; the zoo's real_cubes is its seed 0.
 DEEP = ("model.message_passing_steps=10",)
 # The three together, at 256 tosses and (docs/accuracy.md, session 24) at 64: two seeds 8.97 and 8.89% / 8.4 and
 # 7.9 deg on the test tosses against 11.0 and 11.5% / 9.2 and 10.1 for two seeds without, and 1.6-1.9 points
@@ -169,10 +170,10 @@ def run(preset: str, src: Path, out: Path, export: Path | None = None) -> dict:
             row["engine_data"] = {"synthetic": count, "real_copies": copies}
         rows[n] = row
         if export is not None:
-            export_model(run_dir / "latest.pt", export / f"gns_real_cubes_n{n}.pt", overwrite=True)
+            export_model(run_dir / "latest.pt", export / f"real_cubes_n{n}.pt", overwrite=True)
             if "gns_engine_data" in row:
                 export_model(out / "runs" / f"gns_mujoco_n{n}" / "latest.pt",
-                             export / f"gns_real_cubes_mujoco_n{n}.pt", overwrite=True)
+                             export / f"real_cubes_mujoco_n{n}.pt", overwrite=True)
     results = {"preset": preset, "src": str(src), "stride": STRIDE, "engines": engines,
                "published": summary(base["evals"]["published"][""]), "sizes": {str(n): r for n, r in rows.items()}}
     write_json(out / "results.json", results)

@@ -3,7 +3,7 @@ test, valid and a training pool with rotated copies of a toss (the data hold 22 
 always on the same side, nested training subsets of the pool, and a dataset per split.
 
 Used by pipelines/real_cubes.py, real_cubes_baselines.py, real_cubes_accuracy.py and
-real_cubes_ensemble.py, so all four score the same test tosses (and share one command line).
+so all three score the same test tosses (and share one command line).
 """
 from __future__ import annotations
 
