@@ -1,5 +1,6 @@
-"""The README, docs/ and the experiment log (experiments/) link to each other, to figures and to code: a moved or renamed file
-must not leave a dead link behind (sections move between them as the project grows)."""
+"""The README, docs/ and the experiment log (experiments/) link to each other, to figures and to
+code: a moved or renamed file must not leave a dead link behind (sections move between them as the
+project grows)."""
 import re
 from pathlib import Path
 
