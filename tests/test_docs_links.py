@@ -1,12 +1,13 @@
-"""The README and docs/ link to each other, to figures and to code: a moved or renamed file
-must not leave a dead link behind (sections move between them as the project grows)."""
+"""The README, docs/ and the experiment log (experiments/) link to each other, to figures and to
+code: a moved or renamed file must not leave a dead link behind (sections move between them as the
+project grows)."""
 import re
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT / "experiments").glob("*.md"))]
 LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
 
 
