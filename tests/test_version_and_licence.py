@@ -52,3 +52,8 @@ def test_citation_file_matches_the_release_and_cites_the_paper():
     paper = cff["references"][0]
     assert paper["title"] == "Graph network simulators can learn discontinuous, rigid contact dynamics"
     assert paper["authors"][0]["family-names"] == "Allen" and "CoRL 2022" in paper["conference"]["name"]
+
+
+def test_datasets_record_the_release_they_were_made_by():
+    import datagen
+    assert datagen.__version__ == PROJECT["version"]
