@@ -5,6 +5,7 @@ import argparse
 import sys
 
 from .config import ConfigError, load_config
+from .version import version_line
 
 EPILOG = """examples:
   datagen toss --shapes cube,sphere --sizes small --materials metal --scenes 100 --out data/toy
@@ -75,6 +76,7 @@ def cmd_import(a) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="datagen", description=__doc__, epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=version_line())
     sub = p.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("toss", help="simulate tossed objects in PyBullet and write HDF5 shards",
                        description="Simulate MOVi-A-style tosses (configs/movi_a.toml) and write a dataset "

@@ -25,7 +25,6 @@ from typing import Callable
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from datagen.atomic import atomic_file
 from datagen.outputs import check_writable
@@ -34,6 +33,7 @@ from gns import parallel
 from gns.config import Config, ConfigError, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import GraphBatch, MeshLibrary, graph_settings, graph_sizes
+from gns.progress import progress_bar
 from gns.features import HISTORY
 from gns.rigid import shape_match_packed
 from gns.simulator import LearnedSimulator
@@ -546,8 +546,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
 
     log(_start_line(cfg, sim, tracks, spec, step, world, resumed_from))
     last_good = resumed_from
-    bar = tqdm(total=cfg.train.steps, initial=step, unit="step", disable=None if world.main else True,
-               dynamic_ncols=True)
+    bar = progress_bar(cfg.train.steps, step, log, enabled=world.main)
     metrics = open(run / METRICS, "a") if world.main else None
     writer = (_tensorboard_writer(run, step + 1 if resumed_from else None)
               if cfg.train.tensorboard and world.main else None)
@@ -594,7 +593,7 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
         loss_sum += loss
         loss_count += 1
         bar.update(1)
-        bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
+        bar.set_postfix(loss=f"{loss:.4g}", lr=f"{lr:.2g}", refresh=False)
 
         validating = valid is not None and step % cfg.valid.every == 0
         if world.main and (step % cfg.train.log_every == 0 or validating or step == cfg.train.steps):
