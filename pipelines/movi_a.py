@@ -45,7 +45,7 @@ from gns.options import RolloutOptions
 from pipelines.common import data_stage, done, guarded, remove_output, say, train_stage, trained_step
 
 # The zoo's MOVi-A model and the rollout options it was scored with (its card's).
-ZOO_MODEL = "gns_movi_a_low_b128_all32_11_s100"
+ZOO_MODEL = "movi_a"
 ZOO_OPTIONS = dict(symmetrize="d1", free_flight=True, free_clearance=0.5)
 
 PAPER = {"position_error_pct": 14.6, "rotation_error_deg": 17.2, "penetration_pct": 0.016}
