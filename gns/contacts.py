@@ -1,7 +1,7 @@
 """Vertex-to-surface collision edges (`features.collision_mode = "surface"`).
 
 Vertex-vertex edges (gns.graph.collision_edges) see a contact only when two *vertices* come
-within the radius; on coarse meshes two surfaces touch long before that (docs/gns.md). Here
+within the radius; on coarse meshes two surfaces touch long before that (docs/model.md). Here
 each vertex of an object near another object is joined to that object's *surface*: the
 closest point on its triangles. The edge goes from the triangle's vertex nearest that point
 (a node, whose latent sends the message) to the query vertex, and carries the exact geometry:

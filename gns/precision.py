@@ -2,8 +2,8 @@
 
 bfloat16 pays on some CPUs and costs on others with the same instruction-set flags: on the AMD
 EPYC of sessions 2-5 (avx512_bf16) bf16 + compile trained `gns_cpu` 1.76x as fast as float32;
-on session 6's Intel Xeon (avx512_bf16, no AMX) a bf16 matrix product of the network's shapes
-ran 1.8x slower than float32 (docs/speed.md). No flag tells them apart, so `auto` times one
+on an Intel Xeon (avx512_bf16, no AMX) a bf16 matrix product of the network's shapes
+ran 1.8x slower than float32 (experiments/log.md). No flag tells them apart, so `auto` times one
 such product in both types, once per process and shape, and picks bf16 only when it is clearly
 faster. Off a CPU (CUDA) `auto` takes bf16 where the device supports it.
 """
@@ -18,7 +18,7 @@ CHOICES = ("none", "bf16", "auto")
 # bf16 must be this much faster: autocast adds casts that the product alone does not show
 MARGIN = 1.15
 # bf16 asked for by name but this much slower than float32 earns a warning: a CPU without native
-# bfloat16 emulates it (session 35's AMD EPYC without avx512: rollouts 12-14x slower), where `auto`
+# bfloat16 emulates it (an AMD EPYC without avx512: rollouts 12-14x slower), where `auto`
 # would have kept float32
 SLOW = 0.5
 _cache: dict[tuple, float] = {}

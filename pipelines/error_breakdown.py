@@ -11,7 +11,7 @@ Rolls out a split as `gns eval` does and prints three tables:
   on trajectories that are right?);
 - rotation by true spin: the same binned by the true turn per frame.
 `--split train` on a model's own training scenes against `--split test` tells overfitting
-from underfitting (docs/accuracy.md, session 10).
+from underfitting (experiments/log.md).
 """
 from __future__ import annotations
 

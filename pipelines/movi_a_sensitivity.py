@@ -8,7 +8,7 @@ recorded config), changes one thing by a small amount right after the last frame
 reproduces the data and must score 0 (a check that the study runs the data's physics). What the
 other rows score is the error a simulator with perfect physics makes when its state or its
 material is off by that much: the floor a learned model's error is to be read against
-(docs/accuracy.md, session 9).
+(experiments/log.md).
 
     python -m pipelines.movi_a_sensitivity --data data/movi_a_4000 [--split test] [--limit N] [--out DIR]
         [--run movi_a ...]   # also the learned models' rollouts, in the same table

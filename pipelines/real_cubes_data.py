@@ -117,7 +117,7 @@ def training_ids(split: dict, n: int, seed: int) -> list[int]:
 def held_out_pool(split: dict, n: int, seed: int) -> list[int]:
     """The training pool's tosses outside the n training tosses of a seed, as whole duplicate
     groups: a group of which one copy trains is left out entirely. More held-out tosses for
-    choosing between models than the valid split alone (docs/accuracy.md, session 19)."""
+    choosing between models than the valid split alone (experiments/log.md)."""
     train = set(training_ids(split, n, seed))
     return sorted(i for g in split["pool"] if not train & set(g) for i in g)
 
