@@ -323,9 +323,20 @@ def _init_within(ray, timeout: float, **kwargs) -> None:
             outcome.append(None)
         except BaseException as e:  # handed to the caller's thread
             outcome.append(e)
+    import logging
+
+    class NotMainThread(logging.Filter):   # ray's note that a thread cannot set its SIGTERM handler
+        def filter(self, record):
+            return "SIGTERM handler" not in record.getMessage()
+    quiet = NotMainThread()
+    loggers = [logging.getLogger(n) for n in ("ray", "ray._private.worker", "ray.worker")]
+    for lg in loggers:
+        lg.addFilter(quiet)
     t = threading.Thread(target=run, daemon=True, name="ray-init")
     t.start()
     t.join(timeout)
+    for lg in loggers:
+        lg.removeFilter(quiet)
     if not outcome:
         raise TimeoutError(f"no answer within {timeout:g} s (DATAGEN_RAY_CONNECT_TIMEOUT)")
     if outcome[0] is not None:
