@@ -516,7 +516,7 @@ def _finalise(out: Path, meta: dict, tasks: list[ShardTask]) -> dict:
         old = _same_plan(out, meta, "finish")
         # Shards appear only complete (temporary file, then rename), so existing means written.
         if any(not (out / t.name).exists() for t in tasks):
-            return {**old, "complete": False}
+            return {**old, "splits": meta["splits"], "complete": False}   # the plan's order of splits
         recorded = _recorded(old)
         for t in tasks:
             if t.name not in recorded:
@@ -526,7 +526,7 @@ def _finalise(out: Path, meta: dict, tasks: list[ShardTask]) -> dict:
                 raise DataError(f"cannot finish {out}: {t.name} changed since it was written (its sha256 is not "
                                 "the one recorded); move it away to have it made again, or restore it")
         if old.get("complete") is True:
-            return old                      # verified, nothing to rewrite
+            return {**old, "splits": meta["splits"]}    # verified, nothing to rewrite
         return write_metadata(out, {**meta, "complete": True})
 
 

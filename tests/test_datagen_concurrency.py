@@ -277,3 +277,26 @@ def test_an_object_tossed_off_the_floor_is_refused(tmp_path, capsys):
     assert toss(out, "--scenes", "1", "--valid", "0", "--set", "spawn.velocity_low=[6000.0, 0.0, 0.0]",
                 "spawn.velocity_high=[6000.0, 0.0, 0.0]") == 2
     only_error_line(capsys.readouterr().err, "left the physics floor")
+
+
+def test_kill_9_leaves_a_claim_that_resume_takes_over(tmp_path):
+    """A run killed with SIGKILL leaves its lock files but no lock (the kernel drops it): the
+    resume at once, while the dead run's pool workers may still be ending, finishes the dataset
+    the seed makes and removes them."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    args = ["--scenes", "120", "--frames", "40", "--scenes-per-shard", "2", "--quiet", "--seed", "5", "--workers", "2"]
+    out = tmp_path / "d"
+    p = subprocess.Popen([sys.executable, "-m", "datagen.cli", "toss", "--out", str(out), *args], env=env,
+                         stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while len(list(out.glob("*.h5"))) < 3 and time.monotonic() < deadline and p.poll() is None:
+        time.sleep(0.02)
+    p.kill()
+    p.wait()
+    assert len(list(out.glob("*.h5"))) < 60, "the run ended before it was killed: make it longer"
+    assert main(["toss", "--out", str(out), *args, "--resume"]) == 0
+    ref = tmp_path / "ref"
+    assert main(["toss", "--out", str(ref), *args]) == 0
+    mine, theirs = files(out), files(ref)
+    assert json.loads(mine.pop("metadata.json"))["fingerprint"] == json.loads(theirs.pop("metadata.json"))["fingerprint"]
+    assert mine == theirs                                  # no lock file left either
