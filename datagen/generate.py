@@ -312,35 +312,22 @@ def _probe(address: str, timeout: float) -> None:
         raise DataError(f"cannot reach the Ray cluster at {address}: nothing answers at {hostport} ({why})") from None
 
 
-def _init_within(ray, timeout: float, **kwargs) -> None:
-    """ray.init, given up after `timeout` seconds (it would go on retrying in its thread)."""
-    import threading
-    outcome: list = []
+def _answers_within(address: str, timeout: float) -> None:
+    """Refuse a cluster that does not let a Ray client connect within `timeout` seconds.
 
-    def run():
-        try:
-            ray.init(**kwargs)
-            outcome.append(None)
-        except BaseException as e:  # handed to the caller's thread
-            outcome.append(e)
-    import logging
-
-    class NotMainThread(logging.Filter):   # ray's note that a thread cannot set its SIGTERM handler
-        def filter(self, record):
-            return "SIGTERM handler" not in record.getMessage()
-    quiet = NotMainThread()
-    loggers = [logging.getLogger(n) for n in ("ray", "ray._private.worker", "ray.worker")]
-    for lg in loggers:
-        lg.addFilter(quiet)
-    t = threading.Thread(target=run, daemon=True, name="ray-init")
-    t.start()
-    t.join(timeout)
-    for lg in loggers:
-        lg.removeFilter(quiet)
-    if not outcome:
-        raise TimeoutError(f"no answer within {timeout:g} s (DATAGEN_RAY_CONNECT_TIMEOUT)")
-    if outcome[0] is not None:
-        raise outcome[0]
+    Tried in a child process: ray.init blocks in C++ where no signal reaches it, and started
+    from another thread it fails, so a child, killed at the deadline, is the one bounded wait."""
+    import subprocess
+    code = ("import logging, ray; ray.init(address=%r, logging_level=logging.ERROR, log_to_driver=False); "
+            "ray.shutdown()" % address)
+    try:
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise DataError(f"cannot reach the Ray cluster at {address}: no answer within {timeout:g} s "
+                        "(DATAGEN_RAY_CONNECT_TIMEOUT)") from None
+    if r.returncode:
+        lines = [ln.strip() for ln in r.stderr.splitlines() if ln.strip()]
+        raise DataError(f"cannot reach the Ray cluster at {address}: {lines[-1] if lines else 'ray.init failed'}")
 
 
 @contextmanager
@@ -358,7 +345,8 @@ def ray_cluster(workers: int, address: str | None, timeout: float | None = None)
         try:
             if address:
                 _probe(address, timeout)
-                _init_within(ray, timeout, address=address, logging_level=logging.WARNING)
+                _answers_within(address, timeout)
+                ray.init(address=address, logging_level=logging.WARNING)
             else:
                 ray.init(num_cpus=workers, include_dashboard=False, logging_level=logging.WARNING)
         except DataError:
