@@ -4,10 +4,13 @@ and metadata.
 A shard is the unit of work and of writing: its content depends only on (config, seed,
 split, shard index), never on the worker count, the backend or how the shards are divided
 among runs. `metadata.json` is written first with `complete: false` (so `--resume` knows the
-plan) and rewritten with `complete: true`, checksums and the fingerprint once every shard of
-the plan exists. With `--shard-index I --num-shards K` several runs (a Slurm array) share one
-folder: each writes only its shards, and whichever run sees the last shard present finalises
-the metadata (idempotent: two runs finishing together write the same file, atomically).
+plan), records each shard's sha256 under `written` just before the shard is renamed into place,
+and is rewritten with `complete: true`, checksums and the fingerprint once every shard of the
+plan is there and is the shard recorded. With `--shard-index I --num-shards K` several runs (a
+Slurm array) share one folder: each writes only its shards, and whichever run sees the last
+shard present finalises the metadata. Every run claims the folder first (datagen/claim.py), so
+runs started together cannot mix two plans; a kept shard that is not the one recorded is
+refused by name, never folded into the checksums.
 """
 from __future__ import annotations
 
