@@ -40,6 +40,31 @@ from .shards import Scene
 FLOOR_HALF_WIDTH = 1000.0
 
 
+def check_floor_covers(cfg: dict) -> None:
+    """Refuse a spawn box the physics floor (a box of half-width FLOOR_HALF_WIDTH) does not cover:
+    the metadata declares a floor everywhere, so objects beyond its edge would fall through what
+    the data calls a floor. (A wider box is no answer: contact precision falls with its size.)"""
+    from .config import ConfigError
+    if not cfg["floor"]["enabled"]:
+        return
+    sp = cfg["spawn"]
+    reach = max(float(cfg["sizes"][n]) for n in cfg["scene"]["sizes"]) * max(
+        float(np.linalg.norm(get_shape(n).vertices, axis=1).max()) for n in cfg["scene"]["shapes"])
+    far = max(abs(float(v)) for corner in (sp["low"], sp["high"]) for v in corner[:2])
+    if far + reach > FLOOR_HALF_WIDTH:
+        raise ConfigError(f"spawn.low/high reach {far:g} from the origin, beyond the physics floor "
+                          f"(|x|, |y| <= {FLOOR_HALF_WIDTH:g}); keep the spawn box within it or set floor.enabled=false")
+
+
+def off_floor(scene) -> list[tuple[int, int]]:
+    """(object, first frame) for objects whose centre left the physics floor's extent."""
+    out = []
+    beyond = (np.abs(scene.positions[..., :2]) > FLOOR_HALF_WIDTH).any(axis=-1)   # (T, N)
+    for n in np.flatnonzero(beyond.any(axis=0)):
+        out.append((int(n), int(np.argmax(beyond[:, n]))))
+    return out
+
+
 _HEAP_KEPT = False
 
 
