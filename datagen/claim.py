@@ -16,12 +16,15 @@ differ from the path's and locks the new file instead.
 """
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
 import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
+
+from datagen.shards import DataError
 
 CLAIM_FILE = ".datagen-toss.claim"
 LOCK_FILE = ".datagen-toss.lock"
@@ -57,6 +60,16 @@ def _lock(path: Path, how: int) -> int:
         except BlockingIOError:
             os.close(fd)
             raise Busy(str(path)) from None
+        except OSError as e:
+            os.close(fd)
+            if e.errno in (errno.ENOSYS, errno.ENOLCK, errno.EOPNOTSUPP, errno.EINVAL):
+                path.unlink(missing_ok=True)  # the lock file is ours alone: no run can hold it
+                # a file system without flock (Lustre without -o flock, some FUSE and NFS mounts):
+                # without it two runs could mix one dataset, so say so rather than write unguarded
+                raise DataError(f"cannot lock {path}: its file system does not support flock "
+                                f"({os.strerror(e.errno)}); write the dataset to a local or flock-capable "
+                                "file system") from None
+            raise
         except BaseException:
             os.close(fd)
             raise

@@ -300,3 +300,19 @@ def test_kill_9_leaves_a_claim_that_resume_takes_over(tmp_path):
     mine, theirs = files(out), files(ref)
     assert json.loads(mine.pop("metadata.json"))["fingerprint"] == json.loads(theirs.pop("metadata.json"))["fingerprint"]
     assert mine == theirs                                  # no lock file left either
+
+
+def test_a_file_system_without_flock_is_one_line_and_leaves_nothing(tmp_path, monkeypatch, capsys):
+    import errno
+    import fcntl
+
+    from datagen.cli import main as datagen_main
+
+    def no_flock(fd, how):
+        raise OSError(errno.ENOSYS, "Function not implemented")
+    monkeypatch.setattr(fcntl, "flock", no_flock)
+    out = tmp_path / "d"
+    assert datagen_main(["toss", "--out", str(out), "--scenes", "1", "--frames", "4", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not support flock" in err[0], err
+    assert not out.exists() or not any(out.iterdir())
