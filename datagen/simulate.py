@@ -54,6 +54,17 @@ def check_floor_covers(cfg: dict) -> None:
     if far + reach > FLOOR_HALF_WIDTH:
         raise ConfigError(f"spawn.low/high reach {far:g} from the origin, beyond the physics floor "
                           f"(|x|, |y| <= {FLOOR_HALF_WIDTH:g}); keep the spawn box within it or set floor.enabled=false")
+    # Where a toss can fly in the scene's time, before anything is simulated: the start velocity is
+    # u - x (u in the velocity box, towards the centre), and nothing but friction and collisions acts
+    # sideways, so x + (u - x) t bounds the travel; it is linear in x, u and t, so corners suffice.
+    t_end = float(cfg["scene"]["frames"]) / float(cfg["scene"]["frame_rate"])
+    flown = max(abs(float(x) + (float(u) - float(x)) * t_end)
+                for k in (0, 1) for x in (sp["low"][k], sp["high"][k])
+                for u in (sp["velocity_low"][k], sp["velocity_high"][k]))
+    if flown + reach > FLOOR_HALF_WIDTH:
+        raise ConfigError(f"tosses from the spawn box can fly {flown:g} from the origin within the scene's "
+                          f"{t_end:g} s, beyond the physics floor (|x|, |y| <= {FLOOR_HALF_WIDTH:g}); shrink the "
+                          "spawn box or the velocity box, or shorten the scenes")
 
 
 def off_floor(scene) -> list[tuple[int, int]]:

@@ -276,7 +276,9 @@ def test_an_object_tossed_off_the_floor_is_refused(tmp_path, capsys):
     out = tmp_path / "d"
     assert toss(out, "--scenes", "1", "--valid", "0", "--set", "spawn.velocity_low=[6000.0, 0.0, 0.0]",
                 "spawn.velocity_high=[6000.0, 0.0, 0.0]") == 2
-    only_error_line(capsys.readouterr().err, "left the physics floor")
+    # refused from the config, before a scene is simulated or a file written
+    only_error_line(capsys.readouterr().err, "can fly", "beyond the physics floor")
+    assert not out.exists()
 
 
 def test_kill_9_leaves_a_claim_that_resume_takes_over(tmp_path):
@@ -316,3 +318,15 @@ def test_a_file_system_without_flock_is_one_line_and_leaves_nothing(tmp_path, mo
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "does not support flock" in err[0], err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_tosses_that_would_fly_off_the_floor_are_refused_before_anything_is_written(tmp_path, capsys):
+    from datagen.cli import main as datagen_main
+    out = tmp_path / "d"
+    # the spawn box is on the floor, but tosses heading to the centre overshoot it within 4 s
+    code = datagen_main(["toss", "--out", str(out), "--scenes", "1", "--frames", "48", "--quiet",
+                         "--set", "spawn.low=[600,600,1]", "spawn.high=[600,600,2]"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "can fly" in err[0] and "beyond the physics floor" in err[0], err
+    assert not out.exists()
