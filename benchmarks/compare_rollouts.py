@@ -5,7 +5,7 @@ A model's mean on 400 MOVi-A scenes moves with the sample of scenes (one model o
 from the same generator: 9.9 to 10.8 points), more than many differences worth knowing; each scene's
 error, though, is largely the scene's (small, fast or spinning objects are hard for any model), so
 the per-scene difference A - B is far less noisy than either mean.
-An interval that excludes 0 says which is better on scenes like these (docs/speed.md, session 43).
+An interval that excludes 0 says which is better on scenes like these (docs/speed.md).
 
     python benchmarks/compare_rollouts.py --a gns_movi_a_low_b128_all32_11_s100:d1 \\
         --b gns_movi_a_low_b128_d32_11+gns_movi_a_low_b128_d32_11_s100:d2 \\
@@ -31,12 +31,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from gns.checkpoint import CheckpointError  # noqa: E402
 from gns.config import ConfigError  # noqa: E402
 from gns.evaluate import evaluate_run, write_json  # noqa: E402
-from gns.simulator import RANDOM_TURNS  # noqa: E402
 from gns.symmetry import SYMMETRY_GROUPS  # noqa: E402
 from datagen.shards import DataError  # noqa: E402
 
 METRICS = {"position_error_pct": "position %", "rotation_error_deg": "rotation deg"}
-GROUPS = (*SYMMETRY_GROUPS, *RANDOM_TURNS)
+GROUPS = tuple(SYMMETRY_GROUPS)
 
 
 def parse_setting(text: str) -> tuple[str, list[str], str | bool]:

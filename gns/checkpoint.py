@@ -18,7 +18,7 @@ import torch
 from datagen.atomic import atomic_file
 from datagen.outputs import check_writable
 from datagen.shards import DataError
-from gns.config import Config, build_config
+from gns.config import Config, ConfigError, build_config
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec, SpecError
 
@@ -158,7 +158,10 @@ def load_model(checkpoint: str | Path | dict, device: str | torch.device = "cpu"
     """Rebuild a trained simulator (in eval mode, on `device`) and its config from a checkpoint
     file, or from one already read with read_checkpoint (its spec and step need no second read)."""
     ckpt = checkpoint if isinstance(checkpoint, dict) else read_checkpoint(checkpoint)
-    cfg = build_config(base=ckpt["config"])
+    try:
+        cfg = build_config(base=ckpt["config"])
+    except ConfigError as e:   # a key removed since it was trained, set: one line naming the file
+        raise CheckpointError(f"{'' if isinstance(checkpoint, dict) else f'{checkpoint}: '}{e}") from None
     sim = build_simulator(cfg, ModelSpec.from_dict(ckpt["spec"]))
     try:
         sim.load_state_dict(ckpt["model"])

@@ -87,7 +87,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     check_output(args.out, args.overwrite, args.data)
     ckpt = checkpoint_of(args.run_dir)
     sim, saved = load_simulator(ckpt, device, args.symmetrize, args.body_frames, args.autocast, args.compile,
-                                args.ensemble, args.turn_seed, _free_clearance(args))
+                                args.ensemble, _free_clearance(args))
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(args.data, args.split, args.limit, spec.frame_rate)
     check_ranges(spec, ds, scenes)
@@ -106,7 +106,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
             "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize, "body_frames": args.body_frames,
             "free_flight": args.free_flight, "free_clearance": sim.free_flight_clip if args.free_flight else None,
             "autocast": args.autocast, "compile": args.compile,
-            "ensemble": list(args.ensemble), "object_steps": sim.rollout_counts, "turn_seed": args.turn_seed,
+            "ensemble": list(args.ensemble), "object_steps": sim.rollout_counts,
             **provenance_of(saved, ds)}
     write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
     print(f"rolled out {len(pred)} scenes in {seconds:.2f} s"
@@ -127,7 +127,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                                batch_tracks=args.batch, sleep=_sleep(args), symmetrize=args.symmetrize,
                                at_data_rate=args.at_data_rate, body_frames=args.body_frames, device=args.device,
                                free_flight=args.free_flight, autocast=args.autocast, compile=args.compile,
-                               ensemble=args.ensemble, turn_seed=args.turn_seed,
+                               ensemble=args.ensemble,
                                free_clearance=_free_clearance(args))
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
@@ -178,29 +178,23 @@ def _add_rollout_args(p) -> None:
                    help="torch threads (default 1: on a shared machine more wait on each other)")
     p.add_argument("--batch", type=int, default=1024, metavar="B",
                    help="object tracks rolled out together (default 1024: the 400 test scenes of MOVi-A in one "
-                        "batch, 10-20%% faster than 256, docs/speed.md session 42; smaller if memory is short)")
+                        "batch, 10-20%% faster than 256, docs/speed.md; smaller if memory is short)")
     p.add_argument("--device", default="cpu", metavar="DEV", help="cpu, cuda or cuda:N (default cpu)")
     p.add_argument("--no-shape-matching", action="store_true",
                    help="feed raw predictions back (the paper's -sm ablation); default projects onto the rigid shape")
     p.add_argument("--sleep", action="store_true",
                    help="hold resting objects still until another object touches them, as physics engines "
                         "deactivate bodies (docs/stability.md); off by default")
-    # the keys of gns.simulator's SYMMETRY_GROUPS and RANDOM_TURNS, written out so that --help
-    # does not import torch
-    p.add_argument("--symmetrize", nargs="?", const="d2", default=False, choices=["d2", "d4", "d1", "c2", "c4", "r1", "r2", "r4"],
+    # the keys of gns.symmetry.SYMMETRY_GROUPS, written out so that --help does not import torch
+    p.add_argument("--symmetrize", nargs="?", const="d2", default=False, choices=["d2", "d4", "d1", "c2", "c4"],
                    metavar="GROUP",
                    help="average each step's prediction over the floor's symmetries: d2 (the default when no GROUP "
                         "is given) the mirrors in x and y and the half turn, exactly mirror-equivariant rollouts "
                         "at 4x the network cost; d4 also the quarter turns and diagonal mirrors, at 8x "
-                        "(measured 0.2 points better, docs/accuracy.md session 9); d1 (the mirror in x) and "
-                        "c2 (the half turn) at 2x, c4 (the quarter turns) at 4x; r1 each scene turned about z to "
-                        "a random heading every step (no extra network work, not exactly equivariant), r2 that "
-                        "heading and its half turn averaged, at 2x, r4 four quarter-turn-spaced headings, at 4x "
-                        "(docs/speed.md, session 12). For a model trained with features.canonical_heading "
-                        "(every recent MOVi-A model) d1 measured nearly d2's accuracy at half its cost "
-                        "(docs/speed.md, session 27)")
-    p.add_argument("--turn-seed", type=int, default=0, metavar="N",
-                   help="seed of the random headings of --symmetrize r1/r2/r4 (recorded in the output)")
+                        "(measured 0.2 points better, docs/accuracy.md); d1 (the mirror in x) and "
+                        "c2 (the half turn) at 2x, c4 (the quarter turns) at 4x. For a model trained with "
+                        "features.canonical_heading (every recent MOVi-A model) d1 measured nearly d2's accuracy "
+                        "at half its cost (docs/speed.md)")
     p.add_argument("--body-frames", action="store_true",
                    help="also average over each object's equivalent body frames (a cube's 24 rotations onto "
                         "itself): exactly invariant to which one describes it, at that many times the cost")
@@ -212,7 +206,7 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--compile", action="store_true",
                    help="run the network through torch.compile with inductor's freezing (the weights as constants, "
                         "laid out once for the CPU's matrix kernels: ~6%% faster rollouts than compiling alone, "
-                        "docs/speed.md session 42); the first steps compile, tens of seconds, on a first batch rolled out before "
+                        "docs/speed.md); the first steps compile, tens of seconds, on a first batch rolled out before "
                         "the timed rollouts and not counted in their wall clock")
     p.add_argument("--free-flight", action="store_true",
                    help="objects out of reach of the floor and of other objects follow the exact inertial update "
@@ -222,8 +216,7 @@ def _add_rollout_args(p) -> None:
                         "after the inertial step, to be in free flight (default: the model's floor clip, beyond "
                         "which its network does not see the floor). Lower takes objects near the floor that "
                         "cannot reach it within the step out of the network too: on MOVi-A 0.5 cut the object-"
-                        "steps in the network from 88%% to ~80%%, accuracy level within 0.1 (docs/speed.md, "
-                        "session 42)")
+                        "steps in the network from 88%% to ~80%%, accuracy level within 0.1 (docs/speed.md)")
     p.add_argument("--ensemble", action="append", default=[], metavar="RUN",
                    help="another trained run (same network mesh, floor and time step; e.g. another seed or "
                         "recipe) whose prediction each step averages with the model's; repeat for more members, "

@@ -16,7 +16,6 @@ from datagen.outputs import check_writable
 from datagen.shards import Dataset, DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, split_diverged, timed_rollout, upsample_scene
-from gns.simulator import RANDOM_TURNS
 from gns.symmetry import symmetry_group
 from gns.data import feature_spec
 from gns.features import HISTORY
@@ -45,26 +44,23 @@ def write_json(path: str | Path, obj) -> None:
 
 def load_simulator(run: str | Path, device: str | torch.device = "cpu", symmetrize: bool = False,
                    body_frames: bool = False, autocast: str = "none", compile: bool = False,
-                   ensemble: Sequence[str | Path] = (), turn_seed: int = 0,
-                   free_clearance: float | None = None) -> tuple:
+                   ensemble: Sequence[str | Path] = (), free_clearance: float | None = None) -> tuple:
     """The model of `run` (folder, checkpoint or shipped name) set up for rollouts, with the runs
     of `ensemble` as members whose predictions each step averages (LearnedSimulator.set_ensemble);
     `free_clearance`: free flight's height above the floor (LearnedSimulator.free_flight_clip).
     Returns (simulator, its saved checkpoint)."""
     if free_clearance is not None and not free_clearance >= 0:
         raise ConfigError(f"free flight clearance must be a height >= 0 above the floor, not {free_clearance}")
-    if symmetrize not in RANDOM_TURNS:
-        try:
-            symmetry_group(symmetrize)   # a bad group is one line now, not an error at the first step
-        except ValueError as e:
-            raise ConfigError(f"symmetrize: {e}") from None
+    try:
+        symmetry_group(symmetrize)   # a bad group is one line now, not an error at the first step
+    except ValueError as e:
+        raise ConfigError(f"symmetrize: {e}") from None
     checkpoints = [read_checkpoint(checkpoint_of(r)) for r in (run, *ensemble)]
     sim, *members = [load_model(saved, device)[0] for saved in checkpoints]
     for model in (sim, *members):
         model.set_speed(autocast, compile, freeze=compile)   # rollouts only: the weights stay as loaded
     sim.symmetrize = symmetrize   # members follow the model's symmetrization (set_ensemble)
     sim.body_frames = body_frames
-    sim.turn_seed = turn_seed
     sim.free_clearance = free_clearance
     if members:
         try:
@@ -80,7 +76,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                  at_data_rate: bool = False, body_frames: bool = False,
                  device: str = "cpu", free_flight: bool = False, autocast: str = "none",
                  compile: bool = False, ensemble: Sequence[str | Path] = (),
-                 turn_seed: int = 0, free_clearance: float | None = None) -> tuple[dict, list, list, Dataset]:
+                 free_clearance: float | None = None) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it (with `ensemble`, the
     predictions averaged with those runs' at every step: load_simulator).
 
@@ -93,8 +89,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     """
     device = parse_device(device, "--device")
     ckpt = checkpoint_of(run)
-    sim, saved = load_simulator(ckpt, device, symmetrize, body_frames, autocast, compile, ensemble, turn_seed,
-                                free_clearance)
+    sim, saved = load_simulator(ckpt, device, symmetrize, body_frames, autocast, compile, ensemble, free_clearance)
     if plots_dir is not None:
         check_writable(plots_dir, "plots folder")
     spec = ModelSpec.from_dict(saved["spec"])
@@ -122,8 +117,6 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                    object_steps=counts, autocast=autocast, warmup_seconds=warmup,
                    autocast_used=sim.autocast_used, compile=compile,
                    ensemble=[str(r) for r in ensemble], device=str(device), **provenance_of(saved, ds))
-    if symmetrize in RANDOM_TURNS:
-        results["turn_seed"] = turn_seed
     return results, pred, scenes, ds
 
 

@@ -84,7 +84,6 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
     `sleep` and `free_flight`: see LearnedSimulator.rollout; the share of object-steps that
     entered the network is left in `sim.rollout_counts` (summed over batches)."""
     sim.eval()
-    sim.reset_turns()
     tracks = ObjectTracks(scenes, sim.mesh_library(meshes), name="rollout scenes")
     if int(tracks.length.min()) <= HISTORY:
         raise DataError(f"every scene needs more than {HISTORY} frames to roll out")

@@ -9,7 +9,6 @@ features.
 """
 from __future__ import annotations
 
-import math
 import types
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -17,19 +16,18 @@ from dataclasses import dataclass, replace
 import torch
 from torch import nn
 
-from gns.features import (HISTORY, FeatureLayout, Normalizer, floor_support, make_layout, raw_collision_features,
+from gns.features import (HISTORY, FeatureLayout, Normalizer, make_layout, raw_collision_features,
                           raw_edge_features, raw_node_features)
-from gns.config import INERTIAL_PRIORS, ConfigError
+from gns.config import ConfigError
 from gns.contacts import surface_edges
 from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, candidate_pairs, collision_edges, graph_settings,
                        lowest_nodes, mapped_symmetries, per_graph, select_graphs, select_nodes, stack_graphs,
                        with_surface_edges, with_symmetries)
 from gns.network import EncodeProcessDecode
 from gns.precision import resolve_autocast
-from gns.rigid import acceleration_of, integrate, posed, rigid_extrapolation, shape_match_packed
+from gns.rigid import acceleration_of, integrate, posed, shape_match_packed
 from gns.spec import ModelSpec
-from gns.symmetry import (FLOOR_SYMMETRIES, SYMMETRY_GROUPS, canonical_body_frame, mapped_full_rest, mirror_signs,
-                          symmetry_group, turn_about_z, z_turns)
+from gns.symmetry import FLOOR_SYMMETRIES, SYMMETRY_GROUPS, symmetry_group, turn_about_z
 
 
 @dataclass(frozen=True)
@@ -78,9 +76,6 @@ class Sleep:
 # out (multi-object MOVi-style scenes, benchmarks/bench_learned_vs_physics.py).
 SUBGRAPH_MIN_SHARE = 0.2
 
-# rollout options averaging over random headings instead of a fixed group (_predict_turned)
-RANDOM_TURNS = {"r1": 1, "r2": 2, "r4": 4}
-
 IMAGE_NODES = 32768  # most nodes in one network call of symmetrized images (predict_acceleration)
 
 
@@ -114,10 +109,8 @@ def _listed(t: torch.Tensor | None) -> list | None:
 
 def _surface_free(settings: dict, other: "LearnedSimulator") -> dict:
     """Graph settings as an ensemble compares them: surface_edges left out where both models have
-    centre nodes and neither keeps some shapes' surfaces (the spokes are then rebuilt exactly)."""
-    theirs = other._graph_settings
-    both_centred = settings["centre_node"] and theirs["centre_node"]
-    if both_centred and not settings["keep_surface"] and not theirs["keep_surface"]:
+    centre nodes (the spokes are then rebuilt exactly)."""
+    if settings["centre_node"] and other._graph_settings["centre_node"]:
         return {k: v for k, v in settings.items() if k != "surface_edges"}
     return settings
 
@@ -127,7 +120,6 @@ class LearnedSimulator(nn.Module):
 
     symmetrize: bool | str = False  # average predictions over SYMMETRY_GROUPS (True: "d2"; rollouts; not saved)
     body_frames: bool = False  # and over each object's equivalent body frames (graph.symmetries)
-    turn_seed: int = 0  # the random headings of symmetrize="r1"/"r2"/"r4" (not saved)
     free_clearance: float | None = None  # free flight's height above the floor (None: the floor clip; not saved)
     autocast: torch.dtype | None = None  # the network (only) runs in this dtype under autocast (train.autocast)
     autocast_used: str = "none"  # what set_speed took: "none" or "bf16" ("auto" resolved)
@@ -141,22 +133,13 @@ class LearnedSimulator(nn.Module):
         # the same as a vector: the centre's second difference in free flight (units per frame^2)
         self.gravity_per_frame = spec.gravity_per_frame
         self.collision_mode = features_cfg.collision_mode  # "vertex" or "surface", checked by gns.config
-        # what the network's acceleration is added to (`inertial`); older checkpoints: "linear"
-        self.inertial_prior = str(getattr(model_cfg, "inertial_prior", "linear"))
-        if self.inertial_prior not in INERTIAL_PRIORS:
-            raise ValueError(f"model.inertial_prior must be one of {INERTIAL_PRIORS}, not {self.inertial_prior!r}")
         # the graphs this model reads: self.mesh_library(meshes)
         self._graph_settings = graph_settings(features_cfg)
         self.canonical_heading = bool(getattr(features_cfg, "canonical_heading", False))
-        self.canonical_mirror = bool(getattr(features_cfg, "canonical_mirror", False))
-        self.canonical_body_frame = bool(getattr(features_cfg, "canonical_body_frame", False))
-        self.floor_support = bool(getattr(features_cfg, "floor_support", False))
         self.lowest_vertices = int(getattr(features_cfg, "lowest_vertices", 0))
         self.highest_vertices = int(getattr(features_cfg, "highest_vertices", 0))
         self.layout: FeatureLayout = make_layout(features_cfg, spec.floor_z, spec.materials_vary,
-                                                 collisions=spec.collision_edges, gravity_step=self.gravity_step,
-                                                 gravity_z_step=None if spec.gravity_per_frame is None
-                                                 else float(spec.gravity_per_frame[2]))
+                                                 collisions=spec.collision_edges)
         if self.lowest_vertices and self.layout.floor_z is None:
             raise ConfigError("features.lowest_vertices needs a floor (\"lowest\" means nearest the floor)")
         if self.lowest_vertices and self.layout.collisions and self.collision_mode != "vertex":
@@ -174,10 +157,6 @@ class LearnedSimulator(nn.Module):
             hidden=model_cfg.hidden_size, hidden_layers=model_cfg.hidden_layers,
             message_passing_steps=model_cfg.message_passing_steps,
             processor_repeats=model_cfg.processor_repeats, collision_edge_in=self.layout.collision_size)
-
-    @property
-    def mesh_vertices(self) -> int:
-        return self._graph_settings["max_vertices"]
 
     @property
     def centre_node(self) -> bool:
@@ -203,7 +182,7 @@ class LearnedSimulator(nn.Module):
 
         `freeze` (with `compile`, for rollouts of a trained model only): inductor's freezing, which
         takes the weights as constants at the first call and lays them out for the CPU's matrix
-        kernels once (6-7% off a rollout here, docs/speed.md, session 42). Weights changed after
+        kernels once (6-7% off a rollout here, docs/speed.md). Weights changed after
         that call are not seen, so a training never freezes; in training mode the unfrozen
         compile (or the plain network) runs."""
         if autocast != "none":   # auto decides here; bf16 on a CPU that emulates it warns
@@ -256,14 +235,7 @@ class LearnedSimulator(nn.Module):
         Normalisers accumulate statistics while the module is in training mode.
         """
         acc = self.training
-        if self.floor_support or self.canonical_body_frame:
-            # one shape match for both: relabelling the body frame turns the pose, not the centre
-            rot, centre, _ = shape_match_packed(history[:, -1], graph.rest, graph.node_graph, graph.num_graphs)
-            if self.canonical_body_frame:
-                graph, rot = canonical_body_frame(history[:, -1], graph, rot)
         raw_nodes = raw_node_features(self.layout, history, graph)
-        if self.floor_support:
-            raw_nodes["support"] = floor_support(self.layout, history[:, -1], graph, rot, centre).to(torch.float32)
         nodes = torch.cat([self.node_normalizers[n](raw_nodes[n], acc) for n, _ in self.layout.node_groups], -1)
         if self.layout.absolute:
             edges = torch.zeros(graph.mesh_edges.senders.shape[0], 1, device=history.device)
@@ -289,14 +261,7 @@ class LearnedSimulator(nn.Module):
         """forward with each scene turned to its canonical heading (features.canonical_heading):
         about z, so that the mean horizontal velocity of its nodes over the last frame points
         along +x; the acceleration is turned back in scene units (the target normaliser's x and
-        y statistics need not match). A scene at rest keeps its heading (atan2(0, 0) = 0).
-
-        With features.canonical_mirror the turned scene is also mirrored in y where that makes
-        the x and z parts of its angular momentum about its centre (sum of r x v over its nodes)
-        add up positive: the one map left that keeps the heading, so the network sees one of each
-        mirror pair and the model is exactly equivariant to floor mirrors too. The body frame is
-        mirrored with it (x = R rest + p -> (M R M)(M rest) + M p), so the network still sees a
-        proper rotation, as in training."""
+        y statistics need not match). A scene at rest keeps its heading (atan2(0, 0) = 0)."""
         scene = graph.node_scene
         count = int(scene.max()) + 1 if scene.numel() else 0
         step = (history[:, -1, :2] - history[:, -2, :2])
@@ -304,43 +269,31 @@ class LearnedSimulator(nn.Module):
         angle = -torch.atan2(velocity[:, 1], velocity[:, 0])
         cos, sin = torch.cos(angle).index_select(0, scene), torch.sin(angle).index_select(0, scene)
         turned = turn_about_z(history, cos, sin)
-        mirror = None
-        if self.canonical_mirror:
-            one = torch.ones_like(scene, dtype=history.dtype)
-            mirror = torch.stack([one, mirror_signs(turned, scene, count)[scene], one], 1)   # (N, 3): 1, +-1, 1
-            turned = turned * mirror[:, None, :]
-            per_object = per_graph(mirror, graph, "amin")                                   # (G, 3)
-            graph = replace(graph, rest=graph.rest * mirror.to(graph.rest.dtype), full_rest=mapped_full_rest(
-                graph, lambda full: full * per_object.to(full.dtype)[:, None]),
-                symmetries=mapped_symmetries(graph, torch.diag_embed(per_object)))
         nodes, edge_sets = self._inputs(turned, graph)
         out = self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
         acc = self.target_normalizer.inverse(out.to(history.dtype))
-        acc = turn_about_z(acc if mirror is None else acc * mirror, cos, -sin)   # the turn (and mirror) undone
+        acc = turn_about_z(acc, cos, -sin)   # the turn undone
         return self.target_normalizer(acc).to(torch.float32)
 
     def set_ensemble(self, members: Sequence["LearnedSimulator"]) -> None:
         """Average every step's predicted acceleration with these models' (an ensemble: runs
         trained apart, e.g. other seeds or other recipes; each carries its own normalisers and
         speed settings and computes its own node and edge features from the shared graphs).
-        They must read the same graphs: the same network mesh, floor, collision edges, time step
-        and inertial prior; ValueError names the first difference. Node and edge features may
+        They must read the same graphs: the same network mesh, floor, collision edges and time
+        step; ValueError names the first difference. Node and edge features may
         differ (e.g. the floor seen from farther): free flight then waits until every member's
         floor feature is clear (free_flight_clip). With centre nodes on both, a member may differ in
         features.surface_edges alone: it reads each step's graph with its own mesh edges, rebuilt
         from the faces (gns.graph.with_surface_edges)."""
         for k, m in enumerate(members, 1):
-            for what, mine, theirs in (("network mesh (features.mesh_vertices, mesh_support_gap, centre_node, "
-                                        "surface_edges, surface_edge_shapes)", _surface_free(self._graph_settings, m),
-                                        _surface_free(m._graph_settings, self)),
+            for what, mine, theirs in (("network mesh (features.centre_node, surface_edges)",
+                                        _surface_free(self._graph_settings, m), _surface_free(m._graph_settings, self)),
                                        ("floor height", self.layout.floor_z, m.layout.floor_z),
                                        ("collision edges (features and radius)",
                                         (self.layout.collision_groups, self.layout.collision_radius),
                                         (m.layout.collision_groups, m.layout.collision_radius)),
                                        ("time step and gravity", _listed(self.gravity_per_frame),
                                         _listed(m.gravity_per_frame)),
-                                       ("inertial prior (model.inertial_prior)", self.inertial_prior,
-                                        m.inertial_prior),
                                        ("nodes seen (features.lowest_vertices, highest_vertices)",
                                         (self.lowest_vertices, self.highest_vertices),
                                         (m.lowest_vertices, m.highest_vertices))):
@@ -361,7 +314,7 @@ class LearnedSimulator(nn.Module):
         so the exact update is what the network would approximate), or `free_clearance` if set.
         A clearance below the clip also takes the band where the network sees the floor but no
         vertex can reach it within the step (now or after the ballistic step): fewer object-steps
-        in the network, at an accuracy measured in docs/speed.md (session 42)."""
+        in the network, at an accuracy measured in docs/speed.md."""
         if self.free_clearance is not None:
             return float(self.free_clearance)
         return max([self.layout.floor_clip] + [m.layout.floor_clip for m in self.members])
@@ -396,20 +349,17 @@ class LearnedSimulator(nn.Module):
         syms = graph.symmetries if body_frames else None
         if not symmetrize and syms is None:
             return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
-        if symmetrize in RANDOM_TURNS:
-            return self._predict_turned(history, graph, RANDOM_TURNS[symmetrize])
         group = symmetry_group(symmetrize)
         floors = SYMMETRY_GROUPS[group] if group else FLOOR_SYMMETRIES[:1]
         frames = 1 if syms is None else syms.shape[1]
         inputs, graphs, maps = [], [], []
         for k in range(frames):
             if syms is None:
-                rest, full, weight = graph.rest, graph.full_rest, 1.0
+                rest, weight = graph.rest, 1.0
             else:
                 # the same world vertices described in the k-th equivalent body frame (r -> S r):
                 # the answer may not hang on which one, so average over all of each object's group
                 rest = torch.einsum("nij,nj->ni", syms[graph.node_graph, k], graph.rest)
-                full = mapped_full_rest(graph, lambda f: f @ syms[:, k].transpose(1, 2))
                 counts = graph.num_symmetries[graph.node_graph]
                 weight = ((k < counts).to(history.dtype) / counts.to(history.dtype))[:, None]
             for m in floors:
@@ -418,7 +368,6 @@ class LearnedSimulator(nn.Module):
                 # network sees a proper rotation, as in training, and the average is exactly equivariant
                 inputs.append(history @ g.T)
                 graphs.append(replace(graph, rest=rest @ g.T, collision_edges=None,
-                                      full_rest=None if full is None else full @ g.T,
                                       symmetries=mapped_symmetries(graph, g)))
                 maps.append((g, weight))
         # images share network calls: per node, a call on 6400 nodes costs ~0.6x one on 1600;
@@ -432,44 +381,6 @@ class LearnedSimulator(nn.Module):
             for a, (g, weight) in zip(out.split(graph.num_nodes), maps[lo:hi]):
                 total = total + (a @ g) * weight   # g^T a: the map undone
         return total / len(floors)
-
-    def _predict_turned(self, history: torch.Tensor, graph: GraphBatch, images: int) -> torch.Tensor:
-        """The prediction for each scene turned about z by a random angle (and, with more images,
-        by that angle plus equal parts of a full turn), turned back and averaged: the network's
-        error for an input depends on the input's heading, which a rollout keeps from step to
-        step; a new heading every step makes consecutive errors independent. Angles from a
-        generator seeded with `turn_seed` at the start of every rollout (reset_turns), so a
-        rollout repeats exactly."""
-        rng = self.__dict__.get("_turn_rng")
-        if rng is None:
-            rng = self.reset_turns()
-        scene = graph.node_scene
-        angle = torch.rand(int(scene.max()) + 1, generator=rng, dtype=torch.float64) * (2 * math.pi)
-        total = torch.zeros_like(history[:, -1])
-        for k in range(images):
-            turn = z_turns((angle + k * (2 * math.pi / images)).to(history)[scene])
-            # a proper rotation: the body frame's rest shape stays, as in training's z augmentation
-            out = self.target_normalizer.inverse(
-                self(torch.einsum("nij,ntj->nti", turn, history), graph).to(torch.float64))
-            total = total + torch.einsum("nji,nj->ni", turn, out)
-        return total / images
-
-    def reset_turns(self) -> torch.Generator:
-        """Restart the random headings of symmetrize="r1"/"r2"/"r4" from `turn_seed` (rollout_scenes
-        calls it first): the same scenes, batches and seed give the same rollouts."""
-        rng = self.__dict__["_turn_rng"] = torch.Generator().manual_seed(int(self.turn_seed))
-        for m in self.members:   # an ensemble's members take the same headings
-            m.turn_seed = self.turn_seed
-            m.reset_turns()
-        return rng
-
-    def inertial(self, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
-        """Positions (N, 3) at t+1 without acceleration, which the network's acceleration is added
-        to: straight on per vertex (`integrate`, the paper's) or each object turning on rigidly
-        (`rigid_extrapolation`, model.inertial_prior = "rigid")."""
-        if self.inertial_prior == "rigid":
-            return rigid_extrapolation(x_tm1, x_t, graph.node_graph, graph.num_graphs)
-        return x_t + (x_t - x_tm1)
 
     def network_nodes(self, x_t: torch.Tensor, graph: GraphBatch) -> tuple[GraphBatch, torch.Tensor] | None:
         """With features.lowest_vertices = k: the graph of each object's k vertices nearest the floor
@@ -507,9 +418,7 @@ class LearnedSimulator(nn.Module):
 
     def _predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         history = torch.stack([x_tm2, x_tm1, x_t], dim=1)
-        if self.inertial_prior == "linear":  # the hot path of older models: no extra tensor work
-            return integrate(x_tm1, x_t, self.predict_acceleration(history, graph))
-        return self.inertial(x_tm1, x_t, graph) + self.predict_acceleration(history, graph)
+        return integrate(x_tm1, x_t, self.predict_acceleration(history, graph))
 
     def in_free_flight(self, frames: list[torch.Tensor], ballistic: torch.Tensor, graph: GraphBatch,
                        contacts: EdgeSet | None) -> torch.Tensor:
@@ -672,16 +581,11 @@ class LearnedSimulator(nn.Module):
             return torch.stack(out), torch.stack(rots), torch.stack(trans)
         return torch.stack(out)
 
-    def loss(self, history: torch.Tensor, target: torch.Tensor, graph: GraphBatch, kind: str = "mse",
-             delta: float = 1.0, node_weight: torch.Tensor | None = None, rigid: float = 0.0) -> torch.Tensor:
-        """Per-node loss of the normalised acceleration: mean over nodes of the sum over x, y, z.
+    def loss(self, history: torch.Tensor, target: torch.Tensor, graph: GraphBatch, rigid: float = 0.0) -> torch.Tensor:
+        """Per-node MSE of the normalised acceleration: mean over nodes of the sum over x, y, z.
 
         history (N, 3, 3) float64 (possibly noisy) inputs; target (N, 3) float64 positions at t+1
         (already corrected for the input noise). The target normaliser accumulates in training.
-        kind "mse" is the paper's; "huber" (quadratic within `delta` normalised units, linear
-        beyond) and "l1" keep the rare, barely predictable impact accelerations, which are most
-        of the normaliser's spread, from drowning the small but systematic ones of friction.
-        node_weight (N,): each node's share of the mean (mean 1: train.size_weight).
         rigid > 0 adds rigid x the same loss of the shape-matched prediction against the
         shape-matched target (train.rigid_loss): what a rollout keeps of a step. Shape matching
         runs through the differentiable polar factor (`gns.rigid._rotation_differentiable`).
@@ -690,15 +594,14 @@ class LearnedSimulator(nn.Module):
         if seen is not None:   # the loss of the nodes the network sees (predict_next)
             graph, nodes = seen
             history, target = history[nodes], target[nodes]
-            node_weight = None if node_weight is None else node_weight[nodes]
-        if self.inertial_prior == "linear" and rigid == 0:
+        if rigid == 0:
             accel = acceleration_of(history[:, -2], history[:, -1], target).to(torch.float32)
         else:
-            prior = self.inertial(history[:, -2], history[:, -1], graph)
+            prior = history[:, -1] + (history[:, -1] - history[:, -2])
             accel = (target - prior).to(torch.float32)
         target_norm = self.target_normalizer(accel, accumulate=self.training)
         output = self(history, graph)
-        per = _per_node(output - target_norm, kind, delta)
+        per = ((output - target_norm) ** 2).sum(-1)
         if rigid > 0:
             # the prediction and the truth as rollouts keep them, differenced in normalised units
             # (the normaliser's spread, not its mean: a difference of positions)
@@ -707,18 +610,5 @@ class LearnedSimulator(nn.Module):
             kept = shape_match_packed(moved, graph.rest, n, graph.num_graphs)[2]
             with torch.no_grad():
                 truth = shape_match_packed(target, graph.rest, n, graph.num_graphs)[2]
-            per = per + rigid * _per_node(((kept - truth) / scale).to(torch.float32), kind, delta)
-        return (per if node_weight is None else per * node_weight).mean()
-
-
-def _per_node(error: torch.Tensor, kind: str, delta: float) -> torch.Tensor:
-    """(N, 3) normalised errors -> (N,) losses summed over x, y, z."""
-    if kind == "mse":
-        per = error ** 2
-    elif kind == "huber":
-        per = torch.nn.functional.huber_loss(error, torch.zeros_like(error), reduction="none", delta=delta)
-    elif kind == "l1":
-        per = error.abs()
-    else:
-        raise ValueError(f"unknown loss {kind!r}")
-    return per.sum(-1)
+            per = per + rigid * (((kept - truth) / scale).to(torch.float32) ** 2).sum(-1)
+        return per.mean()

@@ -33,7 +33,7 @@ from datagen.shards import Dataset, DataError
 from gns import parallel
 from gns.config import Config, ConfigError, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
-from gns.graph import GraphBatch, MeshLibrary, graph_settings, graph_sizes
+from gns.graph import MeshLibrary, graph_settings
 from gns.features import HISTORY
 from gns.rigid import shape_match_packed
 from gns.simulator import LearnedSimulator
@@ -42,7 +42,6 @@ from gns.spec import ModelSpec
 from gns.checkpoint import (CHECKPOINT_FORMAT, LATEST, TRAINED, CheckpointError, build_simulator,  # noqa: F401
                             checkpoint_paths, export_model, exported_model_message, is_exported, load_model,
                             read_checkpoint, resume_point, save_checkpoint)
-from gns.distill import Teacher
 from gns.fine_tune import incompatibility, init_from, merge_ranges, with_layout
 from gns.weight_average import WeightAverage
 
@@ -91,9 +90,7 @@ def learning_rate(cfg: Config, step: int) -> float:
 
 
 def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: Batch, lr: float,
-               grad_clip: float, loss_kind: str = "mse", huber_delta: float = 1.0,
-               fraction: float = 1.0, processes: int = 1, size_weight: float = 0.0,
-               rigid_loss: float = 0.0, teacher: Teacher | None = None, teacher_weight: float = 1.0) -> float:
+               grad_clip: float, fraction: float = 1.0, processes: int = 1, rigid_loss: float = 0.0) -> float:
     """One Adam step on the per-node MSE of a batch; returns the loss.
 
     On several processes `batch` is this process's share of the global batch, holding
@@ -104,7 +101,7 @@ def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: B
     """
     for group in optimizer.param_groups:
         group["lr"] = lr
-    loss = unrolled_loss(sim, batch, loss_kind, huber_delta, size_weight, rigid_loss, teacher, teacher_weight)
+    loss = unrolled_loss(sim, batch, rigid_loss)
     if processes > 1:
         # every process sees the same global loss, so all stop together on a NaN
         total = parallel.sum_over_processes(loss.detach() * fraction)
@@ -122,71 +119,25 @@ def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: B
     return total.item()
 
 
-def size_weights(graph: GraphBatch, power: float) -> torch.Tensor | None:
-    """(N,) each node's loss weight, its object's size^-power over the batch's mean, or None for
-    power 0. The metrics score errors in % of each object's size while the loss sums absolute
-    accelerations, so small objects, whose vertices move less, count for less in training than
-    in the score: power 2 evens that out (train.size_weight)."""
-    if not power:
-        return None
-    w = graph_sizes(graph).to(torch.float32)[graph.node_graph] ** -power
-    return w / w.mean()
-
-
-def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta: float = 1.0,
-                  size_weight: float = 0.0, rigid_loss: float = 0.0, teacher: Teacher | None = None,
-                  teacher_weight: float = 1.0) -> torch.Tensor:
+def unrolled_loss(sim: LearnedSimulator, batch: Batch, rigid_loss: float = 0.0) -> torch.Tensor:
     """The one-step loss, averaged over the batch's target frames (pushforward training).
 
     Step k > 1 starts from the model's own earlier predictions, shape-matched as in rollouts and
     detached: the model learns to correct the errors it makes itself (after a bounce, say),
     without backpropagating through time. Each step's target is the true frame, so the
-    acceleration asked for pulls a drifted prediction back toward the truth; with a `teacher`
-    (train.teacher), teacher_weight x the teacher's next frame from the same inputs plus the
-    rest x the true one."""
+    acceleration asked for pulls a drifted prediction back toward the truth."""
     targets = batch.targets
     frames = list(batch.history.unbind(1))
-    weight = size_weights(batch.graph, size_weight)
     total = 0.0
     for k in range(targets.shape[1]):
         history = torch.stack(frames[-HISTORY:], dim=1)
-        target = targets[:, k]
-        if teacher is not None:
-            taught = teacher.next_frame(frames, batch.graph, batch.tracks)
-            target = teacher_weight * taught + (1 - teacher_weight) * target
-        total = total + sim.loss(history, target, batch.graph, kind, delta, weight, rigid_loss)
+        total = total + sim.loss(history, targets[:, k], batch.graph, rigid_loss)
         if k + 1 < targets.shape[1]:
             with torch.no_grad():
                 x = sim.predict_next(*frames[-HISTORY:], batch.graph)
                 x = shape_match_packed(x, batch.graph.rest, batch.graph.node_graph, batch.graph.num_graphs)[2]
             frames.append(x)
     return total / targets.shape[1]
-
-
-@torch.no_grad()
-def window_errors(sim: LearnedSimulator, tracks: ObjectTracks, device: torch.device, chunk: int = 256) -> torch.Tensor:
-    """(num_windows,) each window's one-step error as a rollout keeps it: the shape-matched next
-    vertices against the true ones, squared in the target normaliser's units, mean over the
-    window's nodes; from the true history, without augmentation or noise (train.hard_fraction)."""
-    was_training = sim.training
-    sim.eval()
-    scale = sim.target_normalizer.std.to(device=device, dtype=torch.float64)
-    out = torch.empty(tracks.num_windows, dtype=torch.float64)
-    try:
-        for lo in range(0, tracks.num_windows, chunk):
-            windows = torch.arange(lo, min(lo + chunk, tracks.num_windows))
-            batch = tracks.batch(windows).to(device)
-            g = batch.graph
-            x = sim.predict_next(*batch.history.unbind(1), g)
-            kept = shape_match_packed(x, g.rest, g.node_graph, g.num_graphs)[2]
-            per_node = (((kept - batch.targets[:, 0]) / scale) ** 2).sum(-1).cpu()
-            node_window = tracks.window_tracks(windows)[1][g.node_graph.cpu()]   # graphs are grouped by window
-            total = torch.zeros(len(windows), dtype=torch.float64).index_add_(0, node_window, per_node)
-            count = torch.zeros(len(windows), dtype=torch.float64).index_add_(0, node_window, torch.ones_like(per_node))
-            out[lo:lo + len(windows)] = total / count
-    finally:
-        sim.train(was_training)
-    return out
 
 
 @torch.no_grad()
@@ -357,7 +308,7 @@ def _log_scalars(writer, entry: dict) -> None:
 
 def run_provenance(data_dir: str | Path, fingerprint: str, step: int, earlier: dict | None) -> dict:
     """What a run records of where it came from: versions, code commit, the data it trained on;
-    the sessions before a resume are kept in `earlier`, oldest first."""
+    earlier runs of a resumed training are kept in `earlier`, oldest first."""
     from datagen.provenance import provenance
     history = []
     if isinstance(earlier, dict):
@@ -379,13 +330,8 @@ def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTrack
         # of frames 0 .. k-1 gives them all (as many windows as at stride 1)
         full = Dataset(data_dir).load("train", limit)
         scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
-    settings = graph_settings(cfg.features)
-    unknown = sorted(set(settings["keep_surface"]) - set(dataset.meshes))
-    if unknown:
-        raise ConfigError(f"features.surface_edge_shapes names {', '.join(map(repr, unknown))}, not a mesh of "
-                          f"{data_dir} (its meshes: {', '.join(sorted(dataset.meshes))})")
     try:
-        library = MeshLibrary(dataset.meshes, **settings)
+        library = MeshLibrary(dataset.meshes, **graph_settings(cfg.features))
     except ValueError as e:
         raise DataError(f"{data_dir}: {e}") from None
     tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)
@@ -427,16 +373,9 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     resumed_from, ckpt = resumed if resumed else (None, {})
     finished = False
     try:
-        # checked, like the data and the checkpoint, before anything in the run folder changes
-        teacher = (Teacher(cfg.train.teacher, sim, device, tracks, spec.meshes,
-                           cfg.augment.mirror or cfg.augment.body_symmetry, symmetrize=cfg.train.teacher_symmetrize)
-                   if cfg.train.teacher else None)
-        if teacher is not None:
-            images = f", symmetrized {cfg.train.teacher_symmetrize}" if cfg.train.teacher_symmetrize else ""
-            log(f"teacher: {cfg.train.teacher}{images}, {cfg.train.teacher_weight:g} of each target")
         provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance"))
         step = _train_loop(run, cfg, sim, optimizer, tracks, valid, spec, step, rng, device, world,
-                           stale, resumed_from, provenance, log, teacher, average)
+                           stale, resumed_from, provenance, log, average)
         finished = True
         return step
     finally:
@@ -529,7 +468,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
                 tracks: ObjectTracks, valid: ObjectTracks | None, spec: ModelSpec, step: int,
                 rng: np.random.Generator, device: torch.device, world: parallel.World, stale: list[Path],
                 resumed_from: Path | None, provenance: dict, log: Callable[[str], None],
-                teacher: Teacher | None = None, average: WeightAverage | None = None) -> int:
+                average: WeightAverage | None = None) -> int:
     """Steps from `step` to cfg.train.steps: a batch, an Adam step, a metrics line every
     train.log_every steps (with validation every valid.every), a checkpoint every
     train.checkpoint_every. Returns the last step."""
@@ -555,7 +494,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
     try:
         with stop:
             step, last_good = _steps(run, cfg, sim, optimizer, tracks, valid, step, rng, device, world, state,
-                                     last_good, bar, metrics, writer, stop, teacher, average)
+                                     last_good, bar, metrics, writer, stop, average)
     finally:
         bar.close()
         if metrics is not None:
@@ -568,7 +507,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
 def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer, tracks: ObjectTracks,
            valid: ObjectTracks | None, step: int, rng: np.random.Generator, device: torch.device,
            world: parallel.World, state: Callable[[int], dict], last_good: Path | None, bar, metrics, writer,
-           stop, teacher: Teacher | None = None, average: WeightAverage | None = None) -> tuple[int, Path | None]:
+           stop, average: WeightAverage | None = None) -> tuple[int, Path | None]:
     """The loop of _train_loop; returns (step reached, last checkpoint). Stops on a signal
     (`stop.asked`) after the step under way, with a checkpoint there. Validation scores the
     weight average when there is one: the weights the checkpoints keep for use."""
@@ -578,13 +517,10 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
     while step < cfg.train.steps:
         t0 = time.perf_counter()
         lr = learning_rate(cfg, step)
-        if cfg.train.hard_fraction > 0 and (tracks.hard_cdf is None or step % cfg.train.hard_every == 0):
-            tracks.set_hardness(window_errors(sim, tracks, device))
         batch, fraction = _next_batch(tracks, rng, cfg, world, lo, hi)
         try:
-            loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, cfg.train.loss,
-                              cfg.train.huber_delta, fraction, world.size, cfg.train.size_weight,
-                              cfg.train.rigid_loss, teacher, cfg.train.teacher_weight)
+            loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, fraction, world.size,
+                              cfg.train.rigid_loss)
         except FloatingPointError as e:
             raise TrainingError(_stopped(str(e), step + 1, last_good)) from None
         if average is not None:
@@ -622,7 +558,7 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
 
 def _start_run_folder(run: Path, stale: list[Path], resumed_from: Path | None, step: int, config_dict: dict,
                       provenance: dict, log: Callable[[str], None]) -> None:
-    """The run folder as this session starts it: an earlier run's files deleted (--overwrite),
+    """The run folder as this run of the training starts it: an earlier run's files deleted (--overwrite),
     metrics of steps to be trained again dropped (resume), config and provenance written."""
     for p in stale:
         p.unlink()
@@ -643,20 +579,12 @@ def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: 
         # the drawn share comes on top of the contact windows among the rest, drawn from all
         natural, f = float(tracks.contact.double().mean()), cfg.train.contact_fraction
         contact = f" ({natural:.0%} in contact, {f + (1 - f) * natural:.0%} of each batch: {f:.0%} drawn from them)"
-    if cfg.train.hard_fraction > 0:
-        contact += (f", {cfg.train.hard_fraction:.0%} of each batch drawn by one-step error "
-                    f"(rescored every {cfg.train.hard_every} steps)")
     processes = f" on {world.size} processes" if world.size > 1 else ""
     precision = f", network in {'bf16' if sim.autocast_used == 'bf16' else 'float32'} (autocast auto, measured)" \
         if cfg.train.autocast == "auto" else ""
-    meshes = ""
-    if cfg.features.mesh_vertices:
-        lib, centre = tracks.library, int(cfg.features.centre_node)
-        meshes = ", network meshes " + ", ".join(f"{name} {int(n) - centre}" for name, n in
-                                                 zip(lib.names, lib.num_vertices)) + " vertices"
     return (f"{'resuming' if resumed_from else 'training'} at step {step} of {cfg.train.steps}{processes}: "
             f"{tracks.num_windows} windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
-            f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}{meshes}{precision}")
+            f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}{precision}")
 
 
 def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, world: parallel.World,
@@ -666,7 +594,7 @@ def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, wor
     batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std,
                           cfg.augment.vertex_noise, cfg.augment.track_noise,
                           cfg.train.contact_fraction, cfg.augment.mirror,
-                          cfg.augment.body_symmetry, cfg.train.hard_fraction, spin_noise=cfg.augment.spin_noise)
+                          cfg.augment.body_symmetry)
     if world.size == 1:
         return batch, 1.0
     nodes = batch.graph.num_nodes

@@ -207,7 +207,6 @@ def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[di
             rows.append({"family": "gns" if batch == 1 else MODES[mode], "knob": knob,
                          "label": f"{run_name(run)}: L{m.message_passing_steps}xK{m.processor_repeats}, "
                                   f"latent {m.latent_size}"
-                                  + (f", {cfg.features.mesh_vertices} vertices a mesh" if cfg.features.mesh_vertices else "")
                                   + f", dt {1e3 / ds.frame_rate:.1f} ms, batch {batch}"
                                   + {None: "", "fast": f", free flight + {precision} + compile",
                                      "fast sym": f", free flight + {precision} + compile + symmetrized"}[mode],

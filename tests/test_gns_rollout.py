@@ -134,22 +134,6 @@ def test_movi_a_pair_trains_both_chains_and_scores_their_ensemble(tmp_path, caps
     assert json.loads((together / "results.json").read_text())["member_steps"] == [20]
 
 
-def test_movi_a_distilled_stage_starts_from_the_first_chain_and_is_taught_by_the_pair(tmp_path, capsys):
-    out = tmp_path / "d"
-    assert movi_a.main(["--preset", "distill_tiny", "--out", str(out), "--workers", "1"]) == 0
-    saved = read_checkpoint(out / "run_d" / "latest.pt")
-    train = saved["config"]["train"]
-    assert train["init_from"] == str(out / "run_b")
-    assert train["teacher"] == f"{out / 'run_b'}+{out / 'run_m'}" and train["teacher_symmetrize"] == "d1"
-    assert saved["step"] == 10 and saved["seed"] == 6
-    results = json.loads((out / "results.json").read_text())
-    assert results["ensemble"] == [] and results["checkpoint"].endswith("run_d/latest.pt")
-    assert [s["name"] for s in results["stages"]] == ["a", "b", "m", "d"]
-    capsys.readouterr()
-    assert movi_a.main(["--preset", "distill_tiny", "--out", str(out), "--workers", "1"]) == 0
-    assert capsys.readouterr().err.count("skipping") == 6   # the data, four stages, the evaluation
-
-
 def test_movi_a_parallel_chains_stop_the_others_when_one_fails(tmp_path, capsys):
     from gns_fixtures import write_toss_dataset
 
