@@ -53,9 +53,8 @@ from datagen.simulate import step_only  # noqa: E402
 from gns.evaluate import checkpoint_of, load_split  # noqa: E402
 from gns.metrics import evaluate_scenes  # noqa: E402
 from gns.rollout import rollout_scenes  # noqa: E402
-from gns.simulator import Sleep  # noqa: E402
 from gns.symmetry import SYMMETRY_GROUPS  # noqa: E402
-from gns.train import load_model, read_checkpoint  # noqa: E402
+from gns.checkpoint import load_model, read_checkpoint  # noqa: E402
 
 GROUPS = tuple(g for g in SYMMETRY_GROUPS if g != "d2")   # --symmetrize GROUP; "sym" is d2
 KNOWN = ("plain", "free", "sleep", "bf16", "compile", "freeze", "sym", *GROUPS)
@@ -109,11 +108,11 @@ class Roller:
             model.set_speed("bf16" if "bf16" in parts else "none", bool(parts & {"compile", "freeze"}),
                             freeze="freeze" in parts)
         groups = [p for p in parts if p in GROUPS] + (["d2"] if "sym" in parts else [])
-        self.sim.symmetrize = groups[0] if groups else False
-        self.sim.free_clearance = next((clearance(p) for p in parts if clearance(p) is not None), None)
-        return rollout_scenes(self.sim, self.scenes, self.ds.meshes, self.ds.frame_rate, progress=False,
-                              batch_tracks=self.batch,
-                              free_flight="free" in parts, sleep=Sleep() if "sleep" in parts else None)
+        # a clearance of None keeps the options' own, and here that is the floor clip
+        with self.sim.using(symmetrize=groups[0] if groups else "none", batch=self.batch, free_flight="free" in parts,
+                            free_clearance=next((clearance(p) for p in parts if clearance(p) is not None), None),
+                            sleep="sleep" in parts):
+            return rollout_scenes(self.sim, self.scenes, self.ds.meshes, self.ds.frame_rate, progress=False)
 
 
 def timed_rounds(variants: list[tuple[str, Roller, set[str]]], specs, cfg, repeats: int) -> tuple[dict, dict, dict, dict]:

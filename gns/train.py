@@ -38,10 +38,9 @@ from gns.features import HISTORY
 from gns.rigid import shape_match_packed
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-# the checkpoint API stays importable from here (pipelines and users' scripts import it so)
-from gns.checkpoint import (CHECKPOINT_FORMAT, LATEST, TRAINED, CheckpointError, build_simulator,  # noqa: F401
-                            checkpoint_paths, export_model, exported_model_message, is_exported, load_model,
-                            read_checkpoint, resume_point, save_checkpoint)
+from gns.checkpoint import (CHECKPOINT_FORMAT, LATEST, TRAINED, CheckpointError, build_simulator, checkpoint_paths,
+                            resume_point, save_checkpoint)
+from gns.devices import parse_device
 from gns.fine_tune import incompatibility, init_from, merge_ranges, with_layout
 from gns.weight_average import WeightAverage
 
@@ -219,24 +218,6 @@ def _drop_metrics_after(path: Path, step: int, log: Callable[[str], None] = prin
             f"(a crash mid-write tears the last one)")
     with atomic_file(path) as tmp:
         tmp.write_text("".join(line + "\n" for line in kept))
-
-
-def parse_device(name: str, what: str = "train.device") -> torch.device:
-    """A device name as a torch device, checked before any work: one line, not torch's assertion."""
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise ConfigError(f"{what}={name!r} is not a torch device; use 'cpu' or 'cuda'") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"{what}={name} but CUDA is not available in this torch build "
-                          f"(torch {torch.__version__}); use {what}=cpu")
-    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
-        raise ConfigError(f"{what}={name} but this machine has {torch.cuda.device_count()} CUDA device(s)")
-    if device.type == "mps" and not torch.backends.mps.is_available():
-        raise ConfigError(f"{what}={name} but MPS is not available here; use {what}=cpu")
-    if device.type not in ("cpu", "cuda", "mps"):
-        raise ConfigError(f"{what}={name}: only cpu, cuda and mps are supported")
-    return device
 
 
 def _device(name: str, world: parallel.World = parallel.World()) -> torch.device:

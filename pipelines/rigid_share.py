@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from gns.config import build_config
-from gns.evaluate import load_simulator
+from gns.checkpoint import load_simulator
 from gns.rigid import acceleration_of
 from gns.train import load_data
 from pipelines.common import guarded

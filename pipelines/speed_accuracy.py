@@ -100,7 +100,8 @@ def _timed_rollout(sim, scenes, ds: Dataset, batch: int) -> float:
     """Wall seconds per simulated second per trajectory, rolling out `batch` scenes at a time."""
     t0 = time.perf_counter()
     for k in range(0, len(scenes), batch):
-        rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, batch_tracks=batch, progress=False)
+        with sim.using(batch=batch):
+            rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, progress=False)
     seconds = time.perf_counter() - t0
     return seconds / sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
 
@@ -162,16 +163,14 @@ def _rollout_all(sim, scenes, ds, batch: int, count: int, mode: str | None = Non
     accurate and 4x the network."""
     fast = mode is not None
     sim.set_speed("auto" if fast else "none", compile=fast and compile)
-    sim.symmetrize = mode == "fast sym"
     t0 = time.perf_counter()
     pred = []
-    for k in range(0, count, batch):
-        pred += rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, batch_tracks=batch,
-                               progress=False, free_flight=fast)
+    with sim.using(batch=batch, free_flight=fast, symmetrize="d2" if mode == "fast sym" else "none"):
+        for k in range(0, count, batch):
+            pred += rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, progress=False)
     cost = (time.perf_counter() - t0) / sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes[:len(pred)])
     precision = "bf16" if sim.autocast_used == "bf16" else "float32"
     sim.set_speed()
-    sim.symmetrize = False
     return pred, cost, precision
 
 

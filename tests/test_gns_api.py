@@ -15,7 +15,8 @@ from datagen.shards import Dataset, DataError, Scene, write_metadata, write_shar
 from gns.api import history_poses, matrix_to_quat, quat_to_matrix
 from gns.cli import main as gns_main
 from gns.config import ConfigError, build_config
-from gns.train import CheckpointError, export_model, read_checkpoint, train
+from gns.checkpoint import CheckpointError, export_model, read_checkpoint
+from gns.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ROOT / "tests" / "data" / "gns_movi_a_small.pt"
@@ -325,26 +326,22 @@ def test_symmetrized_images_in_one_call_equal_one_call_per_image(run):
     # scenes of several touching objects: each image keeps its own collision edges
     from dataclasses import replace
 
-    import gns.simulator as simulator
+    import gns.symmetry as symmetry
     from gns.symmetry import FLOOR_SYMMETRIES
-    model = gns.load(run / "run")
+    model = gns.load(run / "run", symmetrize="d2")
     sim = model.simulator
     state = model.state(**three_cubes(), warn=False)
     history = torch.stack(state.frames, dim=1)
-    sim.symmetrize = True
+    batched = sim.predict_acceleration(history, state.graph)
+    one = []
+    for m in FLOOR_SYMMETRIES:
+        g = torch.tensor(m, dtype=torch.float64).diagonal()   # the mirrors: diagonal maps
+        mapped = replace(state.graph, rest=state.graph.rest * g, collision_edges=None)
+        one.append(sim.target_normalizer.inverse(sim(history * g, mapped).to(torch.float64)) * g)
+    torch.testing.assert_close(batched, sum(one) / 4, rtol=0, atol=1e-9)
+    # and split over several calls when the images exceed a call's size
+    old, symmetry.IMAGE_NODES = symmetry.IMAGE_NODES, state.graph.num_nodes
     try:
-        batched = sim.predict_acceleration(history, state.graph)
-        one = []
-        for m in FLOOR_SYMMETRIES:
-            g = torch.tensor(m, dtype=torch.float64).diagonal()   # the mirrors: diagonal maps
-            mapped = replace(state.graph, rest=state.graph.rest * g, collision_edges=None)
-            one.append(sim.target_normalizer.inverse(sim(history * g, mapped).to(torch.float64)) * g)
-        torch.testing.assert_close(batched, sum(one) / 4, rtol=0, atol=1e-9)
-        # and split over several calls when the images exceed a call's size
-        old, simulator.IMAGE_NODES = simulator.IMAGE_NODES, state.graph.num_nodes
-        try:
-            torch.testing.assert_close(sim.predict_acceleration(history, state.graph), batched, rtol=0, atol=1e-9)
-        finally:
-            simulator.IMAGE_NODES = old
+        torch.testing.assert_close(sim.predict_acceleration(history, state.graph), batched, rtol=0, atol=1e-9)
     finally:
-        sim.symmetrize = False
+        symmetry.IMAGE_NODES = old

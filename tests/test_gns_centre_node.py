@@ -13,7 +13,8 @@ from gns.fine_tune import init_from
 from gns.graph import MeshLibrary, centre_spokes
 from gns.rigid import shape_match_packed
 from gns.spec import ModelSpec
-from gns.train import CheckpointError, read_checkpoint, train
+from gns.checkpoint import CheckpointError, read_checkpoint
+from gns.train import train
 from test_gns_train import quiet, tiny
 
 

@@ -16,7 +16,8 @@ from gns.metrics import evaluate_scenes, interpenetration_pct
 from gns.rollout import rollout_scenes
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-from gns.train import load_model, train
+from gns.checkpoint import load_model
+from gns.train import train
 
 R = 0.15
 GAP = 0.02

@@ -12,7 +12,8 @@ from gns.config import ConfigError, build_config
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
 from gns.rigid import shape_match_packed
-from gns.train import build_simulator, read_checkpoint, train, unrolled_loss
+from gns.checkpoint import build_simulator, read_checkpoint
+from gns.train import train, unrolled_loss
 from test_gns_train import TINY, metrics, quiet, tiny
 
 G_STEP = torch.tensor(GRAVITY, dtype=torch.float64) / FRAME_RATE ** 2
@@ -142,14 +143,14 @@ def sim_and_batch(tmp_path, *overrides):
 def test_symmetrized_predictions_are_exactly_mirror_and_half_turn_equivariant(tmp_path):
     sim, b = sim_and_batch(tmp_path)
     from dataclasses import replace
-    sim.symmetrize = True
+    sim.options = sim.options.replace(symmetrize=True)
     a = sim.predict_acceleration(b.history, b.graph)
     scale = float(a.abs().max())   # an untrained network's answers are small: compare relative to them
     for m in ((-1.0, 1.0, 1.0), (1.0, -1.0, 1.0), (-1.0, -1.0, 1.0)):
         g = torch.tensor(m, dtype=torch.float64)
         mapped = sim.predict_acceleration(b.history * g, replace(b.graph, rest=b.graph.rest * g))
         assert float((mapped - a * g).abs().max()) < 1e-6 * scale, m
-    sim.symmetrize = False   # the network alone is not exactly equivariant (control)
+    sim.options = sim.options.replace(symmetrize=False)   # the network alone is not exactly equivariant (control)
     plain = sim.predict_acceleration(b.history, b.graph)
     g = torch.tensor((-1.0, 1.0, 1.0), dtype=torch.float64)
     mirrored = sim.predict_acceleration(b.history * g, replace(b.graph, rest=b.graph.rest * g))
@@ -169,9 +170,9 @@ def test_d4_symmetrized_predictions_are_exactly_quarter_turn_equivariant(tmp_pat
         a = sim.predict_acceleration(b.history, b.graph)
         m = sim.predict_acceleration(b.history @ g.T, replace(b.graph, rest=b.graph.rest @ g.T))
         return float((m - a @ g.T).abs().max() / a.abs().max())
-    sim.symmetrize = "d4"
+    sim.options = sim.options.replace(symmetrize="d4")
     assert off(quarter) < 1e-6 and off(diagonal) < 1e-6
-    sim.symmetrize = "d2"    # the mirrors alone do not hold a quarter turn (control)
+    sim.options = sim.options.replace(symmetrize="d2")    # the mirrors alone do not hold a quarter turn (control)
     assert off(quarter) > 1e-3
     assert symmetry_group(True) == "d2" and symmetry_group(False) is None
     with pytest.raises(ValueError, match="unknown symmetry group 'd6'"):
@@ -190,10 +191,10 @@ def test_the_two_and_four_image_groups_hold_exactly_their_own_maps_and_not_the_o
         m = sim.predict_acceleration(b.history @ g.T, replace(b.graph, rest=b.graph.rest @ g.T))
         return float((m - a @ g.T).abs().max() / a.abs().max())
     for group, holds, fails in (("d1", mirror_x, half), ("c2", half, mirror_x), ("c4", quarter, mirror_x)):
-        sim.symmetrize = group
+        sim.options = sim.options.replace(symmetrize=group)
         assert off(holds) < 1e-6, group
         assert off(fails) > 1e-3, group   # an untrained network is far from the map the group lacks
-    sim.symmetrize = "c4"
+    sim.options = sim.options.replace(symmetrize="c4")
     assert off(half) < 1e-6   # the half turn is two quarter turns
 
 
@@ -228,7 +229,7 @@ def test_an_ensemble_averages_its_members_predictions_and_refuses_a_member_readi
     assert not torch.allclose(a, o, atol=1e-6)
     sim.set_ensemble([other])
     torch.testing.assert_close(sim.predict_acceleration(b.history, b.graph), (a + o) / 2, rtol=0, atol=1e-9)
-    sim.symmetrize = True    # each member symmetrized as the model is asked to be: still exactly equivariant
+    sim.options = sim.options.replace(symmetrize=True)    # each member symmetrized as the model is asked to be: still exactly equivariant
     both = sim.predict_acceleration(b.history, b.graph)
     g = torch.tensor((-1.0, 1.0, 1.0), dtype=torch.float64)
     mirrored = sim.predict_acceleration(b.history * g, replace(b.graph, rest=b.graph.rest * g))
@@ -240,7 +241,7 @@ def test_an_ensemble_averages_its_members_predictions_and_refuses_a_member_readi
     # computes its own, and free flight waits until the farthest-seeing member's floor is clear
     far, _ = sim_and_batch(tmp_path / "far", "features.floor_clip=1.5", "features.floor_signed=true")
     f = far.predict_acceleration(b.history, b.graph)
-    sim.symmetrize = False
+    sim.options = sim.options.replace(symmetrize=False)
     assert sim.free_flight_clip == sim.layout.floor_clip == 0.5
     sim.set_ensemble([far])
     torch.testing.assert_close(sim.predict_acceleration(b.history, b.graph), (a + f) / 2, rtol=0, atol=1e-9)

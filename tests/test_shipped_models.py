@@ -6,7 +6,7 @@ import pytest
 
 from gns.checkpoint import read_checkpoint
 from gns.evaluate import checkpoint_of, evaluate_run, shipped_models
-from gns.train import load_model
+from gns.checkpoint import load_model
 
 CUBES = Path(__file__).parent / "data" / "contactnets"
 # the d32 stage again, sessions 38-40: stage n and its seed-100 twin for n = 6 to 11
