@@ -4,7 +4,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .config import ConfigError, load_config
+from plumbing.errors import ConfigError
+from .config import load_config
 
 EPILOG = """examples:
   datagen toss --shapes cube,sphere --sizes small --materials metal --scenes 100 --out data/toy
@@ -126,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from .shards import DataError
+    from plumbing.errors import DataError
     a = build_parser().parse_args(argv)
     try:
         return a.func(a)

@@ -24,11 +24,11 @@ from . import __version__
 from .scenes import sample_scene
 from .shapes import get_shape
 from .inspect import floor_violations
-from .outputs import check_output_folder
-from .config import ConfigError
-from .shards import (METADATA_FILE, SPLITS, DataError, clear_dataset, dataset_files, read_shard, shard_image,
-                     shard_name, write_error, write_metadata, write_shard_image)
+from .shards import (METADATA_FILE, SPLITS, clear_dataset, dataset_files, read_shard, shard_image, shard_name,
+                     write_error, write_metadata, write_shard_image)
 from .simulate import simulate, steps_per_frame
+from plumbing.errors import ConfigError, DataError
+from plumbing.files import check_output_folder
 
 
 @dataclass(frozen=True)

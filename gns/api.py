@@ -26,16 +26,15 @@ import numbers
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from datagen.shards import DataError
+from plumbing.errors import DataError
 from gns.config import Config, ConfigError, build_config
 from gns.features import HISTORY
-from gns.graph import GraphBatch
+from gns.graph import GraphBatch, with_symmetries
 from gns.ranges import outside_training
 from gns.rigid import posed, shape_match_packed
 from gns.simulator import LearnedSimulator
@@ -227,6 +226,9 @@ class Model:
         # scaled rest shape and materials from the inputs themselves, so that a gradient reaches them
         graph.rest = graph.rest * scale[graph.node_graph, None]
         graph.material = torch.stack(mat, 1).to(torch.float32)[graph.node_graph]
+        if self.simulator.options.body_frames:
+            # the rotations mapping each mesh onto itself, which every step averages over
+            graph = with_symmetries(graph)
         frames = tuple(posed(past_rot[k], past_pos[k], graph.node_graph, graph.rest) for k in range(HISTORY))
         return State(pos, self._quat_out(quat / quat.norm(dim=-1, keepdim=True)), frames[-1], 0.0, frames, graph)
 
@@ -314,24 +316,28 @@ def _meshes_of(spec: ModelSpec, where: str) -> dict:
 
 
 def load(model: str | Path, device: str | torch.device = "cpu", quaternion_order: str = "wxyz",
-         meshes: dict | None = None, options: RolloutOptions | None = None, *,
-         symmetrize: bool | str | None = None, ensemble: str | Path | Sequence[str | Path] | None = None) -> Model:
+         meshes: dict | None = None, options: RolloutOptions | None = None, **changes) -> Model:
     """A trained model: a zoo name (`gns models` lists them), a run folder (its latest.pt) or a
     .pt checkpoint or export. device: "cpu", "cuda", "cuda:1", ... meshes {name: (vertices,
     faces)} replaces the checkpoint's (needed only for old checkpoints of custom shapes).
     options: how it rolls out (gns.options.RolloutOptions; default gns.zoo.default_options(model),
-    for a zoo model the options it was scored with). symmetrize and ensemble are shortcuts that
-    change those options: symmetrize True or "d2" averages each step over the floor's mirror
-    images (`gns eval --symmetrize`; four network calls a step), rollouts exactly
+    for a zoo model the options it was scored with). Keywords (RolloutOptions fields) change those
+    options, e.g. free_flight=True, sleep=True or autocast="auto"; symmetrize True or "d2"
+    averages each step over the floor's mirror images (`gns eval --symmetrize`; four network
+    calls a step), rollouts exactly
     mirror-equivariant as far as the mesh graph is (a cube's triangulated faces are not quite),
     or another group of gns.symmetry.SYMMETRY_GROUPS ("none": off); ensemble: more models (names,
     folders, files) whose predictions each step averages with this one's (`gns eval --ensemble`);
     they must read the same graphs."""
     device = parse_device(str(device), "device")
-    if isinstance(ensemble, (str, Path)):
-        ensemble = [ensemble]
-    options = (default_options(model) if options is None else options).replace(
-        symmetrize=symmetrize, ensemble=None if ensemble is None else tuple(str(e) for e in ensemble))
+    ensemble = changes.get("ensemble")
+    if ensemble is not None:
+        changes["ensemble"] = (str(ensemble),) if isinstance(ensemble, (str, Path)) else tuple(str(e) for e in ensemble)
+    known = set(RolloutOptions.__dataclass_fields__)
+    unknown = sorted(set(changes) - known)
+    if unknown:   # a misspelt option: one line naming the known ones, not a TypeError from dataclasses
+        raise TypeError(f"gns.load() got an unknown rollout option {unknown[0]!r}; known: {', '.join(sorted(known))}")
+    options = (default_options(model) if options is None else options).replace(**changes)
     path = checkpoint_of(model)
     sim, ckpt = load_simulator(path, device, options)
     cfg = build_config(base=ckpt["config"])

@@ -15,9 +15,8 @@ from pathlib import Path
 
 import torch
 
-from datagen.atomic import atomic_file
-from datagen.outputs import check_writable
-from datagen.shards import DataError
+from plumbing.files import atomic_file, check_writable
+from plumbing.errors import DataError
 from gns.config import Config, ConfigError, build_config
 from gns.options import RolloutOptions
 from gns.simulator import LearnedSimulator

@@ -10,7 +10,7 @@ import os
 import sys
 import warnings
 
-from datagen.shards import DataError
+from plumbing.errors import DataError
 from gns.config import ConfigError
 
 EXIT_FAILED = 1
@@ -112,13 +112,13 @@ def cmd_rollout(args: argparse.Namespace) -> None:
 def cmd_eval(args: argparse.Namespace) -> None:
     from gns.evaluate import evaluate_run, write_json
     from gns.metrics import format_table
-    from datagen.outputs import check_json_output
+    from plumbing.files import check_json_output
 
     _threads(args.threads)
     if args.json:
         check_json_output(args.json, "position_error_pct", "gns eval")
     results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit, _rollout_options(args),
-                               plots_dir=args.plots, at_data_rate=args.at_data_rate, device=args.device)
+                               plots_dir=args.plots, at_data_rate=_at_data_rate(args), device=args.device)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched"
@@ -144,6 +144,16 @@ def cmd_eval(args: argparse.Namespace) -> None:
         print(f"wrote {args.json}")
     if args.plots:
         print(f"plots in {args.plots}")
+
+
+def _at_data_rate(args: argparse.Namespace) -> bool:
+    """--at-data-rate as given, else as a zoo model's card says it was scored (its [eval] table)."""
+    if args.at_data_rate is not None:
+        return args.at_data_rate
+    from gns import zoo
+    if zoo.is_name(args.run_dir) and args.run_dir in zoo.names():
+        return bool(zoo.card(args.run_dir).data.get("eval", {}).get("at_data_rate", False))
+    return False
 
 
 # the RolloutOptions fields the rollout flags set (dest = field name); an unset flag is None
@@ -242,9 +252,10 @@ def add_eval_parsers(sub) -> None:
                                    "frames, then scenes), at fixed horizons and by shape, size and material.")
     _add_rollout_args(e)
     e.add_argument("--json", metavar="FILE", help="also write the results as JSON")
-    e.add_argument("--at-data-rate", action="store_true",
+    e.add_argument("--at-data-rate", action=argparse.BooleanOptionalAction,
                    help="a model trained at every k-th frame is scored at every frame of the data (its poses "
-                        "interpolated), the instants any other simulator is scored at; default: at its own frames")
+                        "interpolated), the instants any other simulator is scored at; default: a zoo model as "
+                        "its card's [eval] at_data_rate says, any other at its own frames")
     e.add_argument("--plots", metavar="DIR", help="write trajectory plots, error against time and a GIF here")
     e.set_defaults(run=cmd_eval)
 
@@ -270,7 +281,7 @@ def add_export_parser(sub) -> None:
 def cmd_plot_curves(args: argparse.Namespace) -> None:
     from pathlib import Path
 
-    from datagen.outputs import check_writable
+    from plumbing.files import check_writable
     from gns.plots import plot_training_curves
     from gns.train import METRICS, read_metrics
 

@@ -13,9 +13,8 @@ from pathlib import Path
 
 
 # one error class, one value parser and one typing rule for datagen's and gns's configs
-from datagen.config import ConfigError, parse_value, typed_value  # noqa: E402
-
-
+from plumbing.errors import ConfigError
+from plumbing.tomlconfig import load_toml, parse_value, typed_value
 
 
 @dataclass
@@ -226,9 +225,6 @@ def parse_override(text: str) -> dict:
     value = parse_value(raw)
     section, name = key.split(".")
     return {section: {name: value}}
-
-
-from datagen.config import load_toml  # noqa: E402  files or preset names, one reader for both tools
 
 
 def build_config(base: dict | None = None, path: str | Path | None = None,

@@ -21,7 +21,7 @@ from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from scipy.spatial import ConvexHull, QhullError
 
-from datagen.atomic import atomic_file
+from plumbing.files import atomic_file
 from gns.features import HISTORY
 from gns.geometry import feature_edges, pose_to_vertices
 from gns.metrics import object_width

@@ -19,10 +19,11 @@ import torch
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from datagen.outputs import check_output_folder, check_writable, overlapping
+from plumbing.files import check_output_folder, check_writable, overlapping
 from datagen.quaternions import continuous
 from datagen.quaternions import rotation, wxyz
-from datagen.shards import Dataset, DataError, Scene, shard_name, write_metadata, write_shard
+from datagen.shards import Dataset, Scene, shard_name, write_metadata, write_shard
+from plumbing.errors import DataError
 from gns.data import ObjectTracks
 from gns.features import HISTORY
 from gns.geometry import matrix_to_quat

@@ -27,9 +27,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from datagen.atomic import atomic_file
-from datagen.outputs import check_writable
-from datagen.shards import Dataset, DataError
+from plumbing.files import atomic_file, check_writable
+from datagen.shards import Dataset
+from plumbing.errors import DataError
 from gns import parallel
 from gns.config import Config, ConfigError, build_config, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen.atomic import atomic_file, atomic_folder
+from plumbing.files import atomic_file, atomic_folder
 from datagen.config import load_config
 from datagen.generate import metadata, plan
 from datagen.shapes import get_shape

@@ -166,7 +166,7 @@ import sys
 import time
 from pathlib import Path
 
-from datagen.outputs import check_writable
+from plumbing.files import check_writable
 from gns.evaluate import evaluate_run, write_json
 from gns.metrics import format_table
 from gns.checkpoint import read_checkpoint

@@ -20,7 +20,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from datagen.shards import DataError
+from plumbing.errors import DataError
 from gns.evaluate import evaluate_run, write_json
 from gns.checkpoint import export_model
 from pipelines.common import Costs, done, guarded, say, train_stage, trained_step

@@ -11,7 +11,8 @@ import torch
 
 import gns
 from datagen.cli import main as datagen_main
-from datagen.shards import Dataset, DataError, Scene, write_metadata, write_shard
+from datagen.shards import Dataset, Scene, write_metadata, write_shard
+from plumbing.errors import DataError
 from gns.api import history_poses, matrix_to_quat, quat_to_matrix
 from gns.cli import main as gns_main
 from gns.config import ConfigError, build_config
@@ -345,3 +346,37 @@ def test_symmetrized_images_in_one_call_equal_one_call_per_image(run):
         torch.testing.assert_close(sim.predict_acceleration(history, state.graph), batched, rtol=0, atol=1e-9)
     finally:
         symmetry.IMAGE_NODES = old
+
+
+def test_options_given_at_load_are_the_models_and_its_rollouts_honour_them(run):
+    from dataclasses import replace
+
+    from gns.options import RolloutOptions
+    plain = gns.load(run / "run")
+    assert plain.options == RolloutOptions()   # a run folder outside the zoo: the defaults
+    fast = gns.load(run / "run", free_flight=True, body_frames=True)
+    assert fast.options == RolloutOptions(free_flight=True, body_frames=True)
+    assert gns.load(run / "run", options=fast.options, symmetrize="d1").options.symmetrize == "d1"
+    with pytest.raises(TypeError, match="unknown rollout option 'free_fligth'; known: .*free_flight"):
+        gns.load(run / "run", free_fligth=True)
+    # one cube high above the floor, alone: in free flight it follows the exact inertial update,
+    # its centre's second difference gravity's g dt^2 to rounding, which the network never is
+    toss = dict(shapes=["cube"], scales=0.7, friction=[0.5], restitution=[0.5], positions=[[0.0, 0.0, 5.0]],
+                quaternions=[[0.9, 0.1, 0.0, 0.3]],
+                velocities=[[1.0, 0.0, 0.0]], angular_velocities=[[0.0, 0.0, 3.0]])
+    g_step = torch.as_tensor(fast.gravity, dtype=torch.float64) * fast.dt ** 2
+    for model, exact in ((fast, True), (plain, False)):
+        p = model.rollout(**toss, steps=4).positions.to(torch.float64)
+        second = p[2:] - 2 * p[1:-1] + p[:-2]
+        assert torch.allclose(second, g_step.expand_as(second), rtol=0, atol=1e-9) == exact
+    # body frames: Model.rollout averages over each object's equivalent frames as gns eval's
+    # rollout does (LearnedSimulator.rollout, which adds the frames to its graph itself)
+    near_floor = dict(toss, positions=[[0.0, 0.0, 0.4]], velocities=[[0.0, 0.0, -1.0]])
+    frames = gns.load(run / "run", body_frames=True)
+    state = frames.state(**near_floor)
+    assert state.graph.symmetries is not None and int(state.graph.num_symmetries[0]) == 24
+    bare = replace(state.graph, symmetries=None, num_symmetries=None)
+    expected = frames.simulator.rollout(torch.stack(state.frames, 1), bare, 3)
+    torch.testing.assert_close(frames.rollout(**near_floor, steps=3).vertices[1:], expected, rtol=0, atol=1e-12)
+    # control: the averaging changes the answer
+    assert not torch.allclose(plain.rollout(**near_floor, steps=3).vertices[1:], expected, rtol=0, atol=1e-9)
