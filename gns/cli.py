@@ -19,7 +19,8 @@ EXIT_BAD_INPUT = 2
 
 def cmd_train(args: argparse.Namespace) -> None:
     from gns.parallel import world_from_env
-    from gns.train import resolve_config, train
+    from gns.run_folder import resolve_config
+    from gns.train import train
 
     overrides = list(args.set or [])
     if args.steps is not None:
@@ -283,7 +284,7 @@ def cmd_plot_curves(args: argparse.Namespace) -> None:
 
     from plumbing.files import check_writable
     from gns.plots import plot_training_curves
-    from gns.train import METRICS, read_metrics
+    from gns.run_folder import METRICS, read_metrics
 
     out = Path(args.out)
     if out.suffix.lower() not in (".png", ".pdf", ".svg"):

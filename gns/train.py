@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import os
 import random
 import signal
@@ -27,26 +26,23 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from plumbing.files import atomic_file, check_writable
 from datagen.shards import Dataset
-from plumbing.errors import DataError
 from gns import parallel
-from gns.config import Config, ConfigError, build_config, config_to_dict
+from gns.config import Config, ConfigError, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import MeshLibrary, graph_settings
-from gns.features import HISTORY
-from gns.rigid import shape_match_packed
+from gns.optimise import learning_rate, train_step, validate
+from gns.run_folder import (METRICS, check_run, check_tensorboard, restore_rng, rng_state, run_provenance,
+                            start_run_folder, tensorboard_writer, write_metrics)
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-from gns.checkpoint import (CHECKPOINT_FORMAT, LATEST, TRAINED, CheckpointError, build_simulator, checkpoint_paths,
-                            resume_point, save_checkpoint)
+from gns.checkpoint import (CHECKPOINT_FORMAT, TRAINED, CheckpointError, build_simulator, resume_point,
+                            save_checkpoint)
 from gns.devices import parse_device
 from gns.fine_tune import incompatibility, init_from, merge_ranges, with_layout
 from gns.weight_average import WeightAverage
-
-METRICS = "metrics.jsonl"
-PROVENANCE = "provenance.json"
-TENSORBOARD_DIR = "tb"
+from plumbing.errors import DataError
+from plumbing.files import check_writable
 
 
 class TrainingError(Exception):
@@ -82,144 +78,6 @@ class _StopRequest:
         return False
 
 
-def learning_rate(cfg: Config, step: int) -> float:
-    """lr_final + (lr_init - lr_final) * 0.1^(step / lr_decay_steps), as learning_to_simulate."""
-    t = cfg.train
-    return t.lr_final + (t.lr_init - t.lr_final) * 0.1 ** (step / t.lr_decay_steps)
-
-
-def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: Batch, lr: float,
-               grad_clip: float, fraction: float = 1.0, processes: int = 1, rigid_loss: float = 0.0) -> float:
-    """One Adam step on the per-node MSE of a batch; returns the loss.
-
-    On several processes `batch` is this process's share of the global batch, holding
-    `fraction` of its nodes. Each process weights its mean by fraction x processes, so the
-    average of the gradients (DistributedDataParallel) is the gradient of the global batch's
-    per-node mean, as one process training on the whole batch; the returned loss is that mean.
-    Raises FloatingPointError, before the weights change, if the loss or the gradient is not finite.
-    """
-    for group in optimizer.param_groups:
-        group["lr"] = lr
-    loss = unrolled_loss(sim, batch, rigid_loss)
-    if processes > 1:
-        # every process sees the same global loss, so all stop together on a NaN
-        total = parallel.sum_over_processes(loss.detach() * fraction)
-        loss = loss * (fraction * processes)
-    else:
-        total = loss
-    if not torch.isfinite(total):
-        raise FloatingPointError(f"the loss is {total.item()}")
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    norm = torch.nn.utils.clip_grad_norm_(sim.parameters(), grad_clip or math.inf)
-    if not torch.isfinite(norm):
-        raise FloatingPointError(f"the gradient norm is {norm.item()}")
-    optimizer.step()
-    return total.item()
-
-
-def unrolled_loss(sim: LearnedSimulator, batch: Batch, rigid_loss: float = 0.0) -> torch.Tensor:
-    """The one-step loss, averaged over the batch's target frames (pushforward training).
-
-    Step k > 1 starts from the model's own earlier predictions, shape-matched as in rollouts and
-    detached: the model learns to correct the errors it makes itself (after a bounce, say),
-    without backpropagating through time. Each step's target is the true frame, so the
-    acceleration asked for pulls a drifted prediction back toward the truth."""
-    targets = batch.targets
-    frames = list(batch.history.unbind(1))
-    total = 0.0
-    for k in range(targets.shape[1]):
-        history = torch.stack(frames[-HISTORY:], dim=1)
-        total = total + sim.loss(history, targets[:, k], batch.graph, rigid_loss)
-        if k + 1 < targets.shape[1]:
-            with torch.no_grad():
-                x = sim.predict_next(*frames[-HISTORY:], batch.graph)
-                x = shape_match_packed(x, batch.graph.rest, batch.graph.node_graph, batch.graph.num_graphs)[2]
-            frames.append(x)
-    return total / targets.shape[1]
-
-
-@torch.no_grad()
-def validate(sim: LearnedSimulator, valid: ObjectTracks, cfg: Config, device: torch.device) -> dict:
-    """One-step loss on evenly spaced valid windows; centre error of short shape-matched rollouts."""
-    sim.eval()
-    try:
-        n = min(cfg.valid.windows, valid.num_windows)
-        windows = torch.linspace(0, valid.num_windows - 1, n).round().long().unique()
-        total, nodes = 0.0, 0
-        for chunk in windows.split(cfg.train.batch_size):
-            batch = valid.batch(chunk).to(device)
-            total += float(sim.loss(batch.history, batch.target, batch.graph)) * batch.graph.num_nodes
-            nodes += batch.graph.num_nodes
-        out = {"valid_loss": total / nodes}
-        tracks = torch.nonzero(valid.track_scene < cfg.valid.rollout_scenes)[:, 0]
-        if len(tracks):
-            out.update(_rollout_error(sim, valid, tracks, cfg.valid.rollout_steps, device))
-        return out
-    finally:
-        sim.train()
-
-
-def _rollout_error(sim: LearnedSimulator, valid: ObjectTracks, tracks: torch.Tensor, max_steps: int,
-                   device: torch.device) -> dict:
-    """Mean distance (scene units) between predicted and true centres over a rollout from 3 true frames."""
-    steps = min(max_steps, int(valid.length[tracks].min()) - HISTORY)
-    graph, verts, centres = valid.track_vertices(tracks, HISTORY + steps)
-    graph = graph.to(device)
-    pred = sim.rollout(verts[:, :HISTORY].to(device), graph, steps)
-    pred_centres = torch.stack([shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)[1]
-                                for x in pred], dim=1).cpu()
-    error = (pred_centres - centres[:, HISTORY:]).norm(dim=-1).mean(dim=1)       # (B,)
-    finite = torch.isfinite(error)
-    # A diverged track is counted, not averaged in, so the log stays valid JSON and comparable.
-    return {"valid_rollout_position_error": float(error[finite].mean()) if finite.any() else None,
-            "valid_rollout_diverged": int((~finite).sum()), "valid_rollout_steps": steps}
-
-
-def _rng_state(rng: np.random.Generator) -> dict:
-    return {"torch": torch.get_rng_state(), "numpy": rng.bit_generator.state, "python": random.getstate()}
-
-
-def _restore_rng(state: dict, rng: np.random.Generator) -> None:
-    torch.set_rng_state(state["torch"])
-    rng.bit_generator.state = state["numpy"]
-    random.setstate(state["python"])
-
-
-def _check_run(run: Path, resume: bool, overwrite: bool) -> list[Path]:
-    """Refuse to start over a run's checkpoints unless asked; returns the files to delete."""
-    existing = checkpoint_paths(run) + [p for p in (run / LATEST, run / METRICS, run / PROVENANCE) if p.exists()]
-    existing += sorted((run / TENSORBOARD_DIR).glob("events.out.tfevents.*"))
-    if resume:
-        return []
-    if any(p.suffix == ".pt" for p in existing) and not overwrite:
-        raise CheckpointError(f"{run} already holds checkpoints; pass --resume to continue "
-                              f"or --overwrite to start again")
-    return existing
-
-
-def _drop_metrics_after(path: Path, step: int, log: Callable[[str], None] = print) -> None:
-    """Forget log lines of steps that a resumed run will train again (after a crash), and lines
-    that are not JSON: a crash mid-write leaves the last one torn."""
-    if not path.exists():
-        return
-    kept, torn = [], 0
-    for line in path.read_text(errors="replace").splitlines():
-        try:
-            entry = json.loads(line)
-            entry_step = int(entry["step"])
-        except (ValueError, KeyError, TypeError):
-            torn += bool(line.strip())
-            continue
-        if entry_step <= step:
-            kept.append(line)
-    if torn:
-        log(f"warning: dropped {torn} unreadable line{'s' if torn > 1 else ''} of {path} "
-            f"(a crash mid-write tears the last one)")
-    with atomic_file(path) as tmp:
-        tmp.write_text("".join(line + "\n" for line in kept))
-
-
 def _device(name: str, world: parallel.World = parallel.World()) -> torch.device:
     device = parse_device(name)
     if world.size > 1 and device.type == "cuda":
@@ -239,63 +97,6 @@ def _set_threads(threads: int, log: Callable[[str], None]) -> None:
     if threads > 1 and load + threads > cores + 0.5:
         log(f"warning: {threads} threads on {cores} cores with a load average of {load:.1f}; "
             f"if steps/s collapse, use --set train.threads=1")
-
-
-def read_metrics(path: str | Path) -> list[dict]:
-    """The entries of a metrics.jsonl, in order; lines that are not JSON objects with a step (a
-    crash mid-write tears the last one) are skipped."""
-    entries = []
-    for line in Path(path).read_text(errors="replace").splitlines():
-        try:
-            entry = json.loads(line)
-        except ValueError:
-            continue
-        if isinstance(entry, dict) and isinstance(entry.get("step"), int):
-            entries.append(entry)
-    return entries
-
-
-def _tensorboard_writer(run: Path, purge_step: int | None):
-    """A SummaryWriter on RUN/tb. On resume, events after the checkpoint's step (logged before a
-    crash, trained again now) are purged, as _drop_metrics_after drops their metrics lines."""
-    from torch.utils.tensorboard import SummaryWriter
-    return SummaryWriter(log_dir=str(run / TENSORBOARD_DIR), purge_step=purge_step)
-
-
-def check_tensorboard() -> None:
-    """train.tensorboard needs the extra; checked before any work, one line."""
-    try:
-        import tensorboard  # noqa: F401
-    except ImportError:
-        raise ConfigError("train.tensorboard=true needs TensorBoard: pip install 'rigid-gns[tensorboard]'") from None
-
-
-def tensorboard_tag(key: str) -> str:
-    """metrics.jsonl key -> TensorBoard tag, grouped as TensorBoard shows them: train/, valid/, speed/."""
-    if key.startswith("valid_"):
-        return "valid/" + key[len("valid_"):]
-    if key.endswith("_per_sec"):
-        return "speed/" + key
-    return "train/" + key
-
-
-def _log_scalars(writer, entry: dict) -> None:
-    for key, value in entry.items():
-        if key in ("step", "time") or isinstance(value, bool) or not isinstance(value, (int, float)):
-            continue   # None (all rollouts diverged) is not a scalar; counts and rates are
-        writer.add_scalar(tensorboard_tag(key), value, entry["step"])
-    writer.flush()
-
-
-def run_provenance(data_dir: str | Path, fingerprint: str, step: int, earlier: dict | None) -> dict:
-    """What a run records of where it came from: versions, code commit, the data it trained on;
-    earlier runs of a resumed training are kept in `earlier`, oldest first."""
-    from datagen.provenance import provenance
-    history = []
-    if isinstance(earlier, dict):
-        history = [*earlier.get("earlier", []), {k: v for k, v in earlier.items() if k != "earlier"}]
-    return {**provenance(), "data": {"path": str(data_dir), "fingerprint": fingerprint}, "start_step": step,
-            "earlier": history}
 
 
 def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTracks, ObjectTracks | None]:
@@ -378,7 +179,7 @@ def _check_start(run: Path, cfg: Config, world: parallel.World, resume: bool, ov
     if world.size > 1 and cfg.train.batch_size < world.size:
         raise ConfigError(f"train.batch_size={cfg.train.batch_size} is the global batch, split over "
                           f"{world.size} processes: it must be at least {world.size}")
-    stale = _check_run(run, resume, overwrite)
+    stale = check_run(run, resume, overwrite)
     device = _device(cfg.train.device, world)
     resumed = None
     if resume:
@@ -425,7 +226,7 @@ def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] |
     optimizer.load_state_dict(ckpt["optimizer"])
     step = int(ckpt["step"])
     spec = merge_ranges(trained, spec)
-    _restore_rng(ckpt["rng"], rng)
+    restore_rng(ckpt["rng"], rng)
     average = None
     if decay:
         average = WeightAverage(sim, decay, step, ckpt["model"] if TRAINED in ckpt else None)
@@ -455,21 +256,21 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
     train.checkpoint_every. Returns the last step."""
     config_dict = config_to_dict(cfg)
     if world.main:
-        _start_run_folder(run, stale, resumed_from, step, config_dict, provenance, log)
+        start_run_folder(run, stale, resumed_from, step, config_dict, provenance, log)
 
     def state(step: int) -> dict:
         weights = {"model": sim.state_dict()} if average is None else \
             {"model": average.state_dict(sim), TRAINED: sim.state_dict()}
         return {"format": CHECKPOINT_FORMAT, "step": step, "seed": cfg.train.seed, "config": config_dict,
                 "spec": spec.to_dict(), **weights, "optimizer": optimizer.state_dict(),
-                "rng": _rng_state(rng), "provenance": provenance}
+                "rng": rng_state(rng), "provenance": provenance}
 
     log(_start_line(cfg, sim, tracks, spec, step, world, resumed_from))
     last_good = resumed_from
     bar = tqdm(total=cfg.train.steps, initial=step, unit="step", disable=None if world.main else True,
                dynamic_ncols=True)
     metrics = open(run / METRICS, "a") if world.main else None
-    writer = (_tensorboard_writer(run, step + 1 if resumed_from else None)
+    writer = (tensorboard_writer(run, step + 1 if resumed_from else None)
               if cfg.train.tensorboard and world.main else None)
     stop = _StopRequest() if world.size == 1 else contextlib.nullcontext()
     try:
@@ -522,7 +323,7 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
             if validating:
                 with average.swapped_in() if average is not None else contextlib.nullcontext():
                     entry.update(validate(sim, valid, cfg, device))
-            _write_metrics(metrics, writer, entry)
+            write_metrics(metrics, writer, entry)
             loss_sum, loss_count, busy = 0.0, 0, 0.0
         if step % cfg.train.checkpoint_every == 0 or step == cfg.train.steps:
             if not all(torch.isfinite(p).all() for p in sim.parameters()):
@@ -535,20 +336,6 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
             raise TrainingInterrupted(f"{stop.asked}: stopped at step {step} of {cfg.train.steps}, "
                                       f"checkpoint saved; resume with the same command and --resume")
     return step, last_good
-
-
-def _start_run_folder(run: Path, stale: list[Path], resumed_from: Path | None, step: int, config_dict: dict,
-                      provenance: dict, log: Callable[[str], None]) -> None:
-    """The run folder as this run of the training starts it: an earlier run's files deleted (--overwrite),
-    metrics of steps to be trained again dropped (resume), config and provenance written."""
-    for p in stale:
-        p.unlink()
-    run.mkdir(parents=True, exist_ok=True)
-    if resumed_from:
-        _drop_metrics_after(run / METRICS, step, log)
-    for name, content in (("config.json", config_dict), (PROVENANCE, provenance)):
-        with atomic_file(run / name) as tmp:
-            tmp.write_text(json.dumps(content, indent=2) + "\n")
 
 
 def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: ModelSpec, step: int,
@@ -583,23 +370,7 @@ def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, wor
     return batch, batch.graph.num_nodes / nodes
 
 
-def _write_metrics(metrics, writer, entry: dict) -> None:
-    """One metrics.jsonl line, flushed so a crash loses nothing logged, and the TensorBoard scalars."""
-    metrics.write(json.dumps(entry) + "\n")
-    metrics.flush()
-    if writer is not None:
-        _log_scalars(writer, entry)
-
-
 def _stopped(what: str, step: int, last_good: Path | None) -> str:
     kept = f"the last good checkpoint is {last_good}" if last_good else "no checkpoint was written yet"
     return f"{what} at step {step}; training stopped, {kept}"
-
-
-def resolve_config(run_dir: str | Path, resume: bool, config_path: str | None, overrides: list[str]) -> Config:
-    """The config of a run: on resume the checkpoint's, updated by the file and overrides given."""
-    base = None
-    if resume and (checkpoint_paths(Path(run_dir)) or (Path(run_dir) / LATEST).exists()):
-        base = resume_point(run_dir)[1]["config"]
-    return build_config(base=base, path=config_path, overrides=overrides)
 

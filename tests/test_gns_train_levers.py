@@ -13,7 +13,8 @@ from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
 from gns.rigid import shape_match_packed
 from gns.checkpoint import build_simulator, read_checkpoint
-from gns.train import train, unrolled_loss
+from gns.optimise import unrolled_loss
+from gns.train import train
 from test_gns_train import TINY, metrics, quiet, tiny
 
 G_STEP = torch.tensor(GRAVITY, dtype=torch.float64) / FRAME_RATE ** 2

@@ -11,7 +11,7 @@ from gns_fixtures import write_toss_dataset
 from datagen.shards import Dataset
 from gns.cli import main
 from gns.checkpoint import read_checkpoint
-from gns.train import TENSORBOARD_DIR, read_metrics
+from gns.run_folder import TENSORBOARD_DIR, read_metrics
 
 TINY = str(Path(__file__).resolve().parents[1] / "configs" / "gns_tiny.toml")
 LIBRARIES = ("python", "torch", "numpy", "pybullet", "h5py", "trimesh", "scipy")
