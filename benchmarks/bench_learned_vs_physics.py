@@ -199,7 +199,8 @@ def plot_rows(rows: list[dict], runs: list[str], path: str) -> Path:
     from matplotlib.lines import Line2D
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    from gns.plots import label_points, new_figure, save_figure
+    from gns.charts import label_points
+    from gns.plots import new_figure, save_figure
     fig = new_figure((11, 5.2))
     learned = [r for r in rows if r["variant"].startswith("GNS ")]
     model, option = [], []   # "GNS [RUN ]OPTIONS": the run is named only when there are several

@@ -283,7 +283,7 @@ def cmd_plot_curves(args: argparse.Namespace) -> None:
     from pathlib import Path
 
     from plumbing.files import check_writable
-    from gns.plots import plot_training_curves
+    from gns.charts import plot_training_curves
     from gns.run_folder import METRICS, read_metrics
 
     out = Path(args.out)

@@ -6,7 +6,7 @@ mesh edge is two graph edges. A batch is one big graph whose nodes are the verti
 objects, numbered graph after graph (node offset per graph); `node_graph[i]` names the graph of
 node i. Further edge sets are extra `EdgeSet` fields: `collision_edges` join vertices of
 different objects of the same scene (`graph_scene[g]` names the scene of graph g within the
-batch) that are closer than a radius; see `collision_edges`.
+batch) that are closer than a radius; see gns.contacts.collision_edges.
 """
 from __future__ import annotations
 
@@ -249,27 +249,6 @@ class MeshLibrary:
                           symmetries=self._symmetries[ids].to(rest), num_symmetries=self.num_symmetries[ids].to(rest.device))
 
 
-def candidate_pairs(graph: GraphBatch) -> tuple[torch.Tensor, torch.Tensor]:
-    """All unordered pairs (a < b) of graphs in the same scene: two (P,) int64 tensors."""
-    scene = graph.graph_scene
-    order = torch.argsort(scene, stable=True)
-    _, counts = torch.unique_consecutive(scene[order], return_counts=True)
-    # for the k-th graph of a scene (in `order`), pair it with every graph of its scene
-    owner, _ = ragged_arange(counts)                     # scene run of each sorted graph
-    run_start = torch.cumsum(counts, 0) - counts
-    per = counts[owner]                                   # (G,) partners per sorted graph
-    who, k = ragged_arange(per)
-    a, b = order[who], order[run_start[owner[who]] + k]
-    keep = a < b
-    return a[keep], b[keep]
-
-
-def ragged_take(counts: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """For blocks p of counts[p] consecutive indices from start[p]: (owner, index) of each element."""
-    owner, local = ragged_arange(counts)
-    return owner, start[owner] + local
-
-
 def per_graph(values: torch.Tensor, graph: GraphBatch, reduce: str, owner: torch.Tensor | None = None) -> torch.Tensor:
     """Node values (N, ...) reduced over each graph's nodes -> (G, ...); reduce is "amax",
     "amin" or "sum". Values of other items (edges) need their `owner` graph (len(values),)."""
@@ -289,66 +268,6 @@ def graph_centres(x: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
 def graph_sizes(graph: GraphBatch) -> torch.Tensor:
     """Largest axis extent of each graph's scaled rest mesh (G,): the object's size."""
     return (per_graph(graph.rest, graph, "amax") - per_graph(graph.rest, graph, "amin")).max(dim=1).values
-
-
-def near_pairs(x: torch.Tensor, graph: GraphBatch, radius: float):
-    """Broad phase: object pairs (a < b) of a scene whose bounds, one expanded by `radius`,
-    overlap; returns (a, b, low, high) with every graph's bounds (G, 3), or None if none."""
-    if graph.graph_scene is None or graph.num_graphs < 2:
-        return None
-    high, low = per_graph(x, graph, "amax"), per_graph(x, graph, "amin")
-    a, b = candidate_pairs(graph)
-    near = ((low[a] - high[b] <= radius) & (low[b] - high[a] <= radius)).all(dim=1)
-    if not near.any():
-        return None
-    return a[near], b[near], low, high
-
-
-def vertices_near(x: torch.Tensor, graph: GraphBatch, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
-                   high: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mid phase: the vertices of graphs `own` (P,) inside the bounds of `other` (P,) expanded
-    by `radius`; returns (pair, node), pair indexing own/other."""
-    counts = torch.bincount(graph.node_graph, minlength=graph.num_graphs)
-    pair, node = ragged_take(counts[own], torch.cumsum(counts, 0)[own] - counts[own])
-    p = x[node]
-    ok = ((p >= low[other][pair] - radius) & (p <= high[other][pair] + radius)).all(dim=1)
-    return pair[ok], node[ok]
-
-
-@torch.no_grad()
-def collision_edges(x: torch.Tensor, graph: GraphBatch, radius: float) -> EdgeSet:
-    """Edges between vertices of different objects of the same scene closer than `radius`.
-
-    x (N, 3) node positions at time t. Three phases, all vectorised (no Python loop):
-    1. broad: object pairs of a scene whose axis-aligned bounds, one expanded by `radius`, overlap;
-    2. mid: per such pair, only the vertices of each object inside the other's expanded bounds;
-    3. narrow: distances of those vertex pairs, kept when < radius.
-    The cost grows with the number of near object pairs and of vertices near a contact, not with
-    the square of the vertex count. Both directions are returned (an edge and its reverse);
-    objects alone in their scene (or a graph without `graph_scene`) get none.
-    """
-    empty = EdgeSet(torch.zeros(0, dtype=torch.int64, device=x.device),
-                    torch.zeros(0, dtype=torch.int64, device=x.device))
-    near = near_pairs(x, graph, radius)
-    if near is None:
-        return empty
-    a, b, low, high = near
-
-    def inside(own: torch.Tensor, other: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per pair, how many vertices of `own` are inside `other`'s expanded bounds, and which."""
-        pair, node = vertices_near(x, graph, own, other, low, high, radius)
-        return torch.bincount(pair, minlength=len(own)), node
-
-    count_a, nodes_a = inside(a, b)
-    count_b, nodes_b = inside(b, a)
-    start_a = torch.cumsum(count_a, 0) - count_a
-    start_b = torch.cumsum(count_b, 0) - count_b
-    pair, local = ragged_arange(count_a * count_b)
-    i = nodes_a[start_a[pair] + torch.div(local, count_b[pair], rounding_mode="floor")]
-    j = nodes_b[start_b[pair] + local % count_b[pair]]
-    close = (x[i] - x[j]).norm(dim=1) < radius
-    i, j = i[close], j[close]
-    return EdgeSet(torch.cat([i, j]), torch.cat([j, i]))
 
 
 def select_graphs(graph: GraphBatch, keep: torch.Tensor) -> tuple[GraphBatch, torch.Tensor]:
@@ -477,7 +396,3 @@ def with_surface_edges(graph: GraphBatch, surface: bool) -> GraphBatch:
     edges = edges[order]
     return replace(graph, mesh_edges=EdgeSet(edges[:, 0].contiguous(), edges[:, 1].contiguous()))
 
-
-def with_collision_edges(graph: GraphBatch, x: torch.Tensor, radius: float) -> GraphBatch:
-    """A copy of graph with its collision edges built from positions x (N, 3)."""
-    return replace(graph, collision_edges=collision_edges(x, graph, radius))

@@ -19,8 +19,8 @@ from torch import nn
 
 from gns.features import FeatureLayout, Normalizer, make_layout, raw_collision_features, raw_edge_features, raw_node_features
 from gns.config import ConfigError
-from gns.contacts import surface_edges
-from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, collision_edges, graph_settings, lowest_nodes,
+from gns.contacts import collision_edges, surface_edges
+from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes,
                        select_nodes, with_surface_edges)
 from gns.network import EncodeProcessDecode
 from gns.options import OptionsError, RolloutOptions

@@ -12,7 +12,8 @@ from dataclasses import dataclass, replace
 import torch
 
 from gns.features import HISTORY
-from gns.graph import EdgeSet, GraphBatch, candidate_pairs, per_graph, select_graphs, with_symmetries
+from gns.contacts import candidate_pairs
+from gns.graph import EdgeSet, GraphBatch, per_graph, select_graphs, with_symmetries
 from gns.rigid import posed, shape_match_packed
 
 

@@ -232,8 +232,9 @@ def run_name(run: str) -> str:
 def pareto_plot(rows: list[dict], path: Path) -> Path:
     """Error against cost, log-log. A run's variants (one scene at a time, batched, fast, fast
     symmetrized) are joined by a thin line and the run is named once, at its most accurate
-    point; labels are placed where they overlap least (gns.plots.label_points)."""
-    from gns.plots import label_points, new_figure, save_figure
+    point; labels are placed where they overlap least (gns.charts.label_points)."""
+    from gns.charts import label_points
+    from gns.plots import new_figure, save_figure
     fig = new_figure((8.5, 5.6))
     ax = fig.subplots()
     cost = lambda r: r["seconds_per_simulated_second"]  # noqa: E731

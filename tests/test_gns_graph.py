@@ -11,7 +11,8 @@ from datagen.shards import Dataset, Scene
 from gns.config import FeatureConfig, ModelConfig, build_config
 from gns.data import ObjectTracks, feature_spec, vertices_from_poses
 from gns.geometry import quat_from_axis_angle
-from gns.graph import MeshLibrary, collision_edges, with_collision_edges
+from gns.contacts import collision_edges, with_collision_edges
+from gns.graph import MeshLibrary
 from gns.metrics import evaluate_scenes, interpenetration_pct
 from gns.rollout import rollout_scenes
 from gns.simulator import LearnedSimulator

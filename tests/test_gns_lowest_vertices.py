@@ -194,7 +194,7 @@ def test_with_other_objects_every_vertex_in_contact_is_seen():
     """Low graphs in scenes of several objects: the network also sees each vertex that has a
     collision edge (however high), the cut graph carries every collision edge of the whole one,
     and the kept nodes move exactly as the network says on that graph."""
-    from gns.graph import collision_edges
+    from gns.contacts import collision_edges
     sim = _simulator(6, collisions=True).eval()
     x_t, graph = _stacked_scene()
     full = collision_edges(x_t, graph, sim.layout.collision_radius)

@@ -17,7 +17,8 @@ from scipy.spatial.transform import Rotation
 from datagen.shapes import get_shape
 from gns.config import build_config
 from gns.data import ObjectTracks
-from gns.graph import EdgeSet, MeshLibrary, collision_edges, select_graphs
+from gns.contacts import collision_edges
+from gns.graph import EdgeSet, MeshLibrary, select_graphs
 from gns.simulator import LearnedSimulator
 from gns.spec import Floor, ModelSpec
 from gns.stability import resting_scene
