@@ -40,7 +40,7 @@ from gns.rigid import posed, shape_match_packed
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import CheckpointError, checkpoint_of, load_simulator
-from gns.devices import parse_device
+from gns.precision import parse_device
 from gns.options import RolloutOptions
 from gns.zoo import default_options
 

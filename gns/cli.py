@@ -77,7 +77,7 @@ def _threads(n: int) -> None:
 
 def cmd_rollout(args: argparse.Namespace) -> None:
     from gns.checkpoint import checkpoint_of, load_simulator
-    from gns.devices import parse_device
+    from gns.precision import parse_device
     from gns.evaluate import check_ranges, load_split, options_record, provenance_of
     from gns.rollout import (DivergedError, check_output, diverged_line, scene_label, timed_rollout,
                              write_rollouts)

@@ -15,7 +15,7 @@ from plumbing.errors import DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, split_diverged, timed_rollout, upsample_scene
 from gns.data import feature_spec
-from gns.devices import parse_device
+from gns.precision import parse_device
 from gns.features import HISTORY
 from gns.options import RolloutOptions
 from gns.ranges import outside_training

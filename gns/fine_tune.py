@@ -16,12 +16,6 @@ from gns.simulator import LearnedSimulator
 from gns.spec import Floor, ModelSpec
 
 
-def with_layout(spec: ModelSpec, sim: LearnedSimulator) -> ModelSpec:
-    return replace(spec, node_features=tuple(n for n, _ in sim.layout.node_groups),
-                   edge_features=tuple(n for n, _ in sim.layout.edge_groups),
-                   collision_features=tuple(n for n, _ in sim.layout.collision_groups))
-
-
 def merge_ranges(old: ModelSpec, new: ModelSpec) -> ModelSpec:
     """The spec of training on old data then new data: value ranges and shapes united."""
     ranges = {k: (min(old.ranges[k][0], v[0]), max(old.ranges[k][1], v[1])) for k, v in new.ranges.items()}

@@ -20,7 +20,7 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
@@ -38,11 +38,13 @@ from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import (CHECKPOINT_FORMAT, TRAINED, CheckpointError, build_simulator, resume_point,
                             save_checkpoint)
-from gns.devices import parse_device
-from gns.fine_tune import incompatibility, init_from, merge_ranges, with_layout
-from gns.weight_average import WeightAverage
+from gns.precision import parse_device
 from plumbing.errors import DataError
 from plumbing.files import check_writable
+
+
+if TYPE_CHECKING:
+    from gns.weight_average import WeightAverage
 
 
 class TrainingError(Exception):
@@ -209,13 +211,20 @@ def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] |
     the resumed checkpoint left them (weights, optimiser, step, feature ranges, random state).
     Returns (simulator, optimiser, spec, step, the weight average if train.ema_decay asks for one)."""
     sim = build_simulator(cfg, data_spec)
-    spec = with_layout(data_spec, sim)
+    spec = replace(data_spec, node_features=tuple(n for n, _ in sim.layout.node_groups),
+                   edge_features=tuple(n for n, _ in sim.layout.edge_groups),
+                   collision_features=tuple(n for n, _ in sim.layout.collision_groups))
     optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
     decay = cfg.train.ema_decay
+    # imported only where used: a plain training from scratch loads neither module
+    if decay:
+        from gns.weight_average import WeightAverage
     if resumed is None:
         if cfg.train.init_from:
+            from gns.fine_tune import init_from
             spec = init_from(sim, cfg.train.init_from, cfg, spec)
         return sim, optimizer, spec, 0, WeightAverage(sim, decay) if decay else None
+    from gns.fine_tune import incompatibility, merge_ranges
     path, ckpt = resumed
     trained = ModelSpec.from_dict(ckpt["spec"])
     problem = incompatibility(ckpt["config"], trained, cfg, spec)
