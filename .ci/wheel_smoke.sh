@@ -8,7 +8,7 @@ work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 python3 -m pip wheel --no-deps -q -w "$work/dist" "$repo"
 python3 -m venv "$work/venv"
-"$work/venv/bin/pip" install -q torch==2.13.0
+"$work/venv/bin/pip" install -q 'torch==2.13.0+cpu' -f https://download.pytorch.org/whl/torch/
 "$work/venv/bin/pip" install -q "$work"/dist/*.whl
 cd "$work"   # no checkout here: configs/ must come from the installed package
 export OMP_NUM_THREADS=1
@@ -21,15 +21,20 @@ set -x
 "$work/venv/bin/python" -c "import gns; m = gns.load('run'); \
 out = m.rollout(shapes=m.shapes[:1], positions=[[0, 0, 2]], quaternions=[[1, 0, 0, 0]], velocities=[[5, 0, 0]], \
 friction=0.5, restitution=0.5, steps=3); assert out.positions.shape == (4, 1, 3)"
-"$work/venv/bin/python" -c "import gns; out = gns.load('gns_real_cubes_n16').rollout(shapes=['cube'], scales=2.0, \
+"$work/venv/bin/python" -c "import gns; out = gns.load('real_cubes_16').rollout(shapes=['cube'], scales=2.0, \
 positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]], steps=3); assert out.positions.shape == (4, 1, 3)"
 "$work/venv/bin/python" -m pipelines.movi_a --preset tiny --out movi_tiny --workers 1
 test -s eval.json && test -s movi_tiny/report.md
-# a chain of stages from the installed recipes, and the error breakdown of its model
-"$work/venv/bin/python" -m pipelines.movi_a --preset chain_tiny --out chain_tiny --workers 1
-grep -q "## Training stages" chain_tiny/report.md
-"$work/venv/bin/python" -m pipelines.error_breakdown --run chain_tiny/run_b --data chain_tiny/data --json bd.json
+# a recipe from the installed configs (stages and warm restarts), and the error breakdown of its model
+"$work/venv/bin/python" -m pipelines.recipe tiny --out recipe_tiny --workers 1
+grep -q "| default options |" recipe_tiny/report.md
+"$work/venv/bin/python" -m pipelines.error_breakdown --run recipe_tiny/runs/b_2 --data recipe_tiny/data --json bd.json
 test -s bd.json
+# the zoo ships with its cards; a wrong name lists it
+"$work/venv/bin/gns" models | grep -q "^real_cubes_16$"
+"$work/venv/bin/gns" models movi_a | grep -q "pipelines.recipe movi_a"
+if "$work/venv/bin/gns" models nope 2> err.txt; then exit 1; fi
+grep -q "movi_a_fast" err.txt && test "$(wc -l < err.txt)" -eq 1
 # the installed datagen re-simulates its own data exactly: the unperturbed row scores 0
 "$work/venv/bin/python" -m pipelines.movi_a_sensitivity --data data --perturb exact:0 turn:1 --out sens
 grep -q "^| exact (none) | 0.00 | 0.00 |" sens/report.md

@@ -1,5 +1,5 @@
 """Analytic baselines for the real cube tosses: PyBullet and MuJoCo, each with its contact
-parameters identified on the GNS's training tosses (docs/real_cubes.md).
+parameters identified on the GNS's training tosses (docs/results.md).
 
     baselines.toss          the toss protocol every engine follows (given frames, start state, score)
     baselines.identify      identification of an engine's parameters on training tosses

@@ -28,10 +28,10 @@ load of a shared machine hits all alike); "x PyBullet" is PyBullet's cost over t
 PyBullet); accuracy is the MOVi-A metrics against the dataset (PyBullet's own scenes, so
 PyBullet's error is 0 by construction). One thread throughout.
 
-    python benchmarks/bench_learned_vs_physics.py --run gns_movi_a_long --data runs/data/movi_a_4000
+    python benchmarks/bench_learned_vs_physics.py --run movi_a --data data/movi_a_4000
     python benchmarks/bench_learned_vs_physics.py --run RUN --data DIR --variants plain,free,free+bf16 --json out.json \
         --plot out.png
-    python benchmarks/bench_learned_vs_physics.py --run gns_movi_a_long2 --run gns_movi_a_centre --data DIR \
+    python benchmarks/bench_learned_vs_physics.py --run movi_a --run movi_a_fast --data DIR \
         --variants free+bf16+compile,free+sym+bf16+compile
 """
 from __future__ import annotations

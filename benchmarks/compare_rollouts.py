@@ -5,10 +5,9 @@ A model's mean on 400 MOVi-A scenes moves with the sample of scenes (one model o
 from the same generator: 9.9 to 10.8 points), more than many differences worth knowing; each scene's
 error, though, is largely the scene's (small, fast or spinning objects are hard for any model), so
 the per-scene difference A - B is far less noisy than either mean.
-An interval that excludes 0 says which is better on scenes like these (docs/speed.md).
+An interval that excludes 0 says which is better on scenes like these (experiments/log.md).
 
-    python benchmarks/compare_rollouts.py --a gns_movi_a_low_b128_all32_11_s100:d1 \\
-        --b gns_movi_a_low_b128_d32_11+gns_movi_a_low_b128_d32_11_s100:d2 \\
+    python benchmarks/compare_rollouts.py --a movi_a:d1 --b movi_a \\
         --data data/movi_a_32000 --data data/movi_a_seed1:test --data data/movi_a_seed1:valid \\
         --data data/movi_a_seed1:train --free-flight --free-clearance 0.5 --compile --json out.json
 

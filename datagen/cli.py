@@ -6,6 +6,7 @@ import sys
 
 from plumbing.errors import ConfigError
 from .config import load_config
+from .version import version_line
 
 EPILOG = """examples:
   datagen toss --shapes cube,sphere --sizes small --materials metal --scenes 100 --out data/toy
@@ -52,6 +53,9 @@ def cmd_toss(a) -> int:
     return 0
 
 
+CHANGED = 3   # datagen inspect's exit code for valid shards changed since they were written
+
+
 def cmd_inspect(a) -> int:
     from .inspect import format_summary, inspect
     problems, summary = inspect(a.path)
@@ -62,13 +66,20 @@ def cmd_inspect(a) -> int:
     if problems:
         print(f"{len(problems)} problem(s) found in {a.path}", file=sys.stderr)
         return 1
+    changed = summary.get("changed_shards") or []
+    if changed:
+        # Valid data, but not the data its fingerprint (and every run that recorded it) describes.
+        print(f"changed: {len(changed)} shard(s) differ from the checksums recorded when they were written "
+              f"({', '.join(changed[:5])}); the fingerprint no longer describes the data", file=sys.stderr)
+        return CHANGED
     print("ok: no problems found")
     return 0
 
 
 def cmd_import(a) -> int:
     from .contactnets import import_contactnets
-    meta = import_contactnets(a.src, a.out, overwrite=a.overwrite, progress=not a.quiet)
+    meta = import_contactnets(a.src, a.out, overwrite=a.overwrite, progress=not a.quiet,
+                              allow_pickle=a.allow_pickle)
     print(f"imported {sum(v['num_scenes'] for v in meta['splits'].values())} tosses into {a.out}")
     return 0
 
@@ -76,6 +87,7 @@ def cmd_import(a) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="datagen", description=__doc__, epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=version_line())
     sub = p.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("toss", help="simulate tossed objects in PyBullet and write HDF5 shards",
                        description="Simulate MOVi-A-style tosses (configs/movi_a.toml) and write a dataset "
@@ -112,7 +124,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=cmd_toss)
     i = sub.add_parser("inspect", help="validate a dataset folder and print a summary",
                        description="Check schema version, array shapes, NaN/inf, unit quaternions, objects "
-                                   "below the floor, missing or truncated shards. Exit 1 if any problem.")
+                                   "below the floor, missing or truncated shards. Exit 1 if any problem, 3 if "
+                                   "the data is valid but shards changed since they were written (the "
+                                   "fingerprint no longer describes them), 0 otherwise.")
     i.add_argument("path")
     i.set_defaults(func=cmd_inspect)
     m = sub.add_parser("import", help="import external data into the shard format")
@@ -120,7 +134,9 @@ def build_parser() -> argparse.ArgumentParser:
     c = msub.add_parser("contactnets", help="real cube tosses from DAIRLab/contact-nets data/tosses_processed")
     c.add_argument("src", help="folder of N.pt toss files (tosses_processed)")
     c.add_argument("--out", required=True)
-    c.add_argument("--overwrite", action="store_true")
+    c.add_argument("--overwrite", action="store_true", help="replace a dataset in --out")
+    c.add_argument("--allow-pickle", action="store_true",
+                   help="read toss files holding more than tensors (runs their pickle code: trusted files only)")
     c.add_argument("--quiet", action="store_true")
     c.set_defaults(func=cmd_import)
     return p

@@ -88,9 +88,16 @@ def read_toss(path: str | Path, min_frames: int = MIN_FRAMES, allow_pickle: bool
         # weights_only=True reads plain tensors (the ContactNets files) without running pickle code.
         data = torch.load(path, map_location="cpu", weights_only=not allow_pickle)
     except Exception as e:  # torch raises UnpicklingError, RuntimeError, EOFError, ... for bad files
-        hint = "" if allow_pickle else " (if the file is trusted and holds more than tensors, pass allow_pickle=True)"
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise DataError(f"{path}: not a readable torch tensor file: {first}{hint}") from None
+        text = str(e).strip()
+        # torch's weights_only message is a paragraph about its own API; ours names what to do here
+        if not allow_pickle and "Unsupported global" in text:
+            raise DataError(f"{path}: holds Python objects besides tensors; if the file is trusted, pass "
+                            "--allow-pickle (allow_pickle=True in Python)") from None
+        if text.startswith("Weights only load failed"):
+            reason = text.partition("WeightsUnpickler error:")[2].strip().splitlines()
+            text = f"unpickling failed ({reason[0].strip()})" if reason else "unpickling failed"
+        first = text.splitlines()[0][:200] if text else type(e).__name__
+        raise DataError(f"{path}: not a readable torch tensor file: {first}") from None
     if not isinstance(data, torch.Tensor):
         raise DataError(f"{path}: holds a {type(data).__name__}, expected a tensor of shape (1, T, 19)")
     arr = data.detach().cpu().numpy().astype(np.float64)
@@ -260,7 +267,7 @@ def import_contactnets(src_dir: str | Path, out_dir: str | Path, ids: Iterable[i
     src_dir, out_dir = Path(src_dir), Path(out_dir)
     toss_dir = _toss_dir(src_dir)
     plan = _plan_splits(list_toss_ids(src_dir), ids, splits)
-    check_output_folder(out_dir, overwrite, "pass overwrite=True to replace a dataset")
+    check_output_folder(out_dir, overwrite, "use --overwrite (overwrite=True in Python) to replace it")
     consts = read_experiment(src_dir)
     # Read and check everything first: a bad toss must not leave half a dataset behind.
     scenes = _read_tosses(toss_dir, plan, consts, min_frames, allow_pickle, progress)

@@ -1,7 +1,7 @@
-"""Toss a cube with a shipped model (real ContactNets cube tosses; units: cube half-widths)."""
+"""Toss a cube with the zoo's real_cubes model (real ContactNets cube tosses; units: cube half-widths)."""
 import gns
 
-model = gns.load("gns_real_cubes_n256_deep", symmetrize=True)   # or a run folder, a .pt file; device="cuda"
+model = gns.load("real_cubes")   # a zoo name (`gns models`), a run folder or a .pt file; device="cuda"
 out = model.rollout(shapes=["cube"], scales=2.0,  # the cube spans 2 half-widths
                     positions=[[0.0, 0.0, 3.0]], quaternions=[[1.0, 0.0, 0.0, 0.0]],  # w x y z
                     velocities=[[10.0, 0.0, 5.0]], angular_velocities=[[0.0, 4.0, 0.0]], steps=30)

@@ -1,7 +1,7 @@
 """Use a trained model from Python: load it, roll it out from poses and velocities, step it in a loop.
 
     import gns
-    model = gns.load("gns_real_cubes_n256_deep")   # a shipped name, a run folder or a .pt file
+    model = gns.load("real_cubes")   # a zoo name, a run folder or a .pt file
     out = model.rollout(shapes=["cube"], scales=2.0, positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]],
                         velocities=[[5, 0, 0]], angular_velocities=[[0, 0, 3]], steps=40)
     out.positions, out.quaternions                   # (steps + 1, B, 3), (steps + 1, B, 4); [0] is the start

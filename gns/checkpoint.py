@@ -25,17 +25,18 @@ from gns.spec import ModelSpec, SpecError
 CHECKPOINT_FORMAT = 1
 LATEST = "latest.pt"
 TRAINED = "trained"
-SHIPPED_MODELS = Path(__file__).resolve().parent / "models"
 
 
 def checkpoint_of(run: str | Path) -> Path:
     """A run folder means its latest checkpoint; a .pt file is taken as it is; a bare name that
-    is neither is looked up among the shipped models (e.g. gns_real_cubes_n256)."""
+    is neither is a zoo model's name (gns.zoo), and one that is not in the zoo is refused with
+    the names that are."""
+    from gns import zoo
+    if zoo.is_name(run):
+        return zoo.card(str(run)).file
     run = Path(run)
     if run.is_dir():
         return run / LATEST
-    if not run.exists() and run.parent == Path(".") and (SHIPPED_MODELS / f"{run.stem}.pt").is_file():
-        return SHIPPED_MODELS / f"{run.stem}.pt"
     return run
 
 

@@ -317,13 +317,31 @@ def add_plot_parser(sub) -> None:
     c.set_defaults(run=cmd_plot_curves)
 
 
+def cmd_models(args: argparse.Namespace) -> None:
+    from gns import zoo
+    print(zoo.format_card(args.name) if args.name else zoo.format_list())
+
+
+def add_models_parser(sub) -> None:
+    m = sub.add_parser("models", help="list the pretrained models of the zoo, or print one's card",
+                       description="The zoo: a few trained models named by purpose. Without NAME, one line "
+                                   "each; with NAME, its card: data, the command that retrains it, scores with "
+                                   "the exact eval command, speed, limits and the rollout options it was scored "
+                                   "with (which gns eval, gns rollout and gns.load use unless told otherwise).")
+    m.add_argument("name", nargs="?", metavar="NAME", help="a zoo model's name, e.g. movi_a")
+    m.set_defaults(run=cmd_models)
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from datagen.version import version_line
     parser = argparse.ArgumentParser(prog="gns", description="Graph network simulator for rigid bodies.")
+    parser.add_argument("--version", action="version", version=version_line())
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add_train_parser(sub)
     add_eval_parsers(sub)
     add_export_parser(sub)
     add_plot_parser(sub)
+    add_models_parser(sub)
     return parser
 
 

@@ -1,8 +1,8 @@
 """Collision edges between the objects of a scene: vertex-vertex (`collision_edges`, the default)
 and vertex-to-surface (`surface_edges`, `features.collision_mode = "surface"`).
 
-Vertex-vertex edges see a contact only when two *vertices* come within the radius; on coarse
-meshes two surfaces touch long before that (docs/gns.md). In surface mode
+Vertex-vertex edges (`collision_edges`) see a contact only when two *vertices* come
+within the radius; on coarse meshes two surfaces touch long before that (docs/model.md). Here
 each vertex of an object near another object is joined to that object's *surface*: the
 closest point on its triangles. The edge goes from the triangle's vertex nearest that point
 (a node, whose latent sends the message) to the query vertex, and carries the exact geometry:

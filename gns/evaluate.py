@@ -21,13 +21,8 @@ from gns.options import RolloutOptions
 from gns.ranges import outside_training
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-from gns.checkpoint import SHIPPED_MODELS, checkpoint_of, load_simulator
+from gns.checkpoint import checkpoint_of, load_simulator
 from gns.zoo import default_options
-
-
-def shipped_models() -> list[str]:
-    """Names of the trained models shipped with the package (gns/models/*.pt, docs/accuracy.md)."""
-    return sorted(p.stem for p in SHIPPED_MODELS.glob("*.pt"))
 
 
 def _worst_first(per_scene: list[float]) -> list[int]:

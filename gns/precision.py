@@ -5,7 +5,7 @@ under bfloat16 autocast on this machine (`--autocast auto`).
 bfloat16 pays on some CPUs and costs on others with the same instruction-set flags: on one AMD
 EPYC (avx512_bf16) bf16 + compile trained `gns_cpu` 1.76x as fast as float32; on an Intel
 Xeon (avx512_bf16, no AMX) a bf16 matrix product of the network's shapes
-ran 1.8x slower than float32 (docs/speed.md). No flag tells them apart, so `auto` times one
+ran 1.8x slower than float32 (experiments/log.md). No flag tells them apart, so `auto` times one
 such product in both types, once per process and shape, and picks bf16 only when it is clearly
 faster. Off a CPU (CUDA) `auto` takes bf16 where the device supports it.
 """

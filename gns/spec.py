@@ -2,7 +2,7 @@
 
 Training builds it from the data (gns.data.feature_spec), adds the meshes and the feature
 layout, and saves it as a plain dict (`ModelSpec.to_dict`, the checkpoint's `spec`,
-docs/gns.md); everything that reads a checkpoint turns that dict back into a ModelSpec
+docs/model.md); everything that reads a checkpoint turns that dict back into a ModelSpec
 (`ModelSpec.from_dict`), which accepts every checkpoint written so far: older ones lack
 `collision_edges`, `collision_features` or `meshes`. The dict exists only at that boundary.
 """

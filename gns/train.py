@@ -24,7 +24,6 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from datagen.shards import Dataset
 from gns import parallel
@@ -34,6 +33,7 @@ from gns.graph import MeshLibrary, graph_settings
 from gns.optimise import learning_rate, train_step, validate
 from gns.run_folder import (METRICS, check_run, check_tensorboard, restore_rng, rng_state, run_provenance,
                             start_run_folder, tensorboard_writer, write_metrics)
+from gns.progress import progress_bar
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import (CHECKPOINT_FORMAT, TRAINED, CheckpointError, build_simulator, resume_point,
@@ -276,8 +276,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
 
     log(_start_line(cfg, sim, tracks, spec, step, world, resumed_from))
     last_good = resumed_from
-    bar = tqdm(total=cfg.train.steps, initial=step, unit="step", disable=None if world.main else True,
-               dynamic_ncols=True)
+    bar = progress_bar(cfg.train.steps, step, log, enabled=world.main)
     metrics = open(run / METRICS, "a") if world.main else None
     writer = (tensorboard_writer(run, step + 1 if resumed_from else None)
               if cfg.train.tensorboard and world.main else None)
@@ -321,7 +320,7 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
         loss_sum += loss
         loss_count += 1
         bar.update(1)
-        bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
+        bar.set_postfix(loss=f"{loss:.4g}", lr=f"{lr:.2g}", refresh=False)
 
         validating = valid is not None and step % cfg.valid.every == 0
         if world.main and (step % cfg.train.log_every == 0 or validating or step == cfg.train.steps):

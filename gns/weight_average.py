@@ -5,7 +5,7 @@ The weights a run saves for use ("model" in its checkpoints: what `gns eval`, `g
 its own weights (kept as "trained", which `gns export` drops). Averaging the last few thousand
 steps' weights smooths the step-to-step noise of Adam at a learning rate kept from decaying to
 nothing (`train.lr_final`); at the end of a fully decayed run the weights no longer move and the
-average changes nothing (docs/accuracy.md, session 25, measured both ways).
+average changes nothing (experiments/log.md, measured both ways).
 
 Only parameters are averaged: buffers (the normalisers' running statistics) are the trained
 model's own, since the average must read its inputs in the same units as the network being trained.

@@ -1,6 +1,6 @@
 """Where a model's rollout error sits: spread over scenes, and rotation against position.
 
-    python -m pipelines.error_breakdown --run gns_movi_a_k3 --data data/movi_a_4000 --free-flight --symmetrize \
+    python -m pipelines.error_breakdown --run movi_a --data data/movi_a_4000 --free-flight --symmetrize \
         [--split test|train|valid] [--limit N] [--autocast bf16] [--json FILE]
 
 Rolls out a split as `gns eval` does and prints three tables:
@@ -11,7 +11,7 @@ Rolls out a split as `gns eval` does and prints three tables:
   on trajectories that are right?);
 - rotation by true spin: the same binned by the true turn per frame.
 `--split train` on a model's own training scenes against `--split test` tells overfitting
-from underfitting (docs/accuracy.md, session 10).
+from underfitting (experiments/log.md).
 """
 from __future__ import annotations
 

@@ -8,10 +8,10 @@ recorded config), changes one thing by a small amount right after the last frame
 reproduces the data and must score 0 (a check that the study runs the data's physics). What the
 other rows score is the error a simulator with perfect physics makes when its state or its
 material is off by that much: the floor a learned model's error is to be read against
-(docs/accuracy.md, session 9).
+(experiments/log.md).
 
     python -m pipelines.movi_a_sensitivity --data data/movi_a_4000 [--split test] [--limit N] [--out DIR]
-        [--run gns_movi_a_rigidloss ...]   # also the learned models' rollouts, in the same table
+        [--run movi_a ...]   # also the learned models' rollouts, in the same table
 
 Perturbations (each scene draws its own random directions and signs from --seed and its index):
   turn E deg       the pose turned by E degrees about a random axis through the centre of mass

@@ -9,7 +9,7 @@ acceleration differs from gravity by more than half of it (the threshold of
 a model's rollout error is made; an airborne step is what free flight (`--free-flight`) makes
 exact far from the floor.
 
-    python -m pipelines.one_step --run gns_movi_a_centre --data data/movi_a_4000 --limit 100 --symmetrize
+    python -m pipelines.one_step --run movi_a --data data/movi_a_4000 --limit 100 --symmetrize
 """
 from __future__ import annotations
 

@@ -17,7 +17,7 @@ tosses of DIR as well (e.g. the ContactNets tosses kept out of the shared set).
 
 Output in --out: report.md, results.json, plots/ (pipelines/real_cubes_report.py), split.json,
 and the data/, runs/, eval/, baseline/ folders of the stages. Rerunning continues where the last run stopped: finished
-stages are skipped. Presets (docs/real_cubes.md has their measured costs):
+stages are skipped. Presets (docs/results.md has their measured costs):
   tiny   the test suite's smoke run: sizes 1 and 2, a tiny model, 30 steps
   quick  sizes 8, 32, 128, one seed, the CPU model for 6000 steps; ablations at 128, noise at 32
   full   sizes 8 to 256, three seeds, 30000 steps; ablations and noise at 256
@@ -157,7 +157,7 @@ def gns_stage(out: Path, p: Preset, runs: dict, test_data: Path, external: dict 
     for name, (data, over) in runs.items():
         t0, before = time.perf_counter(), trained_step(out / "runs" / name)
         ckpt = train_stage(data, out / "runs" / name, p.model, over)
-        if trained_step(out / "runs" / name) != before:  # it trained: add this session to any earlier one
+        if trained_step(out / "runs" / name) != before:  # it trained: add this run's time to any earlier one's
             earlier = costs.data.get(f"train {name}", 0.0) if before > 0 else 0.0
             costs.add(f"train {name}", earlier + time.perf_counter() - t0)
         plots = out / "plots" / name if p.plots and name == largest else None

@@ -4,7 +4,7 @@
 
 The split, the training subsets and the test tosses are those of pipelines/real_cubes.py (seed
 2022, 96 test tosses, nested training sets). At each training size the GNS is trained with the
-settings that measured best (docs/accuracy.md: a time step of 8 recorded frames, 54 ms, with
+settings that measured best (experiments/log.md: a time step of 8 recorded frames, 54 ms, with
 windows at every phase; rollouts averaged over the floor's mirror symmetries; at 16 tosses the
 cube's symmetries as augmentation, at 64 and 256, and for the 16-toss GNS also trained on the tuned
 MuJoCo's tosses, the loss on the shape-matched step, the floor seen from farther and ten
@@ -17,7 +17,8 @@ A GNS with a time step of k frames starts from frames 0, k and 2k: it sees the t
 
 Stages are skipped on a rerun when done (datasets, trainings by step, fits and evaluations by
 what they were made from). Writes report.md, results.json, plots/accuracy.png; with --export,
-the trained models as small files (gns export) named gns_real_cubes_n<N>.pt.
+the trained models as small files (gns export) named real_cubes_n<N>.pt and real_cubes_mujoco_n<N>.pt
+(the zoo's real_cubes is real_cubes_n256, its real_cubes_16 real_cubes_mujoco_n16).
 """
 from __future__ import annotations
 
@@ -36,33 +37,33 @@ from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_spli
 from pipelines.real_cubes_report import ENGINE_LABELS, metric_cells, summary
 
 # The real-cube training settings of pipelines/real_cubes.py (batch 32, lr 1e-3, input noise 0.001
-# half-widths), plus the levers that measured best (docs/accuracy.md).
+# half-widths), plus the levers that measured best (experiments/log.md).
 STRIDE = 8
 _TRAIN = ("train.threads=1", "train.batch_size=32", "train.lr_init=1e-3", "augment.noise_std=0.001",
           "valid.rollout_scenes=8", "valid.rollout_steps=50", "valid.every=5000", "train.checkpoint_every=5000",
           f"features.frame_stride={STRIDE}", "train.all_phases=true")
-# The cube's symmetries as augmentation (docs/accuracy.md): at 16 tosses they cut position error
+# The cube's symmetries as augmentation (experiments/log.md): at 16 tosses they cut position error
 # from 17.2% to 14.6%; at 64 tosses they cost 3.5 degrees of rotation (probably: the real cube and
 # its tracking are less symmetric than its mesh, and 64 tosses are enough to learn how). One seed each.
 SYMMETRIC = ("augment.mirror=true", "augment.body_symmetry=true")
-# The loss on the shape-matched step (docs/accuracy.md, sessions 8-9): at 256 tosses two seeds
+# The loss on the shape-matched step (experiments/log.md): at 256 tosses two seeds
 # measured 7.6 and 8.0% against 8.1-8.6% for three runs without it; at 64 tosses one seed each
 # measured 10.9% against 10.5%, so it is used at 256 only.
 RIGID_LOSS = ("train.rigid_loss=1",)
-# MOVi-A's floor feature, seen from farther and signed (docs/accuracy.md, sessions 18-19): a stride-8
+# MOVi-A's floor feature, seen from farther and signed (experiments/log.md): a stride-8
 # step moves a cube 0.6 half-widths at the median, more than the default clip of 0.5. At 256 tosses
 # two seeds measured 7.25 and 7.14% / 7.1 deg against 7.62 and 7.98% / 7.2-7.5 for the rigid loss
-# alone, and 0.4 points better on 104 other held-out tosses; gns_real_cubes_n256_floor is its seed 1.
+# alone, and 0.4 points better on 104 other held-out tosses; (not shipped).
 FLOOR = ("features.floor_clip=1.5", "features.floor_signed=true")
-# Ten message-passing steps instead of five (docs/accuracy.md, session 22): at 256 tosses five seeds
+# Ten message-passing steps instead of five (experiments/log.md): at 256 tosses five seeds
 # measured 7.09% / 7.17 deg on the test tosses (mean) against 7.24 / 7.20 for eight seeds of five steps,
-# and 7.77% against 8.20 over 200 other held-out tosses; gns_real_cubes_n256_deep is its seed 0.
+# and 7.77% against 8.20 over 200 other held-out tosses; the zoo's real_cubes is its seed 0.
 DEEP = ("model.message_passing_steps=10",)
-# The three together, at 256 tosses and (docs/accuracy.md, session 24) at 64: two seeds 8.97 and 8.89% / 8.4 and
+# The three together, at 256 tosses and (experiments/log.md) at 64: two seeds 8.97 and 8.89% / 8.4 and
 # 7.9 deg on the test tosses against 11.0 and 11.5% / 9.2 and 10.1 for two seeds without, and 1.6-1.9 points
-# better over 200 other held-out tosses; and (session 25) for the 16-toss GNS trained on the tuned MuJoCo's 2000
+# better over 200 other held-out tosses; and for the 16-toss GNS trained on the tuned MuJoCo's 2000
 # tosses as well, which is then a many-toss model: two seeds 11.55 and 11.48% / 12.9 and 12.8 deg against 13.5 / 14.1
-# with the symmetric augmentation (and 12.8-13.7% for session 6's four seeds of it), and 1.6 points better over 200
+# with the symmetric augmentation (and 12.8-13.7% for four seeds of it), and 1.6 points better over 200
 # other held-out tosses
 MANY_TOSSES = (*RIGID_LOSS, *FLOOR, *DEEP)
 
@@ -169,10 +170,10 @@ def run(preset: str, src: Path, out: Path, export: Path | None = None) -> dict:
             row["engine_data"] = {"synthetic": count, "real_copies": copies}
         rows[n] = row
         if export is not None:
-            export_model(run_dir / "latest.pt", export / f"gns_real_cubes_n{n}.pt", overwrite=True)
+            export_model(run_dir / "latest.pt", export / f"real_cubes_n{n}.pt", overwrite=True)
             if "gns_engine_data" in row:
                 export_model(out / "runs" / f"gns_mujoco_n{n}" / "latest.pt",
-                             export / f"gns_real_cubes_mujoco_n{n}.pt", overwrite=True)
+                             export / f"real_cubes_mujoco_n{n}.pt", overwrite=True)
     results = {"preset": preset, "src": str(src), "stride": STRIDE, "engines": engines,
                "published": summary(base["evals"]["published"][""]), "sizes": {str(n): r for n, r in rows.items()}}
     write_json(out / "results.json", results)

@@ -1,5 +1,5 @@
 """The analytic baselines of the real-cube experiments: PyBullet and MuJoCo, each identified on
-the GNS's training tosses and rolled out on the same test tosses (docs/real_cubes.md).
+the GNS's training tosses and rolled out on the same test tosses (docs/results.md).
 
     python -m pipelines.real_cubes_baselines --src DATA [--sizes 16 64 256] [--engines pybullet mujoco]
         [--budget 120] [--fit-tosses 64] [--out runs/real_cubes_baselines]

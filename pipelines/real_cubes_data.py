@@ -3,7 +3,7 @@ test, valid and a training pool with rotated copies of a toss (the data hold 22 
 always on the same side, nested training subsets of the pool, and a dataset per split.
 
 Used by pipelines/real_cubes.py, real_cubes_baselines.py, real_cubes_accuracy.py and
-real_cubes_ensemble.py, so all four score the same test tosses (and share one command line).
+so all three score the same test tosses (and share one command line).
 """
 from __future__ import annotations
 
@@ -118,7 +118,7 @@ def training_ids(split: dict, n: int, seed: int) -> list[int]:
 def held_out_pool(split: dict, n: int, seed: int) -> list[int]:
     """The training pool's tosses outside the n training tosses of a seed, as whole duplicate
     groups: a group of which one copy trains is left out entirely. More held-out tosses for
-    choosing between models than the valid split alone (docs/accuracy.md, session 19)."""
+    choosing between models than the valid split alone (experiments/log.md)."""
     train = set(training_ids(split, n, seed))
     return sorted(i for g in split["pool"] if not train & set(g) for i in g)
 

@@ -257,7 +257,7 @@ def test_inspect_judges_imported_tosses_as_measurements(tmp_path, capsys):
     scenes[0].positions[:, 0, 2] -= 0.2                 # 10% of the width into the table: tracking
     write_shard(out / "test-00000.h5", scenes, ds.meshes)
     capsys.readouterr()
-    assert main(["inspect", str(out)]) == 0
+    assert main(["inspect", str(out)]) == 3             # the edit is named (3), the sinking is no problem (1)
     said = capsys.readouterr().out
     assert "measured data: deepest point below the floor" in said and "max 1" in said
     scenes[1].positions[5, 0, 0] = np.nan               # corruption still fails

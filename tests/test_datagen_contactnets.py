@@ -228,3 +228,23 @@ def test_constants_fall_back_to_published_values(tmp_path):
     with pytest.warns(UserWarning, match="experiment.json"):
         meta = import_contactnets(src, tmp_path / "b", ids=[55], progress=False)
     assert meta["frame_rate"] == pytest.approx(148.0)
+
+
+def test_cli_messages_name_the_cli_flags(tmp_path, capsys):
+    """A file holding more than tensors is one short line naming --allow-pickle (not PyTorch's
+    paragraph on weights_only); a taken --out names --overwrite."""
+    from datagen.cli import main
+    src = make_src(tmp_path, {"903": np.zeros((1, 86, 19))})   # a numpy array: pickled, not a tensor
+    out = tmp_path / "out"
+    assert main(["import", "contactnets", str(src), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and "903.pt" in err[0], err
+    assert "--allow-pickle" in err[0] and "weights_only" not in err[0] and len(err[0].replace(str(src), "")) < 160, err[0]
+    assert not out.exists()
+    assert main(["import", "contactnets", str(src), "--out", str(out), "--quiet", "--allow-pickle"]) == 2
+    assert "903.pt: holds a ndarray" in capsys.readouterr().err
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert main(["import", "contactnets", str(SRC), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--overwrite" in err[0] and "overwrite=True to" not in err[0], err

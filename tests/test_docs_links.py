@@ -1,12 +1,13 @@
-"""The README and docs/ link to each other, to figures and to code: a moved or renamed file
-must not leave a dead link behind (sections move between them as the project grows)."""
+"""The README, docs/ and the experiment log (experiments/) link to each other, to figures and to
+code: a moved or renamed file must not leave a dead link behind (sections move between them as the
+project grows)."""
 import re
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT / "experiments").glob("*.md"))]
 LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
 
 
@@ -18,5 +19,5 @@ def test_every_relative_link_and_figure_resolves(page):
 
 
 def test_the_link_pattern_sees_links_and_figures():
-    text = "see [speed](docs/speed.md) and ![plot](docs/figures/a.png), [web](https://x.org/a)"
-    assert [m.group(1) for m in LINK.finditer(text)] == ["docs/speed.md", "docs/figures/a.png", "https://x.org/a"]
+    text = "see [speed](experiments/log.md) and ![plot](docs/figures/a.png), [web](https://x.org/a)"
+    assert [m.group(1) for m in LINK.finditer(text)] == ["experiments/log.md", "docs/figures/a.png", "https://x.org/a"]

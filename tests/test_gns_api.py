@@ -61,7 +61,7 @@ def test_load_returns_the_checkpoints_physics_and_meshes(run):
 
 
 def test_shipped_and_old_models_find_their_meshes_by_name():
-    model = gns.load("gns_real_cubes_n256")
+    model = gns.load("real_cubes")
     assert model.frame_stride == 8 and model.dt == pytest.approx(8 / 148.0)       # the model's step, stride included
     assert model.meshes["cube"][0].shape == (8, 3) and not model.uses_materials
     assert set(gns.load(SMALL).meshes) == {"beveled_cube", "cylinder", "sphere"}
@@ -228,7 +228,7 @@ def test_scipy_quaternion_order_in_and_out(run):
 
 
 def test_inputs_outside_training_warn():
-    model = gns.load("gns_real_cubes_n256")
+    model = gns.load("real_cubes")
     with pytest.warns(UserWarning, match="outside training: speed") as caught:
         model.rollout(shapes=["cube"], scales=2.0, positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]],
                       velocities=[[500.0, 0, 0]], steps=1)
@@ -240,7 +240,7 @@ def test_inputs_outside_training_warn():
 
 
 def test_objects_of_one_scene_warn_with_a_model_without_collision_edges():
-    model = gns.load("gns_real_cubes_n256")
+    model = gns.load("real_cubes")
     two = dict(shapes=["cube", "cube"], scales=2.0, positions=[[0, 0, 3], [5, 0, 3]], quaternions=[[1, 0, 0, 0]] * 2,
                steps=1)
     with pytest.warns(UserWarning, match="no collision edges"):

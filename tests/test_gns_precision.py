@@ -14,7 +14,7 @@ from test_gns_train import tiny
 def test_named_choices_pass_through_and_auto_follows_the_measurement():
     assert resolve_autocast("none", 64) == "none" and resolve_autocast("bf16", 64, measure=lambda w, device: 1.8) == "bf16"
     assert resolve_autocast("auto", 64, measure=lambda w, device: 1.8) == "bf16"
-    # a CPU where bf16 products are slower (session 6's Xeon: 0.55x), or barely faster, keeps float32
+    # a CPU where bf16 products are slower (an Intel Xeon's: 0.55x), or barely faster, keeps float32
     assert resolve_autocast("auto", 64, measure=lambda w, device: 0.55) == "none"
     assert resolve_autocast("auto", 64, measure=lambda w, device: MARGIN * 0.99) == "none"
     with pytest.raises(ValueError, match="autocast"):
@@ -22,7 +22,7 @@ def test_named_choices_pass_through_and_auto_follows_the_measurement():
 
 
 def test_bf16_by_name_is_kept_but_warns_in_one_line_where_the_cpu_emulates_it():
-    # session 35's AMD EPYC without avx512: a bf16 product 25x slower, rollouts 12x
+    # an AMD EPYC without avx512: a bf16 product 25x slower, rollouts 12x
     with pytest.warns(UserWarning, match="10x slower than float32 on this CPU") as caught:
         assert resolve_autocast("bf16", 64, measure=lambda w, device: 0.1) == "bf16"
     assert "\n" not in str(caught[0].message)

@@ -1,4 +1,5 @@
-"""Rollouts of a trained tiny model, their file format, `evaluate_run`, and the MOVi-A pipeline."""
+"""Rollouts of a trained tiny model, their file format and `evaluate_run` (the MOVi-A pipeline:
+test_movi_a_pipeline.py)."""
 import json
 
 import numpy as np
@@ -7,7 +8,6 @@ import torch
 
 from datagen.cli import main as datagen_main
 from datagen.shards import Dataset, Scene
-from gns.checkpoint import read_checkpoint
 from gns.config import build_config
 from gns.evaluate import evaluate_run
 from gns.geometry import pose_to_vertices
@@ -15,7 +15,6 @@ from gns.options import RolloutOptions
 from gns.rollout import rollout_scenes, write_rollouts
 from gns.checkpoint import load_model
 from gns.train import train
-from pipelines import movi_a
 
 
 @pytest.fixture(scope="module")
@@ -68,101 +67,6 @@ def test_evaluate_run_reports_metrics_and_plots(trained, tmp_path):
     assert results["num_scenes"] == 3 and results["position_error_pct"] > 0
     assert (tmp_path / "plots" / "error_vs_time.png").stat().st_size > 0
     assert (tmp_path / "plots" / "rollout_worst.gif").stat().st_size > 0
-
-
-def test_movi_a_pipeline_tiny_runs_end_to_end_and_resumes(tmp_path, capsys):
-    out = tmp_path / "p"
-    assert movi_a.main(["--preset", "tiny", "--out", str(out), "--workers", "1"]) == 0
-    results = json.loads((out / "results.json").read_text())
-    assert results["num_scenes"] == 4 and results["paper"]["position_error_pct"] == 14.6
-    text = (out / "report.md").read_text()
-    assert "14.6" in text and f"{results['position_error_pct']:.3g}" in text
-    assert (out / "plots" / "trajectory_worst.png").exists()
-    capsys.readouterr()
-    assert movi_a.main(["--preset", "tiny", "--out", str(out), "--workers", "1"]) == 0
-    err = capsys.readouterr().err
-    assert "data: " in err and err.count("skipping") == 3
-
-
-def test_movi_a_chain_trains_each_stage_from_the_last_and_resumes(tmp_path, capsys):
-    out = tmp_path / "c"
-    assert movi_a.main(["--preset", "chain_tiny", "--out", str(out), "--workers", "1"]) == 0
-    first, second = (read_checkpoint(out / f"run_{s}" / "latest.pt") for s in ("a", "b"))
-    assert (first["step"], second["step"]) == (20, 10)
-    assert not first["config"]["train"]["init_from"]
-    assert second["config"]["train"]["init_from"] == str(out / "run_a")
-    # the levers the second stage adds
-    assert second["config"]["model"]["processor_repeats"] == 2 and second["config"]["features"]["centre_node"]
-    assert second["config"]["train"]["unroll_steps"] == 2 and second["seed"] == 1
-    results = json.loads((out / "results.json").read_text())
-    assert results["free_flight"] and results["symmetrize"] and results["checkpoint_step"] == 10
-    assert [s["name"] for s in results["stages"]] == ["a", "b"]
-    assert "## Training stages" in (out / "report.md").read_text()
-    capsys.readouterr()
-    assert movi_a.main(["--preset", "chain_tiny", "--out", str(out), "--workers", "1"]) == 0
-    err = capsys.readouterr().err
-    assert err.count("skipping") == 4   # the data, both stages, the evaluation
-    # another training seed on the same scenes (the data linked, as docs/accuracy.md's runs do)
-    other = tmp_path / "c7"
-    other.mkdir()
-    (other / "data").symlink_to(out / "data")
-    assert movi_a.main(["--preset", "chain_tiny", "--out", str(other), "--workers", "1", "--train-seed", "7"]) == 0
-    assert "data: " in capsys.readouterr().err
-    assert [read_checkpoint(other / f"run_{s}" / "latest.pt")["seed"] for s in ("a", "b")] == [7, 8]
-
-
-def test_movi_a_pair_trains_both_chains_and_scores_their_ensemble(tmp_path, capsys):
-    out = tmp_path / "e"
-    assert movi_a.main(["--preset", "pair_tiny", "--out", str(out), "--workers", "1"]) == 0
-    results = json.loads((out / "results.json").read_text())
-    assert results["ensemble"] == [str(out / "run_m" / "latest.pt")] and results["member_steps"] == [20]
-    assert [r["run"] for r in results["alone"]] == ["run_b", "run_m"]
-    assert [s["name"] for s in results["stages"]] == ["a", "b", "m"]
-    # the ensemble is neither member rolled out alone
-    assert all(r["position_error_pct"] != results["position_error_pct"] for r in results["alone"])
-    assert "| the ensemble |" in (out / "report.md").read_text()
-    capsys.readouterr()
-    assert movi_a.main(["--preset", "pair_tiny", "--out", str(out), "--workers", "1"]) == 0
-    assert capsys.readouterr().err.count("skipping") == 5   # the data, three stages, the evaluation
-    # --parallel: the two chains at once, one process each, the same stages and weights
-    together = tmp_path / "p"
-    together.mkdir()
-    (together / "data").symlink_to(out / "data")
-    assert movi_a.main(["--preset", "pair_tiny", "--out", str(together), "--workers", "1", "--parallel"]) == 0
-    assert "2 chains at once" in capsys.readouterr().err
-    for run in ("run_b", "run_m"):
-        a, b = (read_checkpoint(d / run / "latest.pt") for d in (out, together))
-        assert a["step"] == b["step"] and all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"])
-    assert json.loads((together / "results.json").read_text())["member_steps"] == [20]
-
-
-def test_movi_a_parallel_chains_stop_the_others_when_one_fails(tmp_path, capsys):
-    from gns_fixtures import write_toss_dataset
-
-    from gns.config import ConfigError
-    from pipelines.movi_a_recipes import Stage
-    data = write_toss_dataset(tmp_path / "data", train=4, valid=1, frames=10)
-    long = (Stage("long", 100_000, ("train.checkpoint_every=100000",), 0),)
-    # a first stage lets the long chain reach its training loop before the bad stage fails (30 steps
-    # were too few beside two trainings on the two cores)
-    bad = (Stage("short", 600, (), 1), Stage("bad", 10, ("train.lr_decay_steps=0",), 2))
-    p = {"model": "tiny", "common": ("valid.every=0",)}
-    with pytest.raises(ConfigError, match="lr_decay_steps"):
-        movi_a.train_chains(data, tmp_path, [long, bad], p, 0, parallel=True)
-    assert "stopping the other at a checkpoint" in capsys.readouterr().err
-    # the long chain stopped after its step under way and checkpointed there: a rerun resumes it
-    step = read_checkpoint(tmp_path / "run_long" / "latest.pt")["step"]
-    assert 0 < step < 100_000
-
-
-def test_movi_a_multi_object_preset_reports_interpenetration(tmp_path, capsys):
-    out = tmp_path / "m"
-    assert movi_a.main(["--preset", "multi_tiny", "--out", str(out), "--workers", "1"]) == 0
-    results = json.loads((out / "results.json").read_text())
-    assert results["num_object_pairs"] >= results["num_scenes"]  # 2-3 objects: at least one pair a scene
-    assert results["interpenetration_pct"] >= 0 and results["true_interpenetration_pct"] >= 0
-    assert "interpenetration between objects" in (out / "report.md").read_text()
-    assert "between objects" in capsys.readouterr().out  # the terminal table names it too
 
 
 def test_gns_eval_and_rollout_commands(trained, tmp_path, capsys):

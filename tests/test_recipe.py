@@ -1,0 +1,74 @@
+"""Recipes as data (configs/recipes/*.toml, pipelines/recipe.py): stages inherit, a stage of n
+cycles is n warm restarts, a run resumes and skips what is done, bad recipes are one line."""
+import json
+
+import pytest
+
+from datagen.config import config_dir
+from gns.checkpoint import read_checkpoint
+from gns.config import build_config, config_differences, config_to_dict
+from pipelines.common import SETTINGS_FREE
+from pipelines.recipe import load_recipe, main as recipe_main, run_overrides
+
+
+def test_stages_inherit_settings_and_cycles_are_warm_restarts():
+    r = load_recipe("tiny")
+    assert [x.name for x in r.runs] == ["a", "b_1", "b_2"]
+    assert [x.seed for x in r.runs] == [0, 1, 2]
+    a, b1, b2 = (dict(s.split("=", 1) for s in x.overrides) for x in r.runs)
+    assert a["train.lr_init"] == b1["train.lr_init"] == "0.001"       # inherited
+    assert a["train.lr_decay_steps"] == "10" and b1["train.lr_decay_steps"] == "4"  # replaced
+    assert "train.unroll_steps" not in a and b1["train.unroll_steps"] == "2"      # added
+    assert b1 == b2
+
+
+def test_the_tiny_recipe_trains_its_chain_and_resumes(tmp_path, capsys):
+    out = tmp_path / "r"
+    assert recipe_main(["tiny", "--out", str(out), "--workers", "1"]) == 0
+    runs = {n: read_checkpoint(out / "runs" / n / "latest.pt") for n in ("a", "b_1", "b_2")}
+    assert [runs[n]["seed"] for n in ("a", "b_1", "b_2")] == [0, 1, 2]
+    # each cycle starts from the one before
+    assert runs["b_1"]["config"]["train"]["init_from"] == str(out / "runs" / "a")
+    assert runs["b_2"]["config"]["train"]["init_from"] == str(out / "runs" / "b_1")
+    assert runs["b_2"]["config"]["features"]["centre_node"] and runs["a"]["config"]["features"]["centre_node"] is False
+    results = json.loads((out / "results.json").read_text())
+    scores = results["rows"]["default options"]["scores"]
+    assert all(v == v and v >= 0 for v in scores.values())
+    assert (out / "model.pt").is_file() and "| default options |" in (out / "report.md").read_text()
+    capsys.readouterr()
+    # a rerun trains nothing again
+    assert recipe_main(["tiny", "--out", str(out), "--workers", "1"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("skipping") >= 4 and "resuming" not in err
+
+
+@pytest.mark.parametrize("text, message", [
+    ("zoo = []\n", "no [[stage]]"),
+    ("[[stage]]\nname = 'a'\nsteps = 3\n", "stage 1 has no seed"),
+    ("[data]\nkind = 'x'\n[[stage]]\nname = 'a'\nsteps = 3\nseed = 0\n", "unknown data kind 'x'"),
+    ("[data]\nkind = 'contactnets'\n[[stage]]\nname = 'a'\nsteps = 3\nseed = 0\n", "give --src"),
+    ("[[stage\n", "not valid TOML"),
+])
+def test_a_bad_recipe_is_one_line(tmp_path, capsys, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    assert recipe_main([str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and message in err[0], err
+    assert recipe_main(["nope"]) == 2
+    assert "movi_a" in capsys.readouterr().err
+
+
+def _config(preset: str, overrides):
+    return build_config(path=config_dir() / f"{preset}.toml", overrides=list(overrides))
+
+
+def test_the_real_cube_pipeline_trains_the_zoo_models_by_their_recipes():
+    """pipelines.real_cubes_accuracy trains the same 256-toss and 16 + MuJoCo models as the recipes."""
+    from pipelines.real_cubes_accuracy import PRESETS, gns_settings
+    p = PRESETS["accuracy"]
+    for name, settings in (("real_cubes", gns_settings(p, 256)), ("real_cubes_16", gns_settings(p, 16, True))):
+        recipe = load_recipe(name)
+        ours = _config(recipe.model, run_overrides(recipe.runs[-1], None))
+        theirs = _config(f"gns_{p.model}", settings)
+        assert config_differences(config_to_dict(ours), theirs, ignore=SETTINGS_FREE) == [], name

@@ -1,0 +1,128 @@
+"""The model zoo (gns/models/NAME.toml + weights): every card is complete and true to its
+weights and recipe, a wrong name lists the right ones, the scored rollout options travel with
+the model, and each model rolls out what it was trained on."""
+import json
+from pathlib import Path
+
+import pytest
+
+from datagen.config import config_dir
+from gns import zoo
+from gns.checkpoint import checkpoint_of, read_checkpoint
+from gns.cli import main as gns_cli
+from gns.config import build_config, config_differences
+from gns.options import RolloutOptions
+from pipelines.common import SETTINGS_FREE
+from pipelines.recipe import load_recipe, recipe_names, run_overrides
+
+CUBES = Path(__file__).parent / "data" / "contactnets"
+CARD_KEYS = {"file", "purpose", "use", "limits", "data", "recipe", "scores"}
+
+
+def test_the_zoo_is_a_few_models_named_by_purpose_each_with_a_complete_card():
+    names = zoo.names()
+    assert {"movi_a", "movi_a_fast", "real_cubes", "real_cubes_16", "diagnostic_45"} <= set(names)
+    assert len(names) <= 6
+    weights = {zoo.card(n).file for n in names}
+    # nothing ships without a card, and the package stays small
+    assert weights == set(zoo.ZOO.glob("*.pt"))
+    assert sum(w.stat().st_size for w in weights) < 15e6
+    for name in names:
+        c = zoo.card(name)
+        assert CARD_KEYS <= set(c.data), (name, CARD_KEYS - set(c.data))
+        assert c.file.is_file() and c.data["limits"] and c.data["scores"]
+        for key in ("what", "command", "fingerprint"):
+            assert c.data["data"][key], (name, key)
+        assert c.data["recipe"]["command"].startswith(f"python -m pipelines.recipe ")
+        for s in c.data["scores"]:
+            assert "test_set" in s and ({"position_error_pct", "rotation_error_deg"} <= set(s) or "sides" in s)
+        # the card's data is the data the weights were trained on
+        trained_on = read_checkpoint(c.file)["provenance"]["data"]["fingerprint"]
+        assert c.data["data"]["fingerprint"] == trained_on, name
+
+
+@pytest.mark.parametrize("name", sorted(set(zoo.names())))
+def test_each_zoo_model_is_reproduced_by_its_named_recipe(name):
+    """The card's recipe exists, lists the model, and its last run trains with exactly the settings
+    stored in the shipped weights (bar the bookkeeping that does not change what a run learns)."""
+    c = zoo.card(name)
+    recipe_name = c.data["recipe"]["command"].split()[3]
+    assert recipe_name in recipe_names()
+    recipe = load_recipe(recipe_name)
+    assert name in recipe.zoo
+    ckpt = read_checkpoint(c.file)
+    last = recipe.runs[-1]
+    cfg = build_config(path=config_dir() / f"{recipe.model}.toml", overrides=run_overrides(last, None))
+    assert config_differences(ckpt["config"], cfg, ignore=SETTINGS_FREE + ("train.init_from",)) == []
+    assert ckpt["seed"] == last.seed and ckpt["step"] == last.steps
+
+
+def test_the_movi_a_recipe_is_one_schedule_of_warm_restarts_after_its_stages():
+    recipe = load_recipe("movi_a")
+    restarts = [r for r in recipe.runs if r.name.startswith("restarts_")]
+    assert len(restarts) == 7 and [r.seed for r in restarts] == list(range(104, 111))
+    # a warm restart changes only the seed: the same steps and settings each cycle
+    assert len({(r.steps, r.overrides) for r in restarts}) == 1
+    assert sum(r.steps for r in recipe.runs) == 128_580
+
+
+def test_a_wrong_name_lists_the_zoo(capsys, tmp_path):
+    for argv in (["models", "gns_movi_a_low_b128_all32_11_s100"], ["eval", "--run", "movi", "--data", str(tmp_path)]):
+        with pytest.raises(SystemExit) as stop:
+            gns_cli(argv)
+        assert stop.value.code == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and err.startswith("error: ") and all(n in err for n in zoo.names())
+    with pytest.raises(zoo.ZooError, match="movi_a_fast"):
+        checkpoint_of("movi_b")
+
+
+def test_gns_models_lists_and_prints_cards(capsys):
+    gns_cli(["models"])
+    out = capsys.readouterr().out
+    assert all(f"{n}\n" in out for n in zoo.names())
+    gns_cli(["models", "real_cubes"])
+    out = capsys.readouterr().out
+    card = zoo.card("real_cubes").data
+    assert card["recipe"]["command"] in out and card["scores"][0]["eval_command"] in out
+    assert "--symmetrize d2" in out
+
+
+def test_the_scored_options_travel_with_the_model():
+    import gns
+    for name in ("movi_a", "movi_a_fast", "diagnostic_45"):
+        assert gns.load(name).options == zoo.card(name).options
+    assert zoo.card("movi_a").options.symmetrize == "d1" and zoo.card("movi_a").options.free_flight
+    # a file or run folder has the defaults; a user's choice replaces the card's
+    assert gns.load(str(zoo.card("movi_a").file)).options == RolloutOptions()
+    assert gns.load("movi_a", options=RolloutOptions()).options == RolloutOptions()
+    assert gns.load("movi_a", symmetrize="d2").options.symmetrize == "d2"
+
+
+def test_the_movi_a_models_roll_out_fresh_scenes_with_their_card_options(tmp_path):
+    from datagen.cli import main as datagen
+    data = tmp_path / "movi"
+    assert datagen(["toss", "--shapes", "beveled_cube,cylinder,sphere", "--scenes", "1", "--test", "6",
+                    "--seed", "7", "--quiet", "--out", str(data)]) in (0, None)
+    for name in ("movi_a", "movi_a_fast"):
+        gns_cli(["eval", "--run", name, "--data", str(data), "--json", str(tmp_path / f"{name}.json")])
+        results = json.loads((tmp_path / f"{name}.json").read_text())
+        assert results["rollout_options"] == zoo.card(name).options.to_dict()
+        assert results["num_scenes"] == 6 and not results["outside_training"]
+        # 6 scenes of a seed it never saw; a broken or mismatched model is far off (the card: ~11%)
+        assert results["position_error_pct"] < 40 and results["penetration_pct"] < 2
+
+
+@pytest.mark.parametrize("name", ["real_cubes", "real_cubes_16"])
+def test_the_real_cube_models_roll_out_real_tosses(tmp_path, name):
+    """The 3 tosses in tests/data are among the 456 shared ones, so among the models' training or
+    validation tosses: this checks the shipped file works as trained, not held-out accuracy."""
+    from datagen.contactnets import import_contactnets
+    data = tmp_path / "cubes"
+    import_contactnets(CUBES, data, progress=False)
+    gns_cli(["eval", "--run", name, "--data", str(data), "--json", str(tmp_path / "r.json")])
+    results = json.loads((tmp_path / "r.json").read_text())
+    assert results["num_scenes"] == 3 and results["at_data_rate"]
+    assert results["rollout_options"]["symmetrize"] == "d2"
+    assert results["position_error_pct"] < 30 and results["rotation_error_deg"] < 30
+    assert results["penetration_pct"] < 5
