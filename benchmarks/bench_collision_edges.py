@@ -18,7 +18,8 @@ import torch
 
 from datagen.shapes import get_shape
 from gns.contacts import surface_edges
-from gns.graph import MeshLibrary, collision_edges
+from gns.contacts import collision_edges
+from gns.graph import MeshLibrary
 
 RADIUS = 0.15
 

@@ -13,17 +13,16 @@ batched, in each variant asked:
   compile   the network through torch.compile, its weights read at every call (what training
             compiles; compiled before timing)
   freeze    compile with inductor's freezing, the weights taken as constants at the first call
-            (what `gns eval --compile` runs since session 42)
+            (what `gns eval --compile` runs)
   clearD    free flight's clearance D above the floor (`--free-clearance D`; default the floor
             clip): e.g. free+clear0.5
   sym       each step averaged over the floor's 4 mirror symmetries (`--symmetrize`): the most
             accurate rollouts, at 4x the network's work
-  d1, c2, c4, d4, r1, r2, r4
-            the other averages of `--symmetrize GROUP` (c2: the half turn, 2x the work; r1: a
-            random heading every step, no extra work; docs/speed.md, session 12)
+  d1, c2, c4, d4
+            the other averages of `--symmetrize GROUP` (c2: the half turn, 2x the work; docs/speed.md)
 
 joined with "+" (e.g. free+bf16). Several --run give every variant of every model, all in the
-same rounds (e.g. a model on the full meshes against one on coarse meshes). Cost is wall-clock ms per simulated second per trajectory
+same rounds (e.g. a small model against a large one). Cost is wall-clock ms per simulated second per trajectory
 (best of --repeats rounds, each round timing PyBullet and every variant in turn, so that the
 load of a shared machine hits all alike); "x PyBullet" is PyBullet's cost over the variant's (above 1: faster than
 PyBullet); accuracy is the MOVi-A metrics against the dataset (PyBullet's own scenes, so
@@ -54,11 +53,10 @@ from datagen.simulate import step_only  # noqa: E402
 from gns.evaluate import checkpoint_of, load_split  # noqa: E402
 from gns.metrics import evaluate_scenes  # noqa: E402
 from gns.rollout import rollout_scenes  # noqa: E402
-from gns.simulator import RANDOM_TURNS, Sleep  # noqa: E402
 from gns.symmetry import SYMMETRY_GROUPS  # noqa: E402
-from gns.train import load_model, read_checkpoint  # noqa: E402
+from gns.checkpoint import load_model, read_checkpoint  # noqa: E402
 
-GROUPS = tuple(g for g in (*SYMMETRY_GROUPS, *RANDOM_TURNS) if g != "d2")   # --symmetrize GROUP; "sym" is d2
+GROUPS = tuple(g for g in SYMMETRY_GROUPS if g != "d2")   # --symmetrize GROUP; "sym" is d2
 KNOWN = ("plain", "free", "sleep", "bf16", "compile", "freeze", "sym", *GROUPS)
 
 
@@ -110,11 +108,11 @@ class Roller:
             model.set_speed("bf16" if "bf16" in parts else "none", bool(parts & {"compile", "freeze"}),
                             freeze="freeze" in parts)
         groups = [p for p in parts if p in GROUPS] + (["d2"] if "sym" in parts else [])
-        self.sim.symmetrize = groups[0] if groups else False
-        self.sim.free_clearance = next((clearance(p) for p in parts if clearance(p) is not None), None)
-        return rollout_scenes(self.sim, self.scenes, self.ds.meshes, self.ds.frame_rate, progress=False,
-                              batch_tracks=self.batch,
-                              free_flight="free" in parts, sleep=Sleep() if "sleep" in parts else None)
+        # a clearance of None keeps the options' own, and here that is the floor clip
+        with self.sim.using(symmetrize=groups[0] if groups else "none", batch=self.batch, free_flight="free" in parts,
+                            free_clearance=next((clearance(p) for p in parts if clearance(p) is not None), None),
+                            sleep="sleep" in parts):
+            return rollout_scenes(self.sim, self.scenes, self.ds.meshes, self.ds.frame_rate, progress=False)
 
 
 def timed_rounds(variants: list[tuple[str, Roller, set[str]]], specs, cfg, repeats: int) -> tuple[dict, dict, dict, dict]:
@@ -201,7 +199,8 @@ def plot_rows(rows: list[dict], runs: list[str], path: str) -> Path:
     from matplotlib.lines import Line2D
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    from gns.plots import label_points, new_figure, save_figure
+    from gns.charts import label_points
+    from gns.plots import new_figure, save_figure
     fig = new_figure((11, 5.2))
     learned = [r for r in rows if r["variant"].startswith("GNS ")]
     model, option = [], []   # "GNS [RUN ]OPTIONS": the run is named only when there are several
@@ -255,8 +254,7 @@ def main(argv=None) -> int:
     p.add_argument("--split", default="test")
     p.add_argument("--limit", type=int, help="first N scenes only")
     p.add_argument("--batch", type=int, default=1024,
-                   help="objects rolled out together (default 1024: MOVi-A's 400 test scenes in one batch; "
-                        "before session 42 256, two batches)")
+                   help="objects rolled out together (default 1024: MOVi-A's 400 test scenes in one batch)")
     p.add_argument("--repeats", type=int, default=3, help="timed repeats, best taken (default 3)")
     p.add_argument("--variants", default="plain,free,bf16,free+bf16,compile,free+bf16+compile",
                    help="comma list of +-joined parts: " + ", ".join(KNOWN))

@@ -28,7 +28,7 @@ import torch.nn.functional as F
 import gns.network
 from gns.config import build_config
 from gns.rollout import rollout_tracks
-from gns.train import build_simulator
+from gns.checkpoint import build_simulator
 
 HERE = Path(__file__).resolve().parent
 _spec = importlib.util.spec_from_file_location("bench_train", HERE / "bench_train.py")
@@ -77,7 +77,7 @@ def breakdown(sim, tracks, which, frames) -> list[tuple[str, float]]:
     network = max(v[3] for (f, _, fn), v in stats.items() if f.endswith("gns/network.py") and fn == "forward")
     parts = [("network (encode, process, decode)", network),
              ("node and edge features + normalisers", cumulative("gns/simulator.py", "_inputs")),
-             ("shape matching (rollout and poses)", cumulative("gns/simulator.py", "shape_match_packed"))]
+             ("shape matching (rollout and poses)", cumulative("gns/rigid.py", "shape_match_packed"))]
     parts.append(("everything else (integration, bookkeeping)", total - sum(p for _, p in parts)))
     return [(name, p / total) for name, p in parts]
 

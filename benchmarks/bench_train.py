@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import time
 from pathlib import Path
 
@@ -27,20 +26,21 @@ import numpy as np
 import torch
 
 from datagen.shapes import get_shape
-from datagen.config import config_dir
+from plumbing.tomlconfig import config_dir
 from datagen.shards import Dataset, Scene
 from gns.config import build_config
 from gns.data import ObjectTracks, feature_spec
 from gns.geometry import quat_from_axis_angle
 from gns.graph import MeshLibrary
-from gns.train import build_simulator, learning_rate, train_step
+from gns.checkpoint import build_simulator
+from gns.optimise import learning_rate, train_step
 
 CONFIGS = config_dir()
 SHAPES = ("beveled_cube", "cylinder", "sphere")  # MOVi-A's shapes: 51-64 vertices each
 SYNTHETIC_SPEC = {"floor": {"z": 0.0}, "materials_vary": True}
 
 
-def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0, mesh_vertices: int = 0) -> tuple[ObjectTracks, dict]:
+def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0) -> tuple[ObjectTracks, dict]:
     """Ballistic spinning tosses of the MOVi-A shapes; speed depends on graph sizes, not physics."""
     rng = np.random.default_rng(seed)
     meshes = {name: (get_shape(name).vertices, get_shape(name).faces) for name in SHAPES}
@@ -54,7 +54,7 @@ def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0, mesh_ver
                          shape=[SHAPES[i % 3]], material=["metal"], scale=np.array([rng.choice([0.7, 1.4])]),
                          mass=np.ones(1), friction=np.array([rng.choice([0.4, 0.8])]),
                          restitution=np.array([rng.choice([0.3, 0.7])])))
-    return ObjectTracks(out, MeshLibrary(meshes, mesh_vertices)), SYNTHETIC_SPEC
+    return ObjectTracks(out, MeshLibrary(meshes)), SYNTHETIC_SPEC
 
 
 def matmul_gflops(size: int = 1024, seconds: float = 1.0, dtype=torch.float32) -> float:
@@ -115,30 +115,25 @@ def main(argv=None) -> None:
     p.add_argument("--autocast", action="store_true",
                    help="time every preset in float32 and under bf16 autocast (train.autocast=bf16), alternated")
     p.add_argument("--variants", help="comma list of fp32, bf16, compile, bf16+compile (default fp32; "
-                                      "--autocast = fp32,bf16); +coarseN: the network on N vertices of each "
-                                      "mesh (features.mesh_vertices=N), e.g. bf16+compile+coarse16")
+                                      "--autocast = fp32,bf16)")
     p.add_argument("--batch", type=int, help="training batch size for every preset (default: the preset's)")
     p.add_argument("--rounds", type=int, default=1,
                    help="with several variants: alternate them this many times and keep each one's best")
     args = p.parse_args(argv)
 
     variants = (args.variants or ("fp32,bf16" if args.autocast else "fp32")).split(",")
-    coarse = {}
     for v in variants:
         for part in v.split("+"):
-            if not (part in ("fp32", "bf16", "compile") or re.fullmatch(r"coarse\d+", part)):
-                raise SystemExit(f"error: unknown variant {v!r}; parts are fp32, bf16, compile, coarseN")
-        coarse[v] = next((int(part[6:]) for part in v.split("+") if part.startswith("coarse")), 0)
-        if 0 < coarse[v] < 4:
-            raise SystemExit(f"error: variant {v!r}: a coarse mesh needs at least 4 vertices")
+            if part not in ("fp32", "bf16", "compile"):
+                raise SystemExit(f"error: unknown variant {v!r}; parts are fp32, bf16, compile")
     if args.data:
         dataset = Dataset(args.data)
         scenes = dataset.load("train")
         spec = feature_spec(dataset, scenes)
-        tracks = {n: ObjectTracks(scenes, MeshLibrary(dataset.meshes, n)) for n in set(coarse.values())}
+        tracks = ObjectTracks(scenes, MeshLibrary(dataset.meshes))
         source = f"{args.data} ({len(scenes)} train scenes)"
     else:
-        tracks = {n: synthetic_tracks(mesh_vertices=n)[0] for n in set(coarse.values())}
+        tracks = synthetic_tracks()[0]
         spec = SYNTHETIC_SPEC
         source = "synthetic tosses of " + ", ".join(SHAPES)
     print(f"data: {source}; load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
@@ -154,10 +149,8 @@ def main(argv=None) -> None:
         for _ in range(args.rounds):
             for v in variants:
                 parts = set(v.split("+"))
-                r = bench_preset(name.strip(), tracks[coarse[v]], spec, args.steps, args.warmup, args.threads,
+                r = bench_preset(name.strip(), tracks, spec, args.steps, args.warmup, args.threads,
                                  "bf16" if "bf16" in parts else "none", "compile" in parts, args.batch)
-                if coarse[v]:
-                    r["preset"] += f"+coarse{coarse[v]}"
                 if v not in best or r["steps_per_sec"] > best[v]["steps_per_sec"]:
                     best[v] = r
         rows += [best[v] for v in variants]

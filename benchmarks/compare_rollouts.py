@@ -30,12 +30,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from gns.checkpoint import CheckpointError  # noqa: E402
 from gns.config import ConfigError  # noqa: E402
 from gns.evaluate import evaluate_run, write_json  # noqa: E402
-from gns.simulator import RANDOM_TURNS  # noqa: E402
 from gns.symmetry import SYMMETRY_GROUPS  # noqa: E402
-from datagen.shards import DataError  # noqa: E402
+from plumbing.errors import DataError  # noqa: E402
 
 METRICS = {"position_error_pct": "position %", "rotation_error_deg": "rotation deg"}
-GROUPS = (*SYMMETRY_GROUPS, *RANDOM_TURNS)
+GROUPS = tuple(SYMMETRY_GROUPS)
 
 
 def parse_setting(text: str) -> tuple[str, list[str], str | bool]:

@@ -4,7 +4,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .config import ConfigError, load_config
+from plumbing.errors import ConfigError
+from .config import load_config
 from .version import version_line
 
 EPILOG = """examples:
@@ -142,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from .shards import DataError
+    from plumbing.errors import DataError
     a = build_parser().parse_args(argv)
     try:
         return a.func(a)

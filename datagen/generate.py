@@ -28,13 +28,13 @@ from . import __version__
 from .scenes import sample_scene
 from .shapes import get_shape
 from .inspect import floor_violations
-from .atomic import atomic_file
 from .claim import LOCK_FILES, Busy, claim, plan_lock
-from .config import ConfigError
 from .provenance import file_sha256
-from .shards import (METADATA_FILE, SHARED, SPLITS, DataError, clear_dataset, dataset_files, shard_image,
+from .shards import (METADATA_FILE, SHARED, SPLITS, clear_dataset, dataset_files, shard_image,
                      shard_name, write_error, write_metadata, write_shard_image)
 from .simulate import FLOOR_HALF_WIDTH, check_floor_covers, off_floor, simulate, steps_per_frame
+from plumbing.errors import ConfigError, DataError
+from plumbing.files import atomic_file
 
 
 @dataclass(frozen=True)

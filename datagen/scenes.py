@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import ConfigError, parse_objects
+from plumbing.errors import ConfigError
+from .config import parse_objects
 from .shapes import get_shape
 
 SPLIT_KEYS = {"train": 0, "valid": 1, "test": 2}

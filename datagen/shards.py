@@ -16,7 +16,9 @@ from typing import Iterator
 import h5py
 import numpy as np
 
-from .atomic import atomic_file
+from plumbing.errors import DataError
+from plumbing.files import atomic_file
+
 from .provenance import file_sha256, fingerprint, provenance
 
 FORMAT_VERSION = 1
@@ -29,10 +31,6 @@ SHARED = 0o644
 SCENE_ARRAYS = ("positions", "quaternions", "velocities", "angular_velocities")
 OBJECT_ARRAYS = ("scale", "mass", "friction", "restitution")
 OBJECT_STRINGS = ("shape", "material")
-
-
-class DataError(Exception):
-    """A dataset or shard that does not follow the format. The message is one line for a user."""
 
 
 @dataclass

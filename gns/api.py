@@ -1,7 +1,7 @@
 """Use a trained model from Python: load it, roll it out from poses and velocities, step it in a loop.
 
     import gns
-    model = gns.load("gns_real_cubes_n256_deep")   # a shipped name, a run folder or a .pt file
+    model = gns.load("real_cubes")   # a zoo name, a run folder or a .pt file
     out = model.rollout(shapes=["cube"], scales=2.0, positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]],
                         velocities=[[5, 0, 0]], angular_velocities=[[0, 0, 3]], steps=40)
     out.positions, out.quaternions                   # (steps + 1, B, 3), (steps + 1, B, 4); [0] is the start
@@ -26,22 +26,23 @@ import numbers
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from datagen.shards import DataError
+from plumbing.errors import DataError
 from gns.config import Config, ConfigError, build_config
 from gns.features import HISTORY
-from gns.graph import GraphBatch
+from gns.graph import GraphBatch, with_symmetries
 from gns.ranges import outside_training
 from gns.rigid import posed, shape_match_packed
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-from gns.checkpoint import CheckpointError
-from gns.train import parse_device
+from gns.checkpoint import CheckpointError, checkpoint_of, load_simulator
+from gns.precision import parse_device
+from gns.options import RolloutOptions
+from gns.zoo import default_options
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
@@ -98,7 +99,7 @@ class State:
 
     positions: torch.Tensor        # (B, 3) centres at the current frame
     quaternions: torch.Tensor      # (B, 4) in the model's quaternion_order
-    vertices: torch.Tensor         # (N, 3) world vertices of the network's meshes (coarse with features.mesh_vertices); object of each: vertex_object
+    vertices: torch.Tensor         # (N, 3) world vertices of the meshes (with a centre node each where the model has one); object of each: vertex_object
     time: float                    # seconds since the first state
     frames: tuple[torch.Tensor, ...] = field(repr=False)   # HISTORY x (N, 3) float64, oldest first
     graph: GraphBatch = field(repr=False)
@@ -144,7 +145,7 @@ class Model:
         self.simulator, self.config, self.spec, self.device = simulator, config, spec, device
         self.quaternion_order, self.source = quaternion_order, source
         self.meshes = meshes
-        # the graphs the network was trained on: the coarse meshes of features.mesh_vertices, if any
+        # the graphs the network was trained on (centre nodes, spokes)
         self._library = simulator.mesh_library(meshes)
 
     frame_rate = property(lambda self: float(self.spec.frame_rate), doc="model steps per second")
@@ -161,6 +162,7 @@ class Model:
                               doc="friction and restitution are inputs (they varied in training)")
     collisions = property(lambda self: self.spec.collision_edges,
                           doc="objects of a scene interact (collision edges)")
+    options = property(lambda self: self.simulator.options, doc="how it rolls out (gns.options.RolloutOptions)")
 
     def __repr__(self) -> str:
         return (f"gns.Model({self.source!r}, {self.frame_rate:g} steps/s, shapes {self.shapes}, "
@@ -224,6 +226,9 @@ class Model:
         # scaled rest shape and materials from the inputs themselves, so that a gradient reaches them
         graph.rest = graph.rest * scale[graph.node_graph, None]
         graph.material = torch.stack(mat, 1).to(torch.float32)[graph.node_graph]
+        if self.simulator.options.body_frames:
+            # the rotations mapping each mesh onto itself, which every step averages over
+            graph = with_symmetries(graph)
         frames = tuple(posed(past_rot[k], past_pos[k], graph.node_graph, graph.rest) for k in range(HISTORY))
         return State(pos, self._quat_out(quat / quat.norm(dim=-1, keepdim=True)), frames[-1], 0.0, frames, graph)
 
@@ -257,17 +262,19 @@ class Model:
             warnings.warn("the model was trained on single-object scenes and has no collision edges: "
                           "objects of one scene will pass through each other", stacklevel=stacklevel)
 
-    def step(self, state: State, shape_matching: bool = True, free_flight: bool = False) -> State:
-        """The state one model step (dt) later. Keeps the autograd graph when grad is enabled
-        (wrap a loop in torch.no_grad() otherwise). free_flight: objects out of reach of the
-        floor and of each other follow the exact inertial update, not the network (faster,
-        and exact in flight; `gns eval --free-flight`)."""
+    def step(self, state: State) -> State:
+        """The state one model step (dt) later, as the model's options ask (`options`, set by
+        gns.load: e.g. free_flight, objects out of reach of the floor and of each other following
+        the exact inertial update, not the network). Keeps the autograd graph when grad is enabled
+        (wrap a loop in torch.no_grad() otherwise)."""
         sim, graph = self.simulator, state.graph
-        if free_flight and sim.gravity_per_frame is None:
+        if sim.options.free_flight and sim.gravity_per_frame is None:
             raise DataError("free_flight needs a model that knows gravity and its frame rate")
-        x = sim.advance(list(state.frames), graph, free_flight=free_flight)
+        if sim.options.sleep and not sim.gravity_step:
+            raise DataError("sleep needs a model that knows gravity and its frame rate")
+        x = sim.advance(list(state.frames), graph)
         rot, centre, matched = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
-        if shape_matching:
+        if sim.options.shape_matching:
             x = matched
         quat = matrix_to_quat(rot)
         previous = self._quat_in(state.quaternions)
@@ -277,10 +284,10 @@ class Model:
 
     def rollout(self, shapes: list[str], positions, quaternions, velocities=None, angular_velocities=None, *,
                 steps: int, scales=1.0, friction=None, restitution=None, scene=None, history=None,
-                shape_matching: bool = True, differentiable: bool = False, free_flight: bool = False) -> Trajectory:
-        """Roll B objects out for `steps` model steps (arguments as `state`). differentiable=True
-        keeps the autograd graph from the inputs (tensors with requires_grad) to every output;
-        free_flight as in `step`."""
+                differentiable: bool = False) -> Trajectory:
+        """Roll B objects out for `steps` model steps (arguments as `state`), as `step` does.
+        differentiable=True keeps the autograd graph from the inputs (tensors with requires_grad)
+        to every output."""
         if not isinstance(steps, numbers.Integral) or steps < 0:
             raise DataError(f"steps must be a whole number >= 0, got {steps!r}")
         with torch.set_grad_enabled(differentiable):
@@ -289,7 +296,7 @@ class Model:
                                _caller_depth=1)
             states = [state]
             for _ in range(steps):
-                states.append(self.step(states[-1], shape_matching, free_flight))
+                states.append(self.step(states[-1]))
             return Trajectory(torch.stack([s.positions for s in states]), torch.stack([s.quaternions for s in states]),
                               torch.stack([s.vertices for s in states]), state.vertex_object, self.dt)
 
@@ -309,22 +316,30 @@ def _meshes_of(spec: ModelSpec, where: str) -> dict:
 
 
 def load(model: str | Path, device: str | torch.device = "cpu", quaternion_order: str = "wxyz",
-         meshes: dict | None = None, symmetrize: bool | str = False, ensemble: Sequence[str | Path] = ()) -> Model:
-    """A trained model: a shipped name (gns_real_cubes_n256_deep, ...), a run folder (its latest.pt) or
-    a .pt checkpoint or export. device: "cpu", "cuda", "cuda:1", ... meshes {name: (vertices,
+         meshes: dict | None = None, options: RolloutOptions | None = None, **changes) -> Model:
+    """A trained model: a zoo name (`gns models` lists them), a run folder (its latest.pt) or a
+    .pt checkpoint or export. device: "cpu", "cuda", "cuda:1", ... meshes {name: (vertices,
     faces)} replaces the checkpoint's (needed only for old checkpoints of custom shapes).
-    symmetrize: True or "d2" averages each step over the floor's mirror images (`gns eval
-    --symmetrize`, as the real-cube scores were measured; four network calls a step): rollouts
-    exactly mirror-equivariant as far as the mesh graph is (a cube's triangulated faces are not
-    quite), or another group of gns.symmetry.SYMMETRY_GROUPS. ensemble: more
-    models (names, folders, files) whose predictions each step averages with this one's (`gns eval
-    --ensemble`); they must read the same graphs."""
-    from gns.evaluate import checkpoint_of, load_simulator
+    options: how it rolls out (gns.options.RolloutOptions; default gns.zoo.default_options(model),
+    for a zoo model the options it was scored with). Keywords (RolloutOptions fields) change those
+    options, e.g. free_flight=True, sleep=True or autocast="auto"; symmetrize True or "d2"
+    averages each step over the floor's mirror images (`gns eval --symmetrize`; four network
+    calls a step), rollouts exactly
+    mirror-equivariant as far as the mesh graph is (a cube's triangulated faces are not quite),
+    or another group of gns.symmetry.SYMMETRY_GROUPS ("none": off); ensemble: more models (names,
+    folders, files) whose predictions each step averages with this one's (`gns eval --ensemble`);
+    they must read the same graphs."""
     device = parse_device(str(device), "device")
-    if isinstance(ensemble, (str, Path)):
-        ensemble = [ensemble]
+    ensemble = changes.get("ensemble")
+    if ensemble is not None:
+        changes["ensemble"] = (str(ensemble),) if isinstance(ensemble, (str, Path)) else tuple(str(e) for e in ensemble)
+    known = set(RolloutOptions.__dataclass_fields__)
+    unknown = sorted(set(changes) - known)
+    if unknown:   # a misspelt option: one line naming the known ones, not a TypeError from dataclasses
+        raise TypeError(f"gns.load() got an unknown rollout option {unknown[0]!r}; known: {', '.join(sorted(known))}")
+    options = (default_options(model) if options is None else options).replace(**changes)
     path = checkpoint_of(model)
-    sim, ckpt = load_simulator(path, device, symmetrize=symmetrize, ensemble=ensemble)
+    sim, ckpt = load_simulator(path, device, options)
     cfg = build_config(base=ckpt["config"])
     spec = ModelSpec.from_dict(ckpt["spec"])
     found = meshes if meshes is not None else _meshes_of(spec, str(path))

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import torch
 
-from datagen.atomic import atomic_file
-from datagen.outputs import check_writable
-from datagen.shards import DataError
-from gns.config import Config, build_config
+from plumbing.files import atomic_file, check_writable
+from plumbing.errors import DataError
+from gns.config import Config, ConfigError, build_config
+from gns.options import RolloutOptions
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec, SpecError
 
@@ -151,16 +151,21 @@ def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool =
     return out
 
 
-def build_simulator(cfg: Config, spec: ModelSpec) -> LearnedSimulator:
-    return LearnedSimulator(cfg.model, cfg.features, spec)
+def build_simulator(cfg: Config, spec: ModelSpec, options: RolloutOptions | None = None) -> LearnedSimulator:
+    return LearnedSimulator(cfg.model, cfg.features, spec, options)
 
 
-def load_model(checkpoint: str | Path | dict, device: str | torch.device = "cpu") -> tuple[LearnedSimulator, Config]:
-    """Rebuild a trained simulator (in eval mode, on `device`) and its config from a checkpoint
-    file, or from one already read with read_checkpoint (its spec and step need no second read)."""
+def load_model(checkpoint: str | Path | dict, device: str | torch.device = "cpu",
+               options: RolloutOptions | None = None) -> tuple[LearnedSimulator, Config]:
+    """Rebuild a trained simulator (in eval mode, on `device`, rolled out with `options`) and its
+    config from a checkpoint file, or from one already read with read_checkpoint (its spec and
+    step need no second read). The options' ensemble is left to load_simulator."""
     ckpt = checkpoint if isinstance(checkpoint, dict) else read_checkpoint(checkpoint)
-    cfg = build_config(base=ckpt["config"])
-    sim = build_simulator(cfg, ModelSpec.from_dict(ckpt["spec"]))
+    try:
+        cfg = build_config(base=ckpt["config"])
+    except ConfigError as e:   # a key removed since it was trained, set: one line naming the file
+        raise CheckpointError(f"{'' if isinstance(checkpoint, dict) else f'{checkpoint}: '}{e}") from None
+    sim = build_simulator(cfg, ModelSpec.from_dict(ckpt["spec"]), options)
     try:
         sim.load_state_dict(ckpt["model"])
     except RuntimeError as e:  # weights that do not fit the model the checkpoint's own config builds
@@ -168,4 +173,24 @@ def load_model(checkpoint: str | Path | dict, device: str | torch.device = "cpu"
         raise CheckpointError(f"{where}damaged checkpoint, its weights do not fit its model "
                               f"({str(e).splitlines()[1].strip() if len(str(e).splitlines()) > 1 else e})") from None
     sim.to(device).eval()
+    if options is not None and (options.autocast != "none" or options.compile):
+        # rollouts only: freezing takes the weights as they are now, which a rollout keeps
+        sim.set_speed(options.autocast, options.compile, freeze=options.compile)
     return sim, cfg
+
+
+def load_simulator(run: str | Path, device: str | torch.device = "cpu",
+                   options: RolloutOptions | None = None) -> tuple[LearnedSimulator, dict]:
+    """The model of `run` (folder, checkpoint or shipped name) set up for rollouts with `options`:
+    its network's precision and compiled code, and the runs of options.ensemble as members whose
+    predictions each step averages (LearnedSimulator.set_ensemble), each member with the same
+    options. Returns (simulator, its saved checkpoint)."""
+    options = RolloutOptions() if options is None else options
+    checkpoints = [read_checkpoint(checkpoint_of(r)) for r in (run, *options.ensemble)]
+    sim, *members = [load_model(saved, device, options)[0] for saved in checkpoints]
+    if members:
+        try:
+            sim.set_ensemble(members)
+        except ValueError as e:
+            raise CheckpointError(f"ensemble: {e}") from None
+    return sim, checkpoints[0]

@@ -10,7 +10,7 @@ import os
 import sys
 import warnings
 
-from datagen.shards import DataError
+from plumbing.errors import DataError
 from gns.config import ConfigError
 
 EXIT_FAILED = 1
@@ -19,7 +19,8 @@ EXIT_BAD_INPUT = 2
 
 def cmd_train(args: argparse.Namespace) -> None:
     from gns.parallel import world_from_env
-    from gns.train import resolve_config, train
+    from gns.run_folder import resolve_config
+    from gns.train import train
 
     overrides = list(args.set or [])
     if args.steps is not None:
@@ -75,25 +76,24 @@ def _threads(n: int) -> None:
 
 
 def cmd_rollout(args: argparse.Namespace) -> None:
-    from gns.evaluate import check_ranges, checkpoint_of, load_simulator, load_split, provenance_of
+    from gns.checkpoint import checkpoint_of, load_simulator
+    from gns.precision import parse_device
+    from gns.evaluate import check_ranges, load_split, options_record, provenance_of
     from gns.rollout import (DivergedError, check_output, diverged_line, scene_label, timed_rollout,
                              write_rollouts)
     from gns.spec import ModelSpec
-    from gns.train import parse_device
 
     _threads(args.threads)
 
+    options = _rollout_options(args)
     device = parse_device(args.device, "--device")
     check_output(args.out, args.overwrite, args.data)
     ckpt = checkpoint_of(args.run_dir)
-    sim, saved = load_simulator(ckpt, device, args.symmetrize, args.body_frames, args.autocast, args.compile,
-                                args.ensemble, args.turn_seed, _free_clearance(args))
+    sim, saved = load_simulator(ckpt, device, options)
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(args.data, args.split, args.limit, spec.frame_rate)
     check_ranges(spec, ds, scenes)
-    pred, seconds, warmup = timed_rollout(sim, scenes, ds.meshes, ds.frame_rate, args.batch, args.compile,
-                                          shape_matching=not args.no_shape_matching, sleep=_sleep(args),
-                                          free_flight=args.free_flight)
+    pred, seconds, warmup = timed_rollout(sim, scenes, ds.meshes, ds.frame_rate)
     diverged = [scene_label(sc, i) for i, (p, sc) in enumerate(zip(pred, scenes)) if "diverged_at_frame" in p.attrs]
     if len(diverged) == len(pred):
         raise DivergedError(f"every rollout diverged ({len(pred)} scenes: positions became inf or NaN); "
@@ -101,12 +101,8 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     if diverged:
         print(diverged_line(diverged, len(pred), f"not written (listed in {args.out}/metadata.json)"), file=sys.stderr)
     info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]),
-            "data": str(args.data), "split": args.split, "shape_matching": not args.no_shape_matching,
-            "given_frames": 3, "seconds": seconds, "warmup_seconds": warmup,
-            "sleep": None if not args.sleep else {"fraction": args.sleep_fraction}, "symmetrize": args.symmetrize, "body_frames": args.body_frames,
-            "free_flight": args.free_flight, "free_clearance": sim.free_flight_clip if args.free_flight else None,
-            "autocast": args.autocast, "compile": args.compile,
-            "ensemble": list(args.ensemble), "object_steps": sim.rollout_counts, "turn_seed": args.turn_seed,
+            "data": str(args.data), "split": args.split, "given_frames": 3, "seconds": seconds,
+            "warmup_seconds": warmup, "object_steps": sim.rollout_counts, **options_record(sim),
             **provenance_of(saved, ds)}
     write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
     print(f"rolled out {len(pred)} scenes in {seconds:.2f} s"
@@ -117,25 +113,20 @@ def cmd_rollout(args: argparse.Namespace) -> None:
 def cmd_eval(args: argparse.Namespace) -> None:
     from gns.evaluate import evaluate_run, write_json
     from gns.metrics import format_table
-    from datagen.outputs import check_json_output
+    from plumbing.files import check_json_output
 
     _threads(args.threads)
     if args.json:
         check_json_output(args.json, "position_error_pct", "gns eval")
-    results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit,
-                               shape_matching=not args.no_shape_matching, plots_dir=args.plots,
-                               batch_tracks=args.batch, sleep=_sleep(args), symmetrize=args.symmetrize,
-                               at_data_rate=args.at_data_rate, body_frames=args.body_frames, device=args.device,
-                               free_flight=args.free_flight, autocast=args.autocast, compile=args.compile,
-                               ensemble=args.ensemble, turn_seed=args.turn_seed,
-                               free_clearance=_free_clearance(args))
+    results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit, _rollout_options(args),
+                               plots_dir=args.plots, at_data_rate=_at_data_rate(args), device=args.device)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched"
           + (f" (after {results['warmup_seconds']:.1f} s compiling on a first batch, not counted)"
              if results.get("warmup_seconds") is not None else "")
           + (f"; --autocast auto measured and took {'bf16' if results['autocast_used'] == 'bf16' else 'float32'}"
-             if args.autocast == "auto" else ""))
+             if results["autocast"] == "auto" else ""))
     c = results.get("object_steps") or {}
     if c.get("object_steps"):
         print(f"object-steps through the network: {c['network']} of {c['object_steps']} "
@@ -156,79 +147,94 @@ def cmd_eval(args: argparse.Namespace) -> None:
         print(f"plots in {args.plots}")
 
 
-def _sleep(args: argparse.Namespace):
-    from gns.simulator import Sleep
-    return Sleep(args.sleep_fraction) if args.sleep else None
+def _at_data_rate(args: argparse.Namespace) -> bool:
+    """--at-data-rate as given, else as a zoo model's card says it was scored (its [eval] table)."""
+    if args.at_data_rate is not None:
+        return args.at_data_rate
+    from gns import zoo
+    if zoo.is_name(args.run_dir) and args.run_dir in zoo.names():
+        return bool(zoo.card(args.run_dir).data.get("eval", {}).get("at_data_rate", False))
+    return False
 
 
-def _free_clearance(args: argparse.Namespace) -> float | None:
-    from gns.config import ConfigError
-    if args.free_clearance is not None and not args.free_flight:
+# the RolloutOptions fields the rollout flags set (dest = field name); an unset flag is None
+OPTION_FLAGS = ("shape_matching", "symmetrize", "body_frames", "free_flight", "free_clearance", "sleep",
+                "sleep_fraction", "autocast", "compile", "batch", "ensemble")
+
+
+def _rollout_options(args: argparse.Namespace):
+    """The model's default options (a zoo model's scored ones, gns.zoo.default_options) with the
+    flags given on top."""
+    from gns.zoo import default_options
+    given = {k: getattr(args, k) for k in OPTION_FLAGS}
+    if given["ensemble"] is not None:
+        given["ensemble"] = tuple(given["ensemble"])
+    options = default_options(args.run_dir).replace(**given)
+    if args.free_clearance is not None and not options.free_flight:
         raise ConfigError("--free-clearance sets free flight's height: it needs --free-flight")
-    return args.free_clearance
+    return options
 
 
 def _add_rollout_args(p) -> None:
     p.add_argument("--run", required=True, dest="run_dir", metavar="RUN",
-                   help="run folder (its latest.pt), a .pt checkpoint, or a shipped model by name (gns_real_cubes_n256, ...)")
+                   help="a zoo model by name (gns models lists them), a run folder (its latest.pt) or a .pt checkpoint")
     p.add_argument("--data", required=True, metavar="DIR", help="dataset folder to roll out")
     p.add_argument("--split", default="test", help="split to roll out (default test)")
     p.add_argument("--limit", type=int, metavar="N", help="only the first N scenes")
     p.add_argument("--threads", type=int, default=1, metavar="T",
                    help="torch threads (default 1: on a shared machine more wait on each other)")
-    p.add_argument("--batch", type=int, default=1024, metavar="B",
-                   help="object tracks rolled out together (default 1024: the 400 test scenes of MOVi-A in one "
-                        "batch, 10-20%% faster than 256, docs/speed.md session 42; smaller if memory is short)")
     p.add_argument("--device", default="cpu", metavar="DEV", help="cpu, cuda or cuda:N (default cpu)")
-    p.add_argument("--no-shape-matching", action="store_true",
-                   help="feed raw predictions back (the paper's -sm ablation); default projects onto the rigid shape")
-    p.add_argument("--sleep", action="store_true",
+    o = p.add_argument_group("rollout options", "how the model is rolled out (gns.options.RolloutOptions). "
+                             "Unset, each is a zoo model's scored setting (its card's [rollout]), else the default "
+                             "given; the options used are recorded in the output as rollout_options")
+    # dest = the RolloutOptions field (OPTION_FLAGS); every default None: unset, the model's own stays
+    o.add_argument("--batch", type=int, metavar="B",
+                   help="object tracks rolled out together (default 1024: the 400 test scenes of MOVi-A in one "
+                        "batch, 10-20%% faster than 256, docs/speed.md; smaller if memory is short)")
+    o.add_argument("--shape-matching", action=argparse.BooleanOptionalAction,
+                   help="project each prediction onto the rigid shape (default); --no-shape-matching feeds raw "
+                        "predictions back (the paper's -sm ablation)")
+    o.add_argument("--sleep", action=argparse.BooleanOptionalAction,
                    help="hold resting objects still until another object touches them, as physics engines "
                         "deactivate bodies (docs/stability.md); off by default")
-    # the keys of gns.simulator's SYMMETRY_GROUPS and RANDOM_TURNS, written out so that --help
-    # does not import torch
-    p.add_argument("--symmetrize", nargs="?", const="d2", default=False, choices=["d2", "d4", "d1", "c2", "c4", "r1", "r2", "r4"],
+    # the keys of gns.symmetry.SYMMETRY_GROUPS, written out so that --help does not import torch
+    o.add_argument("--symmetrize", nargs="?", const="d2", choices=["none", "d2", "d4", "d1", "c2", "c4"],
                    metavar="GROUP",
                    help="average each step's prediction over the floor's symmetries: d2 (the default when no GROUP "
                         "is given) the mirrors in x and y and the half turn, exactly mirror-equivariant rollouts "
                         "at 4x the network cost; d4 also the quarter turns and diagonal mirrors, at 8x "
-                        "(measured 0.2 points better, docs/accuracy.md session 9); d1 (the mirror in x) and "
-                        "c2 (the half turn) at 2x, c4 (the quarter turns) at 4x; r1 each scene turned about z to "
-                        "a random heading every step (no extra network work, not exactly equivariant), r2 that "
-                        "heading and its half turn averaged, at 2x, r4 four quarter-turn-spaced headings, at 4x "
-                        "(docs/speed.md, session 12). For a model trained with features.canonical_heading "
-                        "(every recent MOVi-A model) d1 measured nearly d2's accuracy at half its cost "
-                        "(docs/speed.md, session 27)")
-    p.add_argument("--turn-seed", type=int, default=0, metavar="N",
-                   help="seed of the random headings of --symmetrize r1/r2/r4 (recorded in the output)")
-    p.add_argument("--body-frames", action="store_true",
+                        "(measured 0.2 points better, docs/accuracy.md); d1 (the mirror in x) and "
+                        "c2 (the half turn) at 2x, c4 (the quarter turns) at 4x; none: one network call (default). "
+                        "For a model trained with features.canonical_heading (every recent MOVi-A model) d1 "
+                        "measured nearly d2's accuracy at half its cost (docs/speed.md)")
+    o.add_argument("--body-frames", action=argparse.BooleanOptionalAction,
                    help="also average over each object's equivalent body frames (a cube's 24 rotations onto "
                         "itself): exactly invariant to which one describes it, at that many times the cost")
-    p.add_argument("--autocast", choices=["none", "bf16", "auto"], default="none",
+    o.add_argument("--autocast", choices=["none", "bf16", "auto"],
                    help="run the network (only) under bfloat16 autocast, accuracy measured unchanged: 1.6-2.8x "
                         "faster rollouts on an AMD EPYC with avx512_bf16, but 1.8x slower matrix products on an "
                         "Intel Xeon with avx512_bf16 and no AMX; auto: bf16 where a matrix product of the network's "
-                        "shape measures faster on this machine (benchmarks/bench_learned_vs_physics.py measures rollouts)")
-    p.add_argument("--compile", action="store_true",
+                        "shape measures faster on this machine (benchmarks/bench_learned_vs_physics.py measures "
+                        "rollouts); default none")
+    o.add_argument("--compile", action=argparse.BooleanOptionalAction,
                    help="run the network through torch.compile with inductor's freezing (the weights as constants, "
                         "laid out once for the CPU's matrix kernels: ~6%% faster rollouts than compiling alone, "
-                        "docs/speed.md session 42); the first steps compile, tens of seconds, on a first batch rolled out before "
+                        "docs/speed.md); the first steps compile, tens of seconds, on a first batch rolled out before "
                         "the timed rollouts and not counted in their wall clock")
-    p.add_argument("--free-flight", action="store_true",
+    o.add_argument("--free-flight", action=argparse.BooleanOptionalAction,
                    help="objects out of reach of the floor and of other objects follow the exact inertial update "
                         "(gravity, constant spin) instead of the network, which then runs only on the others")
-    p.add_argument("--free-clearance", type=float, metavar="D",
+    o.add_argument("--free-clearance", type=float, metavar="D",
                    help="--free-flight: how high above the floor (scene units) every vertex must stay, now and "
                         "after the inertial step, to be in free flight (default: the model's floor clip, beyond "
                         "which its network does not see the floor). Lower takes objects near the floor that "
                         "cannot reach it within the step out of the network too: on MOVi-A 0.5 cut the object-"
-                        "steps in the network from 88%% to ~80%%, accuracy level within 0.1 (docs/speed.md, "
-                        "session 42)")
-    p.add_argument("--ensemble", action="append", default=[], metavar="RUN",
+                        "steps in the network from 88%% to ~80%%, accuracy level within 0.1 (docs/speed.md)")
+    o.add_argument("--ensemble", action="append", metavar="RUN",
                    help="another trained run (same network mesh, floor and time step; e.g. another seed or "
                         "recipe) whose prediction each step averages with the model's; repeat for more members, "
                         "each costs one more network call")
-    p.add_argument("--sleep-fraction", type=float, default=0.1, metavar="F",
+    o.add_argument("--sleep-fraction", type=float, metavar="F",
                    help="--sleep: an object is at rest when no vertex moved F x |g| dt^2 in either input step "
                         "(default 0.1)")
 
@@ -247,16 +253,16 @@ def add_eval_parsers(sub) -> None:
                                    "frames, then scenes), at fixed horizons and by shape, size and material.")
     _add_rollout_args(e)
     e.add_argument("--json", metavar="FILE", help="also write the results as JSON")
-    e.add_argument("--at-data-rate", action="store_true",
+    e.add_argument("--at-data-rate", action=argparse.BooleanOptionalAction,
                    help="a model trained at every k-th frame is scored at every frame of the data (its poses "
-                        "interpolated), the instants any other simulator is scored at; default: at its own frames")
+                        "interpolated), the instants any other simulator is scored at; default: a zoo model as "
+                        "its card's [eval] at_data_rate says, any other at its own frames")
     e.add_argument("--plots", metavar="DIR", help="write trajectory plots, error against time and a GIF here")
     e.set_defaults(run=cmd_eval)
 
 
 def cmd_export(args: argparse.Namespace) -> None:
-    from gns.evaluate import checkpoint_of
-    from gns.checkpoint import export_model
+    from gns.checkpoint import checkpoint_of, export_model
 
     out = export_model(checkpoint_of(args.run_dir), args.out, overwrite=args.overwrite)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB): model, config and training ranges, no optimiser state")
@@ -276,9 +282,9 @@ def add_export_parser(sub) -> None:
 def cmd_plot_curves(args: argparse.Namespace) -> None:
     from pathlib import Path
 
-    from datagen.outputs import check_writable
-    from gns.plots import plot_training_curves
-    from gns.train import METRICS, read_metrics
+    from plumbing.files import check_writable
+    from gns.charts import plot_training_curves
+    from gns.run_folder import METRICS, read_metrics
 
     out = Path(args.out)
     if out.suffix.lower() not in (".png", ".pdf", ".svg"):
@@ -339,6 +345,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _failures() -> tuple:
+    """The error classes of work that ran and failed (exit 1) among the modules the command loaded:
+    importing gns.train only to name its error would load the training for `gns eval`."""
+    names = (("gns.train", "TrainingError"), ("gns.rollout", "DivergedError"))
+    return tuple(getattr(sys.modules[m], n) for m, n in names if m in sys.modules)
+
+
 def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
     # a warning is one line for a user, not a source location and its code (restored on the way
@@ -346,20 +359,15 @@ def main(argv: list[str] | None = None) -> None:
     formatwarning = warnings.formatwarning
     warnings.formatwarning = lambda message, *_args, **_kw: f"warning: {message}\n"
     # Imported after parsing so that `gns --help` and usage errors do not wait for torch.
-    from gns.rollout import DivergedError
     from gns.checkpoint import CheckpointError
     from gns.options import OptionsError
-    from gns.train import TrainingError
     from gns.zoo import ZooError
 
     try:
         args.run(args)
-    except (DataError, ConfigError, CheckpointError, ZooError, OptionsError) as e:
+    except (DataError, ConfigError, CheckpointError, OptionsError, ZooError) as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(EXIT_BAD_INPUT)
-    except (TrainingError, DivergedError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        raise SystemExit(EXIT_FAILED)
     except BrokenPipeError:
         # the reader of our output left (`gns eval ... | head`): end quietly, as other tools do;
         # stdout goes to /dev/null so that Python's flush at exit does not complain again
@@ -367,6 +375,11 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(EXIT_FAILED)
     except OSError as e:  # an output that became unwritable, or a full disk, after the checks
         print(f"error: {e.strerror or e}: {e.filename}", file=sys.stderr)
+        raise SystemExit(EXIT_FAILED)
+    except Exception as e:  # after OSError: a re-raise here reaches no other clause
+        if not isinstance(e, _failures()):
+            raise
+        print(f"error: {e}", file=sys.stderr)
         raise SystemExit(EXIT_FAILED)
     except KeyboardInterrupt as e:  # a training says the step it stopped at and saved
         print(f"error: interrupted{': ' + str(e) if str(e) else ''}", file=sys.stderr)

@@ -13,12 +13,8 @@ from pathlib import Path
 
 
 # one error class, one value parser and one typing rule for datagen's and gns's configs
-from datagen.config import ConfigError, parse_value, typed_value  # noqa: E402
-
-
-INERTIAL_PRIORS = ("linear", "rigid")   # model.inertial_prior (gns.simulator.LearnedSimulator.inertial)
-# train.teacher_symmetrize: the keys of gns.symmetry.SYMMETRY_GROUPS (not imported: it needs torch; tested equal)
-TEACHER_GROUPS = ("d1", "d2", "d4", "c2", "c4")
+from plumbing.errors import ConfigError
+from plumbing.tomlconfig import load_toml, parse_value, typed_value
 
 
 @dataclass
@@ -28,9 +24,6 @@ class ModelConfig:
     hidden_layers: int = 2             # hidden layers of every MLP
     message_passing_steps: int = 10    # L: blocks with unshared weights
     processor_repeats: int = 3         # K: the L blocks are applied K times
-    # what the predicted acceleration is added to: "linear", each vertex straight on (paper), or
-    # "rigid", each object keeping its last frame's velocity and turn (gns.simulator.rigid_extrapolation)
-    inertial_prior: str = "linear"
 
 
 @dataclass
@@ -49,60 +42,20 @@ class FeatureConfig:
     collision_radius: float = 0.15     # collision edges between objects closer than this, scene units
     collision_mode: str = "vertex"     # collision edges vertex-vertex, or vertex-to-surface (gns.contacts)
     frame_stride: int = 1              # train on every k-th recorded frame: the time step is k / frame_rate
-    # > 0 adds v / (|v| + s) per input velocity, s = velocity_direction x |g| dt^2: the direction
-    # of slow motion (friction's sign), resolved at any speed above s; 0 = off (paper)
-    velocity_direction: float = 0.0
-    # > 0: the network sees this many vertices of each mesh (farthest-point subset joined by its
-    # hull's edges, gns.coarse_mesh); shape matching and the scores keep the full mesh. 0 = all
-    mesh_vertices: int = 0
-    # with mesh_vertices > 0: a mesh whose n-vertex hull stops more than this fraction of its size
-    # short of the full mesh in some direction gets the fewest more vertices that do not
-    # (gns.coarse_mesh.vertices_for_gap): round shapes need more of theirs than boxes do. 0 = off
-    mesh_support_gap: float = 0.0
     # a node at each object's centre of mass joined to all its vertices (gns.graph.centre_spokes):
     # every vertex two message-passing steps from every other, whatever the mesh
     centre_node: bool = False
     # with centre_node: false leaves each object's graph only its spokes, no surface edges. The
     # graph stays 2 steps across, with 2n edges instead of 2n + ~6n: a cheaper network call for
-    # the fast end of the speed trade (docs/speed.md, session 19)
+    # the fast end of the speed trade (docs/speed.md)
     surface_edges: bool = True
-    # with surface_edges=false: comma-separated mesh names that keep their surface edges all the same.
-    # Spokes cost flat-faced shapes little and the sphere most (docs/accuracy.md, session 20), so a
-    # scene's graph can keep edges only where its shapes need them. "" = none
-    surface_edge_shapes: str = ""
-    # a node feature: the share of the next step each vertex would spend below the floor if the
-    # object flew on ballistically (0: no impact within the step, 1: already below). The time of
-    # impact is a ratio of height to speed, which the network's ReLU MLPs only approximate
-    impact_time: bool = False
-    # an edge feature: the change of the edge's vector over the last frame, d_t - d_{t-1}: the
-    # object's spin at the resolution of the small relative motion, which the node velocities
-    # (normalised by the spread of flight speeds) carry only as a small difference
-    edge_velocity: bool = False
     # the network sees each scene turned about z so that its mean horizontal velocity points
     # along +x, and its answer is turned back: exactly equivariant to turns about z at one network
     # call (rotation augmentation only teaches it approximately; averaging turned images, as
-    # --symmetrize c2 does, measured 1.6 points better at twice the cost: docs/accuracy.md, session 12;
+    # --symmetrize c2 does, measured 1.6 points better at twice the cost, docs/accuracy.md;
     # fine-tuned with it, 1.25 points and 2.3 degrees better at one call on MOVi-A, no gain on real
-    # cubes: session 13)
+    # cubes)
     canonical_heading: bool = False
-    # with canonical_heading: the turned scene also mirrored in y where that makes the x + z parts
-    # of its angular momentum positive, so that the network sees one of each mirror pair and the
-    # model is exactly equivariant to the floor's mirrors as well at one network call. Measured
-    # (docs/accuracy.md, session 14, two seeds): 0.3 points better at one call, 0.5 worse at four
-    # (the mirror images' second opinion is lost) and worse on validation: not used
-    canonical_mirror: bool = False
-    # a node feature (4): the offset from each node to where its object's full mesh is lowest (the
-    # centroid of the vertices within ~1% of the size of the lowest) and that point's height above
-    # the floor, clipped like the floor feature. A coarse network mesh (mesh_vertices) otherwise
-    # sees the floor only at its own vertices: the 16-vertex sphere's hull stops up to 13% of the
-    # size short of the full one PyBullet collides (docs/speed.md, session 15)
-    floor_support: bool = False
-    # each object described in the one of its mesh's equivalent body frames (gns.graph.mesh_symmetries:
-    # 24 for a cube) in which its pose is closest to the identity, chosen at every step from its
-    # last frame (after the canonical heading's turn, with it): the network sees 1/24 of a cube's
-    # orientations, and its answer cannot hang on which frame labels the object (the rest
-    # features otherwise do; averaging over all frames, --body-frames, costs 24 calls)
-    canonical_body_frame: bool = False
     # > 0: at every step the network sees only each object's k vertices nearest the floor and
     # its centre node (needs centre_node), the rest of the object following the pose that shape
     # matching fits to those: a contact's geometry at the full mesh's resolution, the far side of
@@ -123,7 +76,6 @@ class AugmentConfig:
     track_noise: float = 0.0           # tracking noise (Fig. 7b): std of per-frame centre noise, x its displacement
     mirror: bool = False               # mirror half the windows in x, body frame included (gns.data)
     body_symmetry: bool = False        # describe each object in a random one of its mesh's symmetric body frames
-    spin_noise: float = 0.0            # random-walk noise on each object's orientation, degrees on the last input frame
 
 
 @dataclass
@@ -147,12 +99,6 @@ class TrainConfig:
     # windows, contact ones included; 0 samples all windows alike.
     contact_fraction: float = 0.0
     contact_threshold: float = 0.5
-    # > 0: this share of each batch is drawn in proportion to each window's one-step error (the
-    # shape-matched step, as rollouts keep it), scored by the network being trained every
-    # hard_every steps: a model's contact-step errors are heavy-tailed, and the rare large ones
-    # cost rollouts most (docs/accuracy.md, session 9)
-    hard_fraction: float = 0.0
-    hard_every: int = 2500
     # Steps of pushforward training: the model predicts unroll_steps frames from 3 true ones, each
     # step on its own (shape-matched) earlier predictions, detached; the loss averages all steps.
     unroll_steps: int = 1
@@ -164,11 +110,6 @@ class TrainConfig:
     # of the same seed: a chain can start on a few scenes and go on to more, and a training-set size
     # curve needs one dataset
     scenes: int = 0
-    loss: str = "mse"                  # "mse" (paper), "huber" or "l1" on the normalised acceleration
-    huber_delta: float = 1.0           # huber: quadratic within this many normalised units
-    # > 0: each node's loss weighted by its object's size^-p (normalised to mean 1 over the
-    # batch): p = 2 makes the loss of a small object count as its error in % of its size does
-    size_weight: float = 0.0
     # > 0 adds this weight times a loss on what a rollout keeps of a prediction: the shape-matched
     # next vertices (the rest mesh fitted to the predicted ones, differentiably) against the
     # shape-matched true ones, per node and axis in the target normaliser's units. The per-node
@@ -179,15 +120,6 @@ class TrainConfig:
     # Start a new run from another run's weights and normalisers (a run folder or .pt): fine-tuning,
     # e.g. on real tosses after training on an engine's. Same architecture, features, frame rate.
     init_from: str = ""
-    # Train against a teacher: trained runs (folders or .pt files, "A+B" an ensemble averaged every
-    # step) reading the same network vertices; each step's target is teacher_weight x the teacher's
-    # shape-matched next frame + (1 - teacher_weight) x the true one (gns.distill)
-    teacher: str = ""
-    teacher_weight: float = 1.0
-    # The teacher's every prediction averaged over the floor's mirror images, as `gns eval
-    # --symmetrize` rolls out ("d1", "d2", ...; "" none): the most accurate answers are the
-    # symmetrized ensemble's, and a student called once cannot average images itself
-    teacher_symmetrize: str = ""
     # In (0, 1): the run saves an exponential moving average of its weights with this decay (about
     # the last 1 / (1 - decay) steps) as the model to use, and trains on from its own (gns.weight_average)
     ema_decay: float = 0.0
@@ -208,6 +140,39 @@ class Config:
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     valid: ValidConfig = field(default_factory=ValidConfig)
+
+
+# Keys of rigid-gns 0.1 that lost to others (measured no better, set by no shipped model), with
+# the value every checkpoint trained without them holds: such a checkpoint loads as if the key had
+# never been. One that set a key to anything else was trained with code that no longer exists.
+REMOVED_IN = "rigid-gns 0.2"
+REMOVED = {
+    "model.inertial_prior": "linear",
+    "features.velocity_direction": 0.0, "features.mesh_vertices": 0, "features.mesh_support_gap": 0.0,
+    "features.surface_edge_shapes": "", "features.impact_time": False, "features.edge_velocity": False,
+    "features.canonical_mirror": False, "features.floor_support": False, "features.canonical_body_frame": False,
+    "augment.spin_noise": 0.0,
+    "train.hard_fraction": 0.0, "train.hard_every": 2500, "train.loss": "mse", "train.huber_delta": 1.0,
+    "train.size_weight": 0.0, "train.teacher": "", "train.teacher_weight": 1.0, "train.teacher_symmetrize": "",
+}
+
+
+def without_removed(saved: dict, where: str = "this checkpoint") -> dict:
+    """A checkpoint's config dict without the REMOVED keys it holds at their old values;
+    ConfigError (one line) if it set one to anything else."""
+    out = {}
+    for section, values in saved.items():
+        if not isinstance(values, dict):
+            out[section] = values
+            continue
+        out[section] = {}
+        for key, value in values.items():
+            name = f"{section}.{key}"
+            if name not in REMOVED:
+                out[section][key] = value
+            elif value != REMOVED[name]:
+                raise ConfigError(f"{where} uses {name}={value!r}, removed in {REMOVED_IN}")
+    return out
 
 
 # Changing any key in these sections changes the network or its inputs, so a checkpoint trained
@@ -262,27 +227,18 @@ def parse_override(text: str) -> dict:
     return {section: {name: value}}
 
 
-from datagen.config import load_toml  # noqa: E402  files or preset names, one reader for both tools
-
-
 def build_config(base: dict | None = None, path: str | Path | None = None,
                  overrides: list[str] = ()) -> Config:
     """Defaults, then `base` (a saved config dict), then the TOML file, then each override."""
     cfg = Config()
     if base is not None:
-        apply_dict(cfg, base, "in the checkpoint")
+        apply_dict(cfg, without_removed(base), "in the checkpoint")
     if path is not None:
         apply_dict(cfg, load_toml(path), f"in {path}")
     for text in overrides:
         apply_dict(cfg, parse_override(text), "in --set")
     validate(cfg)
     return cfg
-
-
-def mesh_names(text: str) -> tuple[str, ...]:
-    """The mesh names of a comma-separated setting (features.surface_edge_shapes), sorted; "" or
-    ", ," name none."""
-    return tuple(sorted({n.strip() for n in str(text).split(",")} - {""}))
 
 
 def validate(cfg: Config) -> None:
@@ -296,12 +252,6 @@ def validate(cfg: Config) -> None:
         (cfg.features.collision_radius > 0, "features.collision_radius must be > 0"),
         (cfg.features.collision_mode in ("vertex", "surface"), "features.collision_mode must be 'vertex' or 'surface'"),
         (cfg.features.frame_stride >= 1, "features.frame_stride must be >= 1"),
-        (cfg.features.velocity_direction >= 0, "features.velocity_direction must be >= 0"),
-        (cfg.features.mesh_vertices == 0 or cfg.features.mesh_vertices >= 4,
-         "features.mesh_vertices must be 0 (every vertex) or >= 4"),
-        (0 <= cfg.features.mesh_support_gap < 1, "features.mesh_support_gap must be in [0, 1) (a fraction of the size)"),
-        (cfg.features.mesh_support_gap == 0 or cfg.features.mesh_vertices > 0,
-         "features.mesh_support_gap needs features.mesh_vertices > 0 (the fewest vertices a mesh gets)"),
         (cfg.features.lowest_vertices == 0 or cfg.features.lowest_vertices >= 3,
          "features.lowest_vertices must be 0 (every vertex) or >= 3 (with the centre, a pose)"),
         (cfg.features.lowest_vertices == 0 or cfg.features.centre_node,
@@ -311,13 +261,8 @@ def validate(cfg: Config) -> None:
          "features.highest_vertices needs features.lowest_vertices > 0"),
         (cfg.features.surface_edges or cfg.features.centre_node,
          "features.surface_edges=false needs features.centre_node=true (the spokes are then the only edges)"),
-        (not mesh_names(cfg.features.surface_edge_shapes) or not cfg.features.surface_edges,
-         "features.surface_edge_shapes needs features.surface_edges=false (every mesh keeps its edges otherwise)"),
-        (cfg.features.canonical_heading or not cfg.features.canonical_mirror,
-         "features.canonical_mirror needs features.canonical_heading=true (the mirror is chosen in the turned frame)"),
         (cfg.augment.noise_std >= 0, "augment.noise_std must be >= 0"),
         (cfg.augment.vertex_noise >= 0, "augment.vertex_noise must be >= 0"),
-        (cfg.augment.spin_noise >= 0, "augment.spin_noise must be >= 0"),
         (cfg.augment.track_noise >= 0, "augment.track_noise must be >= 0"),
         (cfg.train.batch_size >= 1, "train.batch_size must be >= 1"),
         (cfg.train.autocast in ("none", "bf16", "auto"), "train.autocast must be 'none', 'bf16' or 'auto'"),
@@ -325,21 +270,10 @@ def validate(cfg: Config) -> None:
         (cfg.train.lr_init > 0 and cfg.train.lr_final >= 0, "learning rates must be positive"),
         (cfg.train.lr_decay_steps > 0, "train.lr_decay_steps must be > 0"),
         (0 <= cfg.train.contact_fraction <= 1, "train.contact_fraction must be in [0, 1]"),
-        (0 <= cfg.train.hard_fraction <= 1, "train.hard_fraction must be in [0, 1]"),
-        (cfg.train.hard_every >= 1, "train.hard_every must be >= 1"),
         (cfg.train.contact_threshold > 0, "train.contact_threshold must be > 0"),
         (cfg.train.unroll_steps >= 1, "train.unroll_steps must be >= 1"),
-        (cfg.train.loss in ("mse", "huber", "l1"), "train.loss must be 'mse', 'huber' or 'l1'"),
-        (cfg.model.inertial_prior in INERTIAL_PRIORS, "model.inertial_prior must be 'linear' or 'rigid'"),
-        (cfg.train.huber_delta > 0, "train.huber_delta must be > 0"),
         (cfg.train.scenes >= 0, "train.scenes must be >= 0 (0: all train scenes)"),
-        (cfg.train.size_weight >= 0, "train.size_weight must be >= 0"),
         (cfg.train.rigid_loss >= 0, "train.rigid_loss must be >= 0"),
-        (0 <= cfg.train.teacher_weight <= 1, "train.teacher_weight must be in [0, 1]"),
-        (cfg.train.teacher_symmetrize in ("", *TEACHER_GROUPS),
-         f"train.teacher_symmetrize must be '' or one of {', '.join(TEACHER_GROUPS)}"),
-        (not cfg.train.teacher_symmetrize or cfg.train.teacher,
-         "train.teacher_symmetrize needs train.teacher"),
         (0 <= cfg.train.ema_decay < 1, "train.ema_decay must be in [0, 1) (0: off)"),
         (cfg.train.log_every >= 1 and cfg.train.checkpoint_every >= 1,
          "train.log_every and train.checkpoint_every must be >= 1"),

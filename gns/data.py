@@ -24,14 +24,6 @@ Augmentation (training only):
   noise of std noise_std. The target position is shifted by the last frame's noise, so the
   target acceleration x_{t+1} - 2 x_t + x_{t-1} asks the model to undo the noise of the last
   input velocity.
-- random-walk spin noise (`augment.spin_noise`, degrees): the same random walk on each object's
-  orientation instead of on each vertex: every input frame after the first turns the object about
-  its centre by a further small random rotation (rotation-vector components of std spin_noise /
-  sqrt(2) degrees a frame, so the last input frame is off by spin_noise a component), and the
-  target and later frames turn with the last input frame's noise. Why: a rollout's own errors
-  are rigid (shape matching removes the rest), and the costliest is a wrong spin (a tenth of a
-  degree a frame costs MOVi-A ~8 degrees, docs/accuracy.md session 9), which per-vertex noise,
-  independent from vertex to vertex, barely contains.
 Noise of the paper's robustness study (Fig. 7), off by default. It makes the training data
 themselves noisy, target included, and nothing corrects for it:
 - vertex_noise (imperfect shape): one Gaussian offset per vertex, in the body frame, std =
@@ -47,26 +39,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 
-from datagen.shards import Dataset, DataError, Scene
+from datagen.shards import Dataset, Scene
+from plumbing.errors import DataError
 from gns.features import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
 from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_sizes, mapped_symmetries, ragged_arange
 from gns.spec import Floor, ModelSpec, SpecError
-
-
-def spin_walk(rot: torch.Tensor, spin_noise: float, rng: np.random.Generator) -> torch.Tensor:
-    """Orientations (B, frames, 3, 3) of windows whose first HISTORY frames are the inputs, each
-    input frame after the first turned about the object's centre by a random walk of small
-    rotations (std spin_noise / sqrt(HISTORY - 1) degrees a component a frame), the later frames
-    by the last input frame's (the module docstring's spin noise)."""
-    step = np.radians(spin_noise) / np.sqrt(HISTORY - 1)
-    walk = np.zeros((rot.shape[0], rot.shape[1], 3))
-    walk[:, 1:HISTORY] = np.cumsum(rng.normal(0.0, step, (rot.shape[0], HISTORY - 1, 3)), axis=1)
-    walk[:, HISTORY:] = walk[:, HISTORY - 1:HISTORY]
-    turns = Rotation.from_rotvec(walk.reshape(-1, 3)).as_matrix().reshape(*walk.shape, 3)
-    return torch.from_numpy(turns) @ rot
 
 
 def rotation_z(theta: torch.Tensor) -> torch.Tensor:
@@ -92,13 +71,10 @@ class Batch:
     graph: GraphBatch
     # (N, U - 1, 3) float64 positions at t+2 .. t+U for unrolled training (noise-corrected as target)
     future: torch.Tensor | None = None
-    # (G,) int64 the ObjectTracks track of each graph: what a teacher reading other vertices packs
-    # its own graphs from (gns.distill)
-    tracks: torch.Tensor | None = None
 
     def to(self, device) -> "Batch":
         future = None if self.future is None else self.future.to(device)
-        return Batch(self.history.to(device), self.target.to(device), self.graph.to(device), future, self.tracks)
+        return Batch(self.history.to(device), self.target.to(device), self.graph.to(device), future)
 
     def windows(self, lo: int, hi: int) -> "Batch":
         """The windows [lo, hi) of this batch (its graphs of scenes lo .. hi-1), renumbered: a
@@ -114,11 +90,9 @@ class Batch:
                       g.rest[keep], g.material[keep], new_graph[g.node_graph[keep]], int(keep_graph.sum()),
                       g.graph_scene[keep_graph] - lo, None, faces,
                       symmetries=None if g.symmetries is None else g.symmetries[keep_graph],
-                      num_symmetries=None if g.num_symmetries is None else g.num_symmetries[keep_graph],
-                      full_rest=None if g.full_rest is None else g.full_rest[keep_graph])
+                      num_symmetries=None if g.num_symmetries is None else g.num_symmetries[keep_graph])
         future = None if self.future is None else self.future[keep]
-        tracks = None if self.tracks is None else self.tracks[keep_graph]
-        return Batch(self.history[keep], self.target[keep], graph, future, tracks)
+        return Batch(self.history[keep], self.target[keep], graph, future)
 
     @property
     def targets(self) -> torch.Tensor:
@@ -180,7 +154,6 @@ class ObjectTracks:
         if self.num_windows == 0:
             raise DataError(f"{name}: no scene has the {self.window} frames a training window needs")
         self.contact = None  # (num_windows,) bool once mark_contacts ran
-        self.hard_cdf = None  # (num_windows,) cumulative window weights once set_hardness ran
 
     @property
     def num_tracks(self) -> int:
@@ -215,7 +188,7 @@ class ObjectTracks:
 
     def batch(self, windows: torch.Tensor, rng: np.random.Generator | None = None, rotate: bool = False,
               noise_std: float = 0.0, vertex_noise: float = 0.0, track_noise: float = 0.0,
-              mirror: bool = False, body_symmetry: bool = False, spin_noise: float = 0.0) -> Batch:
+              mirror: bool = False, body_symmetry: bool = False) -> Batch:
         """The graphs of the given windows (B,), packed; augmentation and noise need `rng`.
 
         Every object of a window's scene is in the batch (one graph each, grouped by window)."""
@@ -225,8 +198,6 @@ class ObjectTracks:
             step = (pos[:, 1:] - pos[:, :-1]).norm(dim=-1)                  # (B, window - 1)
             displacement = torch.cat([step[:, :1], step], dim=1)            # (B, window)
             pos = pos + torch.from_numpy(rng.normal(0.0, 1.0, pos.shape)) * (track_noise * displacement)[..., None]
-        if spin_noise > 0:
-            rot = spin_walk(rot, spin_noise, rng)
         if rotate:
             rz = rotation_z(torch.from_numpy(rng.uniform(-np.pi, np.pi, len(windows))))[window_of]
             rot = rz[:, None] @ rot
@@ -234,8 +205,7 @@ class ObjectTracks:
         graph = self.graph(tracks, window_of)
         if body_symmetry:
             sym = self.library.random_symmetries(self.shape_ids[tracks], rng)      # (B, 3, 3)
-            graph = replace(graph, rest=torch.einsum("nij,nj->ni", sym[graph.node_graph], graph.rest),
-                            full_rest=None if graph.full_rest is None else graph.full_rest @ sym.transpose(1, 2))
+            graph = replace(graph, rest=torch.einsum("nij,nj->ni", sym[graph.node_graph], graph.rest))
             rot = rot @ sym.transpose(1, 2)[:, None]
         if mirror:
             flip = torch.from_numpy(rng.random(len(windows)) < 0.5)[window_of]     # (B,) per window
@@ -244,7 +214,6 @@ class ObjectTracks:
             pos = pos * m[:, None]
             rot = rot * m[:, None, :, None] * m[:, None, None, :]
             graph = replace(graph, rest=graph.rest * m[graph.node_graph],
-                            full_rest=None if graph.full_rest is None else graph.full_rest * m[:, None],
                             symmetries=mapped_symmetries(graph, torch.diag_embed(m)))
         x = vertices_from_poses(graph, pos, rot)                  # (N, window, 3)
         if vertex_noise > 0:
@@ -260,7 +229,7 @@ class ObjectTracks:
             history = history + position_noise
             target = target + position_noise[:, -1]
             future = future + position_noise[:, -1:]
-        return Batch(history, target, graph, future if self.unroll > 1 else None, tracks)
+        return Batch(history, target, graph, future if self.unroll > 1 else None)
 
     def mark_contacts(self, gravity_step: torch.Tensor, threshold: float) -> float:
         """Flag the windows in which some object is in contact; returns the flagged share.
@@ -282,27 +251,11 @@ class ObjectTracks:
         self.contact = torch.zeros(self.num_windows, dtype=torch.float64).index_add_(0, window_of, per_track.double()) > 0
         return float(self.contact.double().mean())
 
-    def set_hardness(self, error: torch.Tensor) -> None:
-        """Weights (num_windows,) >= 0 for `sample`'s hard share: each window is drawn in
-        proportion to its weight (train.hard_fraction: the model's own one-step error)."""
-        w = torch.as_tensor(error, dtype=torch.float64).reshape(-1)
-        if w.shape[0] != self.num_windows or not torch.isfinite(w).all() or (w < 0).any() or w.sum() <= 0:
-            raise ValueError(f"window weights must be {self.num_windows} finite values >= 0, not all 0")
-        self.hard_cdf = torch.cumsum(w, 0) / w.sum()
-
     def sample(self, rng: np.random.Generator, batch_size: int, rotate: bool, noise_std: float,
                vertex_noise: float = 0.0, track_noise: float = 0.0, contact_fraction: float = 0.0,
-               mirror: bool = False, body_symmetry: bool = False, hard_fraction: float = 0.0,
-               spin_noise: float = 0.0) -> Batch:
-        """A random batch; with hard_fraction > 0 (after set_hardness) that share of its windows,
-        rounded at random, is drawn in proportion to the windows' weights; with contact_fraction > 0
-        (after mark_contacts) that share of the others from the windows in contact, the rest from
-        all windows."""
-        hard = None
-        if hard_fraction > 0 and self.hard_cdf is not None:
-            n_hard = int(rng.binomial(batch_size, hard_fraction))
-            hard = torch.searchsorted(self.hard_cdf, torch.from_numpy(rng.random(n_hard))).clamp_max(self.num_windows - 1)
-            batch_size -= n_hard
+               mirror: bool = False, body_symmetry: bool = False) -> Batch:
+        """A random batch; with contact_fraction > 0 (after mark_contacts) that share of its windows,
+        rounded at random, from the windows in contact, the rest from all windows."""
         if contact_fraction > 0 and self.contact is not None and self.contact.any():
             contact = torch.nonzero(self.contact)[:, 0]
             n_contact = int(rng.binomial(batch_size, contact_fraction))
@@ -310,10 +263,7 @@ class ObjectTracks:
                                  torch.from_numpy(rng.integers(0, self.num_windows, batch_size - n_contact))])
         else:
             windows = torch.from_numpy(rng.integers(0, self.num_windows, batch_size))
-        if hard is not None:
-            windows = torch.cat([hard, windows])
-        return self.batch(windows, rng, rotate, noise_std, vertex_noise, track_noise, mirror, body_symmetry,
-                          spin_noise)
+        return self.batch(windows, rng, rotate, noise_std, vertex_noise, track_noise, mirror, body_symmetry)
 
     def track_vertices(self, tracks: torch.Tensor, frames: int) -> tuple[GraphBatch, torch.Tensor, torch.Tensor]:
         """For rollouts: graph, vertices (N, frames, 3) and centres (B, frames, 3) from frame 0."""

@@ -5,26 +5,24 @@ import dataclasses
 import json
 import sys
 import time
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from datagen.atomic import atomic_file
-from datagen.outputs import check_writable
-from datagen.shards import Dataset, DataError
+from plumbing.files import atomic_file, check_writable
+from datagen.shards import Dataset
+from plumbing.errors import DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, split_diverged, timed_rollout, upsample_scene
-from gns.simulator import RANDOM_TURNS
-from gns.symmetry import symmetry_group
 from gns.data import feature_spec
+from gns.precision import parse_device
 from gns.features import HISTORY
+from gns.options import RolloutOptions
 from gns.ranges import outside_training
-from gns.config import ConfigError
+from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-from gns.checkpoint import CheckpointError, checkpoint_of, load_model, read_checkpoint
-from gns.train import parse_device
+from gns.checkpoint import checkpoint_of, load_simulator
+from gns.zoo import default_options
 
 
 def _worst_first(per_scene: list[float]) -> list[int]:
@@ -38,65 +36,42 @@ def write_json(path: str | Path, obj) -> None:
         tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=float) + "\n")
 
 
-def load_simulator(run: str | Path, device: str | torch.device = "cpu", symmetrize: bool = False,
-                   body_frames: bool = False, autocast: str = "none", compile: bool = False,
-                   ensemble: Sequence[str | Path] = (), turn_seed: int = 0,
-                   free_clearance: float | None = None) -> tuple:
-    """The model of `run` (folder, checkpoint or shipped name) set up for rollouts, with the runs
-    of `ensemble` as members whose predictions each step averages (LearnedSimulator.set_ensemble);
-    `free_clearance`: free flight's height above the floor (LearnedSimulator.free_flight_clip).
-    Returns (simulator, its saved checkpoint)."""
-    if free_clearance is not None and not free_clearance >= 0:
-        raise ConfigError(f"free flight clearance must be a height >= 0 above the floor, not {free_clearance}")
-    if symmetrize not in RANDOM_TURNS:
-        try:
-            symmetry_group(symmetrize)   # a bad group is one line now, not an error at the first step
-        except ValueError as e:
-            raise ConfigError(f"symmetrize: {e}") from None
-    checkpoints = [read_checkpoint(checkpoint_of(r)) for r in (run, *ensemble)]
-    sim, *members = [load_model(saved, device)[0] for saved in checkpoints]
-    for model in (sim, *members):
-        model.set_speed(autocast, compile, freeze=compile)   # rollouts only: the weights stay as loaded
-    sim.symmetrize = symmetrize   # members follow the model's symmetrization (set_ensemble)
-    sim.body_frames = body_frames
-    sim.turn_seed = turn_seed
-    sim.free_clearance = free_clearance
-    if members:
-        try:
-            sim.set_ensemble(members)
-        except ValueError as e:
-            raise CheckpointError(f"--ensemble: {e}") from None
-    return sim, checkpoints[0]
+def options_record(sim: LearnedSimulator) -> dict:
+    """What a rollout records of how it was made: its options whole (`rollout_options`), and the
+    same flattened as earlier result files hold them, with what `auto` and the clearance resolved to."""
+    o = sim.options
+    return {"rollout_options": o.to_dict(), "shape_matching": o.shape_matching, "symmetrize": o.symmetry_group,
+            "body_frames": o.body_frames, "free_flight": o.free_flight,
+            "free_clearance": sim.free_flight_clip if o.free_flight else None,
+            "sleep": None if sim.sleep is None else dataclasses.asdict(sim.sleep), "autocast": o.autocast,
+            "autocast_used": sim.autocast_used, "compile": o.compile, "ensemble": list(o.ensemble)}
 
 
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
-                 shape_matching: bool = True, plots_dir: str | Path | None = None, progress: bool = True,
-                 batch_tracks: int = 1024, sleep=None, symmetrize: bool = False,
-                 at_data_rate: bool = False, body_frames: bool = False,
-                 device: str = "cpu", free_flight: bool = False, autocast: str = "none",
-                 compile: bool = False, ensemble: Sequence[str | Path] = (),
-                 turn_seed: int = 0, free_clearance: float | None = None) -> tuple[dict, list, list, Dataset]:
-    """Roll out every scene of a split from its first 3 frames and score it (with `ensemble`, the
-    predictions averaged with those runs' at every step: load_simulator).
+                 options: RolloutOptions | None = None, plots_dir: str | Path | None = None, progress: bool = True,
+                 at_data_rate: bool = False, device: str = "cpu", **changes) -> tuple[dict, list, list, Dataset]:
+    """Roll out every scene of a split from its first 3 frames and score it, rolled out with
+    `options` (default: gns.zoo.default_options(run), a zoo model's scored ones), with `changes`
+    (RolloutOptions fields, e.g. symmetrize="d1") on top.
 
     A model trained at every k-th frame rolls out at its own rate from frames 0, k, 2k; it is
     scored at those frames, or with `at_data_rate` at every frame of the data (its poses
     interpolated, gns.rollout.upsample_scene), i.e. at the same instants as any other simulator.
 
     Returns (results, predicted scenes, true scenes, dataset). Results hold the metrics of
-    gns.metrics.evaluate_scenes plus where they came from and what the rollouts cost.
+    gns.metrics.evaluate_scenes plus where they came from, how they were rolled out
+    (options_record) and what the rollouts cost.
     """
+    options = (default_options(run) if options is None else options).replace(**changes)
     device = parse_device(device, "--device")
     ckpt = checkpoint_of(run)
-    sim, saved = load_simulator(ckpt, device, symmetrize, body_frames, autocast, compile, ensemble, turn_seed,
-                                free_clearance)
+    sim, saved = load_simulator(ckpt, device, options)
     if plots_dir is not None:
         check_writable(plots_dir, "plots folder")
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(data, split, limit, spec.frame_rate)
     warnings = check_ranges(spec, ds, scenes)
-    pred, seconds, warmup = timed_rollout(sim, scenes, ds.meshes, ds.frame_rate, batch_tracks, compile, progress,
-                                          shape_matching=shape_matching, sleep=sleep, free_flight=free_flight)
+    pred, seconds, warmup = timed_rollout(sim, scenes, ds.meshes, ds.frame_rate, progress)
     counts = dict(sim.rollout_counts)
     kept = [i for i, p in enumerate(pred) if "diverged_at_frame" not in p.attrs]
     pred, scenes, diverged = split_diverged(pred, scenes)
@@ -109,16 +84,10 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
         pairs = [upsample_scene(p, ds.stride, truth[i], full.frame_rate) for p, i in zip(pred, kept, strict=True)]
         pred, scenes, ds = [p for p, _ in pairs], [t for _, t in pairs], full
     results = score_predictions(pred, scenes, ds, seconds, plots_dir)
-    results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, shape_matching=shape_matching,
-                   outside_training=warnings, sleep=None if sleep is None else dataclasses.asdict(sleep),
-                   diverged_scenes=diverged, num_diverged=len(diverged), symmetrize=symmetrize,
-                   body_frames=body_frames, at_data_rate=at_data_rate, model_stride=model_stride,
-                   free_flight=free_flight, free_clearance=sim.free_flight_clip if free_flight else None,
-                   object_steps=counts, autocast=autocast, warmup_seconds=warmup,
-                   autocast_used=sim.autocast_used, compile=compile,
-                   ensemble=[str(r) for r in ensemble], device=str(device), **provenance_of(saved, ds))
-    if symmetrize in RANDOM_TURNS:
-        results["turn_seed"] = turn_seed
+    results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, outside_training=warnings,
+                   diverged_scenes=diverged, num_diverged=len(diverged), at_data_rate=at_data_rate,
+                   model_stride=model_stride, object_steps=counts, warmup_seconds=warmup, device=str(device),
+                   **options_record(sim), **provenance_of(saved, ds))
     return results, pred, scenes, ds
 
 
@@ -133,7 +102,6 @@ def provenance_of(saved: dict, ds: Dataset) -> dict:
 
 
 def _warn(line: str) -> None:
-    import sys
     print(line, file=sys.stderr)
 
 

@@ -1,9 +1,7 @@
 """What a trained checkpoint may carry on as: the start of a fine-tuning run (train.init_from),
 or a resumed run, on data whose feature spec may differ in what fine-tuning allows.
 
-A fine-tune may change FINE_TUNE_FREE (the weights keep their shapes), add ADDABLE_GROUPS
-after the trained feature groups (their encoder columns start at zero, so the start computes
-exactly what the checkpoint did) and untie a repeated processor (model.message_passing_steps a
+A fine-tune may change FINE_TUNE_FREE (the weights keep their shapes) and untie a repeated processor (model.message_passing_steps a
 multiple of the checkpoint's: block i starts as the trained block i mod L, so with L x K kept
 the start computes exactly what the checkpoint did); everything else of the architecture must
 match.
@@ -12,18 +10,10 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import torch
-
 from gns.checkpoint import CheckpointError, checkpoint_of, read_checkpoint
-from gns.config import ARCHITECTURE_SECTIONS, Config, ModelConfig, config_differences
+from gns.config import ARCHITECTURE_SECTIONS, Config, ConfigError, ModelConfig, config_differences, without_removed
 from gns.simulator import LearnedSimulator
 from gns.spec import Floor, ModelSpec
-
-
-def with_layout(spec: ModelSpec, sim: LearnedSimulator) -> ModelSpec:
-    return replace(spec, node_features=tuple(n for n, _ in sim.layout.node_groups),
-                   edge_features=tuple(n for n, _ in sim.layout.edge_groups),
-                   collision_features=tuple(n for n, _ in sim.layout.collision_groups))
 
 
 def merge_ranges(old: ModelSpec, new: ModelSpec) -> ModelSpec:
@@ -44,6 +34,10 @@ def init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec) 
     accumulation budget, so they stay as the weights were trained with."""
     path = checkpoint_of(source)   # a run folder, a .pt file or a shipped model's name
     init = read_checkpoint(path)
+    try:
+        without_removed(init["config"], f"{path} (train.init_from)")
+    except ConfigError as e:
+        raise CheckpointError(str(e)) from None
     trained = ModelSpec.from_dict(init["spec"])
     problems = [incompatibility(init["config"], trained, cfg, spec, fine_tune=True)]
     for key in ("frame_rate", "gravity"):
@@ -52,26 +46,8 @@ def init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec) 
     problem = "; ".join(p for p in problems if p)
     if problem:
         raise CheckpointError(f"cannot start from {path} (train.init_from): {problem}")
-    sim.load_state_dict(_widened(init["model"], sim, trained))
+    sim.load_state_dict(_untied(init["model"], sim))
     return merge_ranges(trained, spec)
-
-
-def _widened(state: dict, sim: LearnedSimulator, trained: ModelSpec) -> dict:
-    """A checkpoint's weights for `sim`, which reads feature groups added after the trained ones
-    (ADDABLE_GROUPS): the node or edge encoder's first layer gets a zero column per new input
-    and the new groups fresh normalisers, so the start computes exactly what the checkpoint did
-    and training learns what the new inputs add."""
-    out = _untied(state, sim)
-    for kind, groups, encoder in (("node_features", sim.layout.node_groups, "node_encoder"),
-                                  ("edge_features", sim.layout.edge_groups, "edge_encoder")):
-        extra = sum(w for n, w in groups if n not in (getattr(trained, kind) or ()))
-        if extra:
-            key = f"network.{encoder}.0.weight"
-            out[key] = torch.cat([state[key], state[key].new_zeros(state[key].shape[0], extra)], dim=1)
-    for key, value in sim.state_dict().items():
-        if key not in out:   # the new groups' normalisers, which accumulate as training starts
-            out[key] = value
-    return out
 
 
 def _untied(state: dict, sim: LearnedSimulator) -> dict:
@@ -91,15 +67,9 @@ def _untied(state: dict, sim: LearnedSimulator) -> dict:
     return out
 
 
-# keys a fine-tuning run (train.init_from) may change: the weights keep their shapes (the
-# inertial prior changes what the output means, which fine-tuning then learns)
-FINE_TUNE_FREE = ("features.mesh_vertices", "features.mesh_support_gap", "features.centre_node",
-                  "model.processor_repeats", "features.impact_time", "features.edge_velocity", "model.inertial_prior",
-                  "features.canonical_heading", "features.canonical_mirror", "features.floor_support",
-                  "features.canonical_body_frame", "features.surface_edges", "features.surface_edge_shapes",
-                  "features.lowest_vertices", "features.highest_vertices")
-# feature groups a fine-tuning run may add after the trained ones (_widened), per kind
-ADDABLE_GROUPS = {"node_features": ("impact", "support"), "edge_features": ("relative_velocity",)}
+# keys a fine-tuning run (train.init_from) may change: the weights keep their shapes
+FINE_TUNE_FREE = ("features.centre_node", "model.processor_repeats", "features.canonical_heading",
+                  "features.surface_edges", "features.lowest_vertices", "features.highest_vertices")
 
 
 def incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec,
@@ -115,8 +85,6 @@ def incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSp
                          f"now: a fine-tune may only untie its blocks into a multiple of them")
     for key in ("node_features", "edge_features", "collision_features"):
         theirs, mine = tuple(getattr(trained, key) or ()), tuple(getattr(spec, key))
-        if fine_tune and mine[:len(theirs)] == theirs and set(mine[len(theirs):]) <= set(ADDABLE_GROUPS.get(key, ())):
-            continue
         if theirs != mine:
             diffs.append(f"{key} are {list(getattr(trained, key) or ())} in the checkpoint, "
                          f"{list(getattr(spec, key))} with this data")

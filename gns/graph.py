@@ -6,7 +6,7 @@ mesh edge is two graph edges. A batch is one big graph whose nodes are the verti
 objects, numbered graph after graph (node offset per graph); `node_graph[i]` names the graph of
 node i. Further edge sets are extra `EdgeSet` fields: `collision_edges` join vertices of
 different objects of the same scene (`graph_scene[g]` names the scene of graph g within the
-batch) that are closer than a radius; see `collision_edges`.
+batch) that are closer than a radius; see gns.contacts.collision_edges.
 """
 from __future__ import annotations
 
@@ -14,9 +14,6 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import torch
-
-from gns.coarse_mesh import network_meshes
-from gns.config import mesh_names
 
 
 def mesh_edges(faces: np.ndarray) -> np.ndarray:
@@ -29,7 +26,7 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     pairs = np.concatenate([pairs, pairs[:, ::-1]])
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]
     # one int64 key a pair, ordered as the pairs are: np.unique on rows (axis=0) is ~20x slower,
-    # and ensembles and teachers rebuild a whole batch's edges every step (with_surface_edges)
+    # and ensembles rebuild a whole batch's edges every step (with_surface_edges)
     base = int(pairs.max(initial=-1)) + 1
     keys = np.unique(pairs[:, 0] * base + pairs[:, 1])
     return np.stack([keys // base, keys % base], axis=1)
@@ -78,10 +75,6 @@ class GraphBatch:
     # body-frame symmetries of each graph's rest shape (G, K, 3, 3), padded; with their counts (G,)
     symmetries: torch.Tensor | None = None
     num_symmetries: torch.Tensor | None = None
-    # (G, V, 3) float64 each graph's full rest mesh, scaled, in its (possibly mapped) body frame,
-    # padded with NaN rows: what features.floor_support measures the floor against when the
-    # network sees a coarse mesh. Every map of `rest` (mirrors, body-frame symmetries) maps it too
-    full_rest: torch.Tensor | None = None
 
     @property
     def num_nodes(self) -> int:
@@ -169,20 +162,6 @@ def with_symmetries(graph: "GraphBatch") -> "GraphBatch":
     return replace(graph, symmetries=padded.to(graph.rest), num_symmetries=counts.to(graph.rest.device))
 
 
-def nan_padded(arrays: list[np.ndarray]) -> np.ndarray:
-    """Point sets (V_i, 3) -> (len, max V, 3), padded with NaN rows (GraphBatch.full_rest)."""
-    out = np.full((len(arrays), max(len(a) for a in arrays), 3), np.nan)
-    for i, a in enumerate(arrays):
-        out[i, :len(a)] = a
-    return out
-
-
-def cat_padded(parts: list[torch.Tensor]) -> torch.Tensor:
-    """(G_i, V_i, 3) tensors -> (sum G_i, max V_i, 3), NaN-padded."""
-    width = max(p.shape[1] for p in parts)
-    return torch.cat([torch.nn.functional.pad(p, (0, 0, 0, width - p.shape[1]), value=float("nan")) for p in parts])
-
-
 def ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """For counts (B,): the owner (sum counts,) of each element and its index within its owner."""
     owner = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
@@ -192,34 +171,18 @@ def ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def graph_settings(features_cfg) -> dict:
     """MeshLibrary's keyword arguments for the graphs a network trained with `features_cfg` reads:
-    coarse meshes (features.mesh_vertices, mesh_support_gap), centre nodes and spokes
-    (centre_node, surface_edges), full meshes where features.floor_support needs them."""
-    get = lambda key, default: getattr(features_cfg, key, default)
-    return dict(max_vertices=int(get("mesh_vertices", 0)), centre_node=bool(get("centre_node", False)),
-                full_rest=bool(get("floor_support", False)), support_gap=float(get("mesh_support_gap", 0.0)),
-                surface_edges=bool(get("surface_edges", True)),
-                keep_surface=mesh_names(get("surface_edge_shapes", "")))
+    centre nodes and spokes (features.centre_node, surface_edges)."""
+    return dict(centre_node=bool(getattr(features_cfg, "centre_node", False)),
+                surface_edges=bool(getattr(features_cfg, "surface_edges", True)))
 
 
 class MeshLibrary:
     """The dataset's rest meshes, stored once, from which batches of graphs are packed."""
 
-    def __init__(self, meshes: dict[str, tuple[np.ndarray, np.ndarray]], max_vertices: int = 0,
-                 centre_node: bool = False, full_rest: bool = False, support_gap: float = 0.0,
-                 surface_edges: bool = True, keep_surface: tuple = ()):
-        """max_vertices > 0: graphs of each mesh's coarse version (gns.coarse_mesh), as the
-        network of a model trained with features.mesh_vertices sees them; support_gap > 0 gives
-        a mesh more vertices where it needs them (features.mesh_support_gap). centre_node: each
-        graph also has a node at its centre of mass joined to every vertex (centre_spokes);
-        surface_edges=False (with centre_node) keeps only those spokes, except on the meshes named
-        in keep_surface (names absent here are ignored: a model trained on spheres and cubes may
-        roll out cubes alone; training checks the names against its data).
-        full_rest: packed graphs carry each object's full mesh too (GraphBatch.full_rest)."""
-        self._full = None
-        if full_rest:
-            full = [np.asarray(meshes[n][0], np.float64) for n in sorted(meshes)]
-            self._full = torch.from_numpy(nan_padded(full))
-        meshes = network_meshes(meshes, max_vertices, support_gap)
+    def __init__(self, meshes: dict[str, tuple[np.ndarray, np.ndarray]], centre_node: bool = False,
+                 surface_edges: bool = True):
+        """centre_node: each graph also has a node at its centre of mass joined to every vertex
+        (centre_spokes); surface_edges=False (with centre_node) keeps only those spokes."""
         self.names = sorted(meshes)
         self.index = {name: i for i, name in enumerate(self.names)}
         verts = [np.asarray(meshes[n][0], np.float64) for n in self.names]
@@ -227,8 +190,8 @@ class MeshLibrary:
         if not (centre_node or surface_edges):
             raise ValueError("a graph without surface edges needs a centre node (features.centre_node)")
         if centre_node:
-            edges = [np.concatenate([e if surface_edges or name in keep_surface else e[:0], centre_spokes(len(v))])
-                     for name, v, e in zip(self.names, verts, edges)]
+            edges = [np.concatenate([e if surface_edges else e[:0], centre_spokes(len(v))])
+                     for v, e in zip(verts, edges)]
             verts = [np.concatenate([v, np.zeros((1, 3))]) for v in verts]
         for name, v, e in zip(self.names, verts, edges):
             if len(e) and e.max() >= len(v):
@@ -280,32 +243,10 @@ class MeshLibrary:
         faces = self._faces[self._face_start[shape_ids][face_graph] + local_face] + node_offset[face_graph, None]
 
         material = torch.stack([friction, restitution], dim=1).to(torch.float32)[node_graph]
-        full = None if self._full is None else self._full[shape_ids] * scale.to(torch.float64)[:, None, None]
         ids = shape_ids.cpu()
         return GraphBatch(EdgeSet(edges[:, 0].contiguous(), edges[:, 1].contiguous()), rest, material,
-                          node_graph, len(shape_ids), graph_scene, faces=faces, full_rest=full,
+                          node_graph, len(shape_ids), graph_scene, faces=faces,
                           symmetries=self._symmetries[ids].to(rest), num_symmetries=self.num_symmetries[ids].to(rest.device))
-
-
-def candidate_pairs(graph: GraphBatch) -> tuple[torch.Tensor, torch.Tensor]:
-    """All unordered pairs (a < b) of graphs in the same scene: two (P,) int64 tensors."""
-    scene = graph.graph_scene
-    order = torch.argsort(scene, stable=True)
-    _, counts = torch.unique_consecutive(scene[order], return_counts=True)
-    # for the k-th graph of a scene (in `order`), pair it with every graph of its scene
-    owner, _ = ragged_arange(counts)                     # scene run of each sorted graph
-    run_start = torch.cumsum(counts, 0) - counts
-    per = counts[owner]                                   # (G,) partners per sorted graph
-    who, k = ragged_arange(per)
-    a, b = order[who], order[run_start[owner[who]] + k]
-    keep = a < b
-    return a[keep], b[keep]
-
-
-def ragged_take(counts: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """For blocks p of counts[p] consecutive indices from start[p]: (owner, index) of each element."""
-    owner, local = ragged_arange(counts)
-    return owner, start[owner] + local
 
 
 def per_graph(values: torch.Tensor, graph: GraphBatch, reduce: str, owner: torch.Tensor | None = None) -> torch.Tensor:
@@ -327,66 +268,6 @@ def graph_centres(x: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
 def graph_sizes(graph: GraphBatch) -> torch.Tensor:
     """Largest axis extent of each graph's scaled rest mesh (G,): the object's size."""
     return (per_graph(graph.rest, graph, "amax") - per_graph(graph.rest, graph, "amin")).max(dim=1).values
-
-
-def near_pairs(x: torch.Tensor, graph: GraphBatch, radius: float):
-    """Broad phase: object pairs (a < b) of a scene whose bounds, one expanded by `radius`,
-    overlap; returns (a, b, low, high) with every graph's bounds (G, 3), or None if none."""
-    if graph.graph_scene is None or graph.num_graphs < 2:
-        return None
-    high, low = per_graph(x, graph, "amax"), per_graph(x, graph, "amin")
-    a, b = candidate_pairs(graph)
-    near = ((low[a] - high[b] <= radius) & (low[b] - high[a] <= radius)).all(dim=1)
-    if not near.any():
-        return None
-    return a[near], b[near], low, high
-
-
-def vertices_near(x: torch.Tensor, graph: GraphBatch, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
-                   high: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mid phase: the vertices of graphs `own` (P,) inside the bounds of `other` (P,) expanded
-    by `radius`; returns (pair, node), pair indexing own/other."""
-    counts = torch.bincount(graph.node_graph, minlength=graph.num_graphs)
-    pair, node = ragged_take(counts[own], torch.cumsum(counts, 0)[own] - counts[own])
-    p = x[node]
-    ok = ((p >= low[other][pair] - radius) & (p <= high[other][pair] + radius)).all(dim=1)
-    return pair[ok], node[ok]
-
-
-@torch.no_grad()
-def collision_edges(x: torch.Tensor, graph: GraphBatch, radius: float) -> EdgeSet:
-    """Edges between vertices of different objects of the same scene closer than `radius`.
-
-    x (N, 3) node positions at time t. Three phases, all vectorised (no Python loop):
-    1. broad: object pairs of a scene whose axis-aligned bounds, one expanded by `radius`, overlap;
-    2. mid: per such pair, only the vertices of each object inside the other's expanded bounds;
-    3. narrow: distances of those vertex pairs, kept when < radius.
-    The cost grows with the number of near object pairs and of vertices near a contact, not with
-    the square of the vertex count. Both directions are returned (an edge and its reverse);
-    objects alone in their scene (or a graph without `graph_scene`) get none.
-    """
-    empty = EdgeSet(torch.zeros(0, dtype=torch.int64, device=x.device),
-                    torch.zeros(0, dtype=torch.int64, device=x.device))
-    near = near_pairs(x, graph, radius)
-    if near is None:
-        return empty
-    a, b, low, high = near
-
-    def inside(own: torch.Tensor, other: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per pair, how many vertices of `own` are inside `other`'s expanded bounds, and which."""
-        pair, node = vertices_near(x, graph, own, other, low, high, radius)
-        return torch.bincount(pair, minlength=len(own)), node
-
-    count_a, nodes_a = inside(a, b)
-    count_b, nodes_b = inside(b, a)
-    start_a = torch.cumsum(count_a, 0) - count_a
-    start_b = torch.cumsum(count_b, 0) - count_b
-    pair, local = ragged_arange(count_a * count_b)
-    i = nodes_a[start_a[pair] + torch.div(local, count_b[pair], rounding_mode="floor")]
-    j = nodes_b[start_b[pair] + local % count_b[pair]]
-    close = (x[i] - x[j]).norm(dim=1) < radius
-    i, j = i[close], j[close]
-    return EdgeSet(torch.cat([i, j]), torch.cat([j, i]))
 
 
 def select_graphs(graph: GraphBatch, keep: torch.Tensor) -> tuple[GraphBatch, torch.Tensor]:
@@ -432,8 +313,7 @@ def _subgraph(graph: GraphBatch, node_keep: torch.Tensor, keep: torch.Tensor | N
                    graph_scene=None if graph.graph_scene is None else per(graph.graph_scene),
                    collision_edges=edges(graph.collision_edges), faces=faces,
                    symmetries=None if graph.symmetries is None else per(graph.symmetries),
-                   num_symmetries=None if graph.num_symmetries is None else per(graph.num_symmetries),
-                   full_rest=None if graph.full_rest is None else per(graph.full_rest)), nodes
+                   num_symmetries=None if graph.num_symmetries is None else per(graph.num_symmetries)), nodes
 
 
 def lowest_nodes(z: torch.Tensor, graph: GraphBatch, k: int, top: int = 0) -> torch.Tensor:
@@ -486,15 +366,14 @@ def stack_graphs(graphs: list[GraphBatch]) -> GraphBatch:
         num_graphs=sum(g.num_graphs for g in graphs), graph_scene=scenes,
         collision_edges=edges([g.collision_edges for g in graphs]),
         faces=None if first.faces is None else torch.cat([g.faces + o for g, o in zip(graphs, node_offset)]),
-        symmetries=cat("symmetries"), num_symmetries=cat("num_symmetries"),
-        full_rest=None if first.full_rest is None else cat_padded([g.full_rest for g in graphs]))
+        symmetries=cat("symmetries"), num_symmetries=cat("num_symmetries"))
 
 
 def with_surface_edges(graph: GraphBatch, surface: bool) -> GraphBatch:
     """A graph with centre nodes (the last node of each graph, MeshLibrary's centre_node) with its
     mesh edges rebuilt from its faces: the surface edges (if `surface`) and the spokes, in the
     order MeshLibrary packs them, so that a model trained on the other kind of graph
-    (features.surface_edges) reads the same nodes (gns.distill)."""
+    (features.surface_edges) reads the same nodes (an ensemble member)."""
     if graph.faces is None:
         raise ValueError("the graph has no faces to rebuild its surface edges from")
     g = graph.num_graphs
@@ -517,7 +396,3 @@ def with_surface_edges(graph: GraphBatch, surface: bool) -> GraphBatch:
     edges = edges[order]
     return replace(graph, mesh_edges=EdgeSet(edges[:, 0].contiguous(), edges[:, 1].contiguous()))
 
-
-def with_collision_edges(graph: GraphBatch, x: torch.Tensor, radius: float) -> GraphBatch:
-    """A copy of graph with its collision edges built from positions x (N, 3)."""
-    return replace(graph, collision_edges=collision_edges(x, graph, radius))

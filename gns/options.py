@@ -10,11 +10,13 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+from gns.config import ConfigError
+
 SYMMETRIES = ("none", "d1", "c2", "d2", "c4", "d4")
 AUTOCASTS = ("none", "bf16", "auto")
 
 
-class OptionsError(ValueError):
+class OptionsError(ConfigError, ValueError):
     """A rollout option that cannot be used. One line for a user."""
 
 
@@ -53,11 +55,11 @@ class RolloutOptions:
         object.__setattr__(self, "symmetrize", sym)
         object.__setattr__(self, "ensemble", tuple(str(e) for e in self.ensemble))
         if self.symmetrize not in SYMMETRIES:
-            raise OptionsError(f"symmetrize={self.symmetrize!r}: one of {', '.join(SYMMETRIES)}")
+            raise OptionsError(f"symmetrize: unknown symmetry group {self.symmetrize!r}; known: {', '.join(SYMMETRIES)}")
         if self.autocast not in AUTOCASTS:
             raise OptionsError(f"autocast={self.autocast!r}: one of {', '.join(AUTOCASTS)}")
         if self.free_clearance is not None and not self.free_clearance >= 0:
-            raise OptionsError(f"free_clearance={self.free_clearance!r}: a distance >= 0")
+            raise OptionsError(f"free flight clearance must be a height >= 0 above the floor, not {self.free_clearance}")
         if not isinstance(self.batch, int) or self.batch < 1:
             raise OptionsError(f"batch={self.batch!r}: a whole number >= 1")
         if not 0 < self.sleep_fraction:

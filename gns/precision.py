@@ -1,8 +1,10 @@
-"""Whether the network runs faster under bfloat16 autocast on this machine (`--autocast auto`).
+"""Where and in what number format the network runs: torch devices by name, checked before any
+work (`parse_device`, read by training and inference alike), and whether the network runs faster
+under bfloat16 autocast on this machine (`--autocast auto`).
 
-bfloat16 pays on some CPUs and costs on others with the same instruction-set flags: on the AMD
-EPYC of sessions 2-5 (avx512_bf16) bf16 + compile trained `gns_cpu` 1.76x as fast as float32;
-on an Intel Xeon (avx512_bf16, no AMX) a bf16 matrix product of the network's shapes
+bfloat16 pays on some CPUs and costs on others with the same instruction-set flags: on one AMD
+EPYC (avx512_bf16) bf16 + compile trained `gns_cpu` 1.76x as fast as float32; on an Intel
+Xeon (avx512_bf16, no AMX) a bf16 matrix product of the network's shapes
 ran 1.8x slower than float32 (experiments/log.md). No flag tells them apart, so `auto` times one
 such product in both types, once per process and shape, and picks bf16 only when it is clearly
 faster. Off a CPU (CUDA) `auto` takes bf16 where the device supports it.
@@ -13,6 +15,8 @@ import time
 import warnings
 
 import torch
+
+from gns.config import ConfigError
 
 CHOICES = ("none", "bf16", "auto")
 # bf16 must be this much faster: autocast adds casts that the product alone does not show
@@ -67,3 +71,21 @@ def resolve_autocast(name: str, width: int, device: str | torch.device = "cpu", 
     if device.type == "cuda":
         return "bf16" if torch.cuda.is_bf16_supported() else "none"
     return "bf16" if measure(width, device=device) >= MARGIN else "none"
+
+
+def parse_device(name: str, what: str = "train.device") -> torch.device:
+    """A device name as a torch device, checked before any work: one line, not torch's assertion."""
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"{what}={name!r} is not a torch device; use 'cpu' or 'cuda'") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"{what}={name} but CUDA is not available in this torch build "
+                          f"(torch {torch.__version__}); use {what}=cpu")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise ConfigError(f"{what}={name} but this machine has {torch.cuda.device_count()} CUDA device(s)")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise ConfigError(f"{what}={name} but MPS is not available here; use {what}=cpu")
+    if device.type not in ("cpu", "cuda", "mps"):
+        raise ConfigError(f"{what}={name}: only cpu, cuda and mps are supported")
+    return device

@@ -1,5 +1,5 @@
 """Rigid-body steps in torch, batched over the objects of a packed graph (float64 positions):
-the integrator and its exact inverse, the rigid inertial prior, posing rest shapes, and shape
+the integrator and its exact inverse, posing rest shapes, and shape
 matching (the best rigid fit of a rest shape to predicted vertices, with a finite gradient for
 the training's rigid loss). The numpy quaternion and pose helpers of the metrics and plots are
 gns.geometry."""
@@ -18,22 +18,6 @@ def acceleration_of(x_tm1: torch.Tensor, x_t: torch.Tensor, x_tp1: torch.Tensor)
     return (x_tp1 - x_t) - (x_t - x_tm1)
 
 
-def rigid_extrapolation(x_tm1: torch.Tensor, x_t: torch.Tensor, node_graph: torch.Tensor,
-                        num_graphs: int) -> torch.Tensor:
-    """x_{t+1} if every object keeps its last frame's velocity and its last frame's turn: each
-    vertex's offset from its object's centre is turned again by the rotation that best maps the
-    offsets at t-1 onto those at t (Kabsch), the centre moves on by its last step. (N, 3) each.
-
-    `integrate` extrapolates each vertex along a straight line instead, which for a spinning
-    object lands outside its circle: shape matching turns such points by less than the last
-    frame's turn (44.6 against 48 degrees at 48 degrees a frame), so a network must add a
-    centripetal acceleration at every step just to keep the spin, and any shrinkage of its
-    answer is lost spin. With this prior, keeping the spin is the default and the network learns
-    only what changes momentum. Translation and rotation equivariant, exact for a rigid input."""
-    c1, c0, p, h = _packed_fit(x_t, x_tm1, node_graph, num_graphs)
-    return x_t + rotate_nodes(_rotation(h), node_graph, p) - p + (c1 - c0).index_select(0, node_graph)
-
-
 def posed(rot: torch.Tensor, t: torch.Tensor, node_graph: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
     """The rest vertices (N, 3) of each graph placed at its pose, rotation rot (G, 3, 3) and
     translation t (G, 3): R rest + t per node."""
@@ -43,7 +27,7 @@ def posed(rot: torch.Tensor, t: torch.Tensor, node_graph: torch.Tensor, rest: to
 def rotate_nodes(rot: torch.Tensor, node_graph: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """v (N, 3) turned by its graph's rotation rot (G, 3, 3): rot[node_graph] @ v per node. As
     three column products after index_select: on CPU, rot[node_graph] and a batched (N, 3, 3) x
-    (N, 3, 1) matmul cost ~4x as much, ~10% of a rollout step of a small model (session 29)."""
+    (N, 3, 1) matmul cost ~4x as much, ~10% of a rollout step of a small model (docs/speed.md)."""
     r = rot.index_select(0, node_graph)
     return r[:, :, 0] * v[:, :1] + r[:, :, 1] * v[:, 1:2] + r[:, :, 2] * v[:, 2:]
 

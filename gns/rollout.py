@@ -19,14 +19,15 @@ import torch
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from datagen.outputs import check_output_folder, check_writable, overlapping
+from plumbing.files import check_output_folder, check_writable, overlapping
 from datagen.quaternions import continuous
 from datagen.quaternions import rotation, wxyz
-from datagen.shards import Dataset, DataError, Scene, shard_name, write_metadata, write_shard
+from datagen.shards import Dataset, Scene, shard_name, write_metadata, write_shard
+from plumbing.errors import DataError
 from gns.data import ObjectTracks
 from gns.features import HISTORY
 from gns.geometry import matrix_to_quat
-from gns.simulator import LearnedSimulator, Sleep
+from gns.simulator import LearnedSimulator
 
 
 def _angular_velocity(quat: np.ndarray, dt: float) -> np.ndarray:
@@ -47,11 +48,10 @@ def _angular_velocity(quat: np.ndarray, dt: float) -> np.ndarray:
 
 
 @torch.no_grad()
-def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Tensor, length: int,
-                   shape_matching: bool = True, sleep: Sleep | None = None,
-                   free_flight: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Roll out tracks `which` (B,), all `length` frames long. Tracks of one scene interact
-    (collision edges), so pass every track of the scenes wanted.
+def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Tensor,
+                   length: int) -> tuple[np.ndarray, np.ndarray]:
+    """Roll out tracks `which` (B,), all `length` frames long, as sim.options ask. Tracks of one
+    scene interact (collision edges), so pass every track of the scenes wanted.
 
     Returns centres (length, B, 3) and quaternions (length, B, 4): the first 3 frames are the
     truth, the rest predicted.
@@ -60,8 +60,7 @@ def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Ten
     device = next(sim.parameters()).device
     # the whole rollout runs on the model's device; only the poses come back
     # the poses come from the rollout's own shape matching (one per step, not a second pass)
-    _, rot, centre = sim.rollout(verts.to(device), graph.to(device), length - HISTORY, shape_matching=shape_matching,
-                                 sleep=sleep, free_flight=free_flight, poses=True)
+    _, rot, centre = sim.rollout(verts.to(device), graph.to(device), length - HISTORY, poses=True)
     rot, centre = rot.cpu(), centre.cpu()
     idx = (tracks.start[which])[:, None] + torch.arange(HISTORY)
     true_pos = tracks.positions[idx].permute(1, 0, 2).numpy()
@@ -78,13 +77,11 @@ def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Ten
 
 
 def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, frame_rate: float,
-                   shape_matching: bool = True, batch_tracks: int = 1024, progress: bool = True,
-                   sleep: Sleep | None = None, free_flight: bool = False) -> list[Scene]:
-    """Predicted copies of `scenes`: same objects, poses rolled out from the first 3 frames.
-    `sleep` and `free_flight`: see LearnedSimulator.rollout; the share of object-steps that
-    entered the network is left in `sim.rollout_counts` (summed over batches)."""
+                   progress: bool = True) -> list[Scene]:
+    """Predicted copies of `scenes`: same objects, poses rolled out from the first 3 frames as
+    sim.options ask (LearnedSimulator.rollout), sim.options.batch objects at a time; the share of
+    object-steps that entered the network is left in `sim.rollout_counts` (summed over batches)."""
     sim.eval()
-    sim.reset_turns()
     tracks = ObjectTracks(scenes, sim.mesh_library(meshes), name="rollout scenes")
     if int(tracks.length.min()) <= HISTORY:
         raise DataError(f"every scene needs more than {HISTORY} frames to roll out")
@@ -93,11 +90,11 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
     quaternions = np.full((T_max, B, 4), np.nan)
     bar = tqdm(total=B, unit="track", desc="rollout", disable=not progress)
     counts: dict[str, int] = {}
-    for batch_scenes in scene_batches(scenes, batch_tracks):
+    for batch_scenes in scene_batches(scenes, sim.options.batch):
         ids = torch.cat([tracks.scene_first_track[i] + torch.arange(int(tracks.scene_num_tracks[i]))
                          for i in batch_scenes])
         lengths = tracks.length[ids].tolist()
-        p, q = rollout_tracks(sim, tracks, ids, max(lengths), shape_matching, sleep, free_flight)
+        p, q = rollout_tracks(sim, tracks, ids, max(lengths))
         for key, value in sim.rollout_counts.items():
             counts[key] = counts.get(key, 0) + value
         for j, (i, length) in enumerate(zip(ids.tolist(), lengths)):
@@ -109,22 +106,21 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
     return predicted_scenes(scenes, positions, quaternions, 1.0 / frame_rate)
 
 
-def timed_rollout(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, frame_rate: float, batch_tracks: int,
-                  compile: bool = False, progress: bool = True, **options) -> tuple[list[Scene], float, float | None]:
-    """rollout_scenes, its wall-clock seconds, and (with `compile`) the seconds of a first batch
-    rolled out before the clock starts: a compiled network compiles at its first calls (tens of
-    seconds on a CPU, several times the rollouts of 400 MOVi-A scenes), which the timed rollout
+def timed_rollout(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, frame_rate: float,
+                  progress: bool = True) -> tuple[list[Scene], float, float | None]:
+    """rollout_scenes, its wall-clock seconds, and (with sim.options.compile) the seconds of a first
+    batch rolled out before the clock starts: a compiled network compiles at its first calls (tens
+    of seconds on a CPU, several times the rollouts of 400 MOVi-A scenes), which the timed rollout
     should not count. Nothing of the first batch is kept but the compiled graphs (rollout_scenes
-    resets the counts and the headings)."""
+    resets the counts)."""
     warmup = None
-    if compile:
+    if sim.options.compile:
         t0 = time.perf_counter()
-        first = scene_batches(scenes, batch_tracks)[0]
-        rollout_scenes(sim, [scenes[i] for i in first], meshes, frame_rate, batch_tracks=batch_tracks,
-                       progress=False, **options)
+        first = scene_batches(scenes, sim.options.batch)[0]
+        rollout_scenes(sim, [scenes[i] for i in first], meshes, frame_rate, progress=False)
         warmup = time.perf_counter() - t0
     t0 = time.perf_counter()
-    pred = rollout_scenes(sim, scenes, meshes, frame_rate, batch_tracks=batch_tracks, progress=progress, **options)
+    pred = rollout_scenes(sim, scenes, meshes, frame_rate, progress=progress)
     return pred, time.perf_counter() - t0, warmup
 
 

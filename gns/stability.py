@@ -21,7 +21,7 @@ from gns.data import ObjectTracks, feature_spec
 from gns.features import HISTORY
 from gns.graph import MeshLibrary, graph_centres, graph_sizes, per_graph
 from gns.ranges import outside_training
-from gns.simulator import LearnedSimulator, Sleep
+from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 
 # Criteria. Rigidity: shape matching makes every predicted frame an exact rigid pose, so any
@@ -33,12 +33,13 @@ SAME_PCT = 0.1
 
 
 @torch.no_grad()
-def _roll(sim: LearnedSimulator, scenes: list[Scene], library: MeshLibrary, steps: int, sleep: Sleep | None = None):
+def _roll(sim: LearnedSimulator, scenes: list[Scene], library: MeshLibrary, steps: int, sleep: bool | None = None):
     """Rollout of every object of `scenes` from its first 3 frames: (graph, given vertices
-    (N, 3, 3), predicted vertices (steps, N, 3), sizes (G,))."""
+    (N, 3, 3), predicted vertices (steps, N, 3), sizes (G,)); `sleep` (None: as sim.options say)."""
     tracks = ObjectTracks(scenes, library, name="stability scenes")
     graph, verts, _ = tracks.track_vertices(torch.arange(tracks.num_tracks), HISTORY)
-    pred = sim.rollout(verts, graph, steps, sleep=sleep)
+    with sim.using(sleep=sleep):
+        pred = sim.rollout(verts, graph, steps)
     return graph, verts, pred, graph_sizes(graph)
 
 
@@ -79,8 +80,9 @@ def resting_scene(shape: str, scale: float, meshes: dict, floor_z: float, frames
 
 
 def at_rest(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, steps: int = 1000,
-            sleep: Sleep | None = None) -> list[dict]:
-    """Drift of each resting scene's object centre after `steps` (% of its size)."""
+            sleep: bool | None = None) -> list[dict]:
+    """Drift of each resting scene's object centre after `steps` (% of its size); `sleep`: with
+    resting objects deactivated (None: as sim.options say)."""
     graph, given, pred, size = _roll(sim, scenes, sim.mesh_library(meshes), steps, sleep)
     centre = torch.stack([graph_centres(pred[k], graph) for k in (0, steps // 10 - 1, steps - 1)])
     start = graph_centres(given[:, -1], graph)

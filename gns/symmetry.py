@@ -1,13 +1,14 @@
-"""The floor's symmetries and the canonical frames a model may be turned into: the groups a
-rollout averages over (`--symmetrize`), turns about z, the mirror choice of
-features.canonical_mirror and the body frame of features.canonical_body_frame."""
+"""The floor's symmetries: the groups a rollout averages over (`--symmetrize`) and the average of
+a model's predictions over their images, and turns about z (features.canonical_heading)."""
 from __future__ import annotations
 
 from dataclasses import replace
 
 import torch
 
-from gns.graph import GraphBatch, with_symmetries
+from gns.graph import GraphBatch, mapped_symmetries, stack_graphs
+
+IMAGE_NODES = 32768  # most nodes in one network call of symmetrized images (averaged_over_images)
 
 
 def _maps(*rows) -> tuple:
@@ -20,7 +21,7 @@ _MIRRORS = _maps(((1, 0, 0), (0, 1, 0), (0, 0, 1)), ((-1, 0, 0), (0, 1, 0), (0, 
 # identity, the mirrors in x and in y and the half turn; "d4" also the quarter turns and the
 # diagonal mirrors (x and y swapped), at twice the cost; "d1" (the identity and the mirror in x)
 # and "c2" (the identity and the half turn) at half the cost, "c4" (the quarter turns) at the same:
-# which of d2's gain is the exact mirror and which the average over images (docs/speed.md, session 12)
+# which of d2's gain is the exact mirror and which the average over images (docs/speed.md)
 SYMMETRY_GROUPS = {"d2": _MIRRORS,
                    "d4": _MIRRORS + tuple(tuple((m[1], m[0], m[2])) for m in _MIRRORS),
                    "d1": (_MIRRORS[0], _MIRRORS[1]),
@@ -42,17 +43,9 @@ def symmetry_group(symmetrize) -> str | None:
     return symmetrize
 
 
-def z_turns(angle: torch.Tensor) -> torch.Tensor:
-    """(N,) angles -> (N, 3, 3) rotations about z by them."""
-    c, s = torch.cos(angle), torch.sin(angle)
-    turn = torch.zeros(angle.shape[0], 3, 3, dtype=angle.dtype, device=angle.device)
-    turn[:, 0, 0], turn[:, 0, 1], turn[:, 1, 0], turn[:, 1, 1], turn[:, 2, 2] = c, -s, s, c, 1.0
-    return turn
-
-
 def turn_about_z(v: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
     """v (N, ..., 3) turned about z by the angles whose cosines and sines are cos, sin (N,):
-    z_turns(angle) @ v without building the (N, 3, 3) matrices (a batched matmul of 3x3s is
+    the rotation matrices' product with v without building the (N, 3, 3) matrices (a batched matmul of 3x3s is
     several times slower on CPU)."""
     shape = (-1,) + (1,) * (v.dim() - 2)
     c, s = cos.view(shape), sin.view(shape)
@@ -60,38 +53,52 @@ def turn_about_z(v: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch
     return torch.stack([c * x - s * y, s * x + c * y, v[..., 2]], -1)
 
 
-def mirror_signs(history: torch.Tensor, scene: torch.Tensor, count: int) -> torch.Tensor:
-    """(count,) +-1 per scene: the sign of the x plus z parts of its angular momentum about its
-    centre, sum of (x_t - centre) x (x_t - x_{t-1}) over its nodes, which a mirror in y flips
-    (+1 where it is 0). history (N, 3 frames, 3)."""
-    x, v = history[:, -1], history[:, -1] - history[:, -2]
-    nodes = torch.bincount(scene, minlength=count).clamp(min=1).to(x.dtype)
-    centre = torch.zeros(count, 3, dtype=x.dtype, device=x.device).index_add_(0, scene, x) / nodes[:, None]
-    spin = torch.zeros(count, 3, dtype=x.dtype, device=x.device).index_add_(0, scene, torch.cross(x - centre[scene], v, dim=1))
-    return torch.where(spin[:, 0] + spin[:, 2] < 0, -1.0, 1.0).to(x.dtype)
+def averaged_over_images(model, history: torch.Tensor, graph: GraphBatch, symmetrize, body_frames: bool) -> torch.Tensor:
+    """A model's acceleration (N, 3) float64 for history (N, 3, 3), averaged over images of the
+    scene (`model`: a gns.simulator.LearnedSimulator, called for the normalised acceleration).
 
-
-def canonical_body_frame(x: torch.Tensor, graph: GraphBatch, rot: torch.Tensor) -> tuple[GraphBatch, torch.Tensor]:
-    """graph with each object's rest shape described in the equivalent body frame (one of its
-    symmetries S: r -> S r, pose R -> R S^T) whose pose is closest to the identity (largest trace
-    of R S^T; ties to the first), and those poses (G, 3, 3). rot: each object's pose R at
-    positions x (N, 3) (shape_match_packed). The world vertices are unchanged, so this only
-    relabels what the rest features say; the choice is a discrete one, made without gradient
-    (features.canonical_body_frame)."""
-    if graph.symmetries is None:
-        graph = with_symmetries(graph)
-    syms, counts = graph.symmetries, graph.num_symmetries
-    with torch.no_grad():
-        score = torch.einsum("gij,gkij->gk", rot.detach(), syms.to(rot.dtype))
-        padding = torch.arange(syms.shape[1], device=score.device)[None] >= counts.to(score.device)[:, None]
-        pick = score.masked_fill(padding, -torch.inf).argmax(1)
-    s = syms[torch.arange(graph.num_graphs, device=pick.device), pick].to(graph.rest.dtype)   # (G, 3, 3)
-    # S G S^T = G: the groups stay as they are
-    graph = replace(graph, rest=torch.einsum("nij,nj->ni", s[graph.node_graph], graph.rest),
-                    full_rest=mapped_full_rest(graph, lambda full: full @ s.transpose(1, 2).to(full.dtype)))
-    return graph, rot @ s.transpose(1, 2).to(rot.dtype)
-
-
-def mapped_full_rest(graph: GraphBatch, map_full) -> torch.Tensor | None:
-    """graph.full_rest mapped as its rest was (a mirror, a body-frame symmetry), if it has one."""
-    return None if graph.full_rest is None else map_full(graph.full_rest)
+    With `symmetrize` (a group of SYMMETRY_GROUPS, a rollout option, off by default), over the
+    world's floor symmetries, e.g. d2's {identity, mirror x, mirror y, half turn about z}: each maps
+    the input, the network predicts, the map is undone. The result is exactly equivariant
+    to those maps applied to the scene, body frames included (a cube tilted 45 + d is the mirror
+    of one tilted 45 - d only up to its body frame: docs/diagnostic_45.md), where
+    the network alone is only approximately so (trained with random z rotations).
+    With `body_frames` too, each object's rest shape is also described in every one of
+    its equivalent body frames (graph.symmetries, the rotations mapping its mesh onto itself,
+    e.g. a cube's 24) and the predictions averaged: exactly invariant to which frame describes
+    an object, at that many times the cost."""
+    syms = graph.symmetries if body_frames else None
+    if not symmetrize and syms is None:
+        return model.target_normalizer.inverse(model(history, graph).to(torch.float64))
+    group = symmetry_group(symmetrize)
+    floors = SYMMETRY_GROUPS[group] if group else FLOOR_SYMMETRIES[:1]
+    frames = 1 if syms is None else syms.shape[1]
+    inputs, graphs, maps = [], [], []
+    for k in range(frames):
+        if syms is None:
+            rest, weight = graph.rest, 1.0
+        else:
+            # the same world vertices described in the k-th equivalent body frame (r -> S r):
+            # the answer may not hang on which one, so average over all of each object's group
+            rest = torch.einsum("nij,nj->ni", syms[graph.node_graph, k], graph.rest)
+            counts = graph.num_symmetries[graph.node_graph]
+            weight = ((k < counts).to(history.dtype) / counts.to(history.dtype))[:, None]
+        for m in floors:
+            g = torch.tensor(m, dtype=history.dtype, device=history.device)
+            # the body frame is mapped too (x = R rest + p -> (g R g^T) (g rest) + g p): the
+            # network sees a proper rotation, as in training, and the average is exactly equivariant
+            inputs.append(history @ g.T)
+            graphs.append(replace(graph, rest=rest @ g.T, collision_edges=None,
+                                  symmetries=mapped_symmetries(graph, g)))
+            maps.append((g, weight))
+    # images share network calls: per node, a call on 6400 nodes costs ~0.6x one on 1600;
+    # calls stay under IMAGE_NODES nodes (24 body frames x 4 mirrors of a batch would not fit)
+    per_call = max(1, IMAGE_NODES // max(graph.num_nodes, 1))
+    total = torch.zeros_like(history[:, -1])
+    for lo in range(0, len(maps), per_call):
+        hi = min(lo + per_call, len(maps))
+        out = model.target_normalizer.inverse(
+            model(torch.cat(inputs[lo:hi]), stack_graphs(graphs[lo:hi])).to(torch.float64))
+        for a, (g, weight) in zip(out.split(graph.num_nodes), maps[lo:hi]):
+            total = total + (a @ g) * weight   # g^T a: the map undone
+    return total / len(floors)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import os
 import random
 import signal
@@ -21,34 +20,31 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
 
-from datagen.atomic import atomic_file
-from datagen.outputs import check_writable
-from datagen.shards import Dataset, DataError
+from datagen.shards import Dataset
 from gns import parallel
-from gns.config import Config, ConfigError, build_config, config_to_dict
+from gns.config import Config, ConfigError, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
-from gns.graph import GraphBatch, MeshLibrary, graph_settings, graph_sizes
+from gns.graph import MeshLibrary, graph_settings
+from gns.optimise import learning_rate, train_step, validate
+from gns.run_folder import (METRICS, check_run, check_tensorboard, restore_rng, rng_state, run_provenance,
+                            start_run_folder, tensorboard_writer, write_metrics)
 from gns.progress import progress_bar
-from gns.features import HISTORY
-from gns.rigid import shape_match_packed
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-# the checkpoint API stays importable from here (pipelines and users' scripts import it so)
-from gns.checkpoint import (CHECKPOINT_FORMAT, LATEST, TRAINED, CheckpointError, build_simulator,  # noqa: F401
-                            checkpoint_paths, export_model, exported_model_message, is_exported, load_model,
-                            read_checkpoint, resume_point, save_checkpoint)
-from gns.distill import Teacher
-from gns.fine_tune import incompatibility, init_from, merge_ranges, with_layout
-from gns.weight_average import WeightAverage
+from gns.checkpoint import (CHECKPOINT_FORMAT, TRAINED, CheckpointError, build_simulator, resume_point,
+                            save_checkpoint)
+from gns.precision import parse_device
+from plumbing.errors import DataError
+from plumbing.files import check_writable
 
-METRICS = "metrics.jsonl"
-PROVENANCE = "provenance.json"
-TENSORBOARD_DIR = "tb"
+
+if TYPE_CHECKING:
+    from gns.weight_average import WeightAverage
 
 
 class TrainingError(Exception):
@@ -84,210 +80,6 @@ class _StopRequest:
         return False
 
 
-def learning_rate(cfg: Config, step: int) -> float:
-    """lr_final + (lr_init - lr_final) * 0.1^(step / lr_decay_steps), as learning_to_simulate."""
-    t = cfg.train
-    return t.lr_final + (t.lr_init - t.lr_final) * 0.1 ** (step / t.lr_decay_steps)
-
-
-def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: Batch, lr: float,
-               grad_clip: float, loss_kind: str = "mse", huber_delta: float = 1.0,
-               fraction: float = 1.0, processes: int = 1, size_weight: float = 0.0,
-               rigid_loss: float = 0.0, teacher: Teacher | None = None, teacher_weight: float = 1.0) -> float:
-    """One Adam step on the per-node MSE of a batch; returns the loss.
-
-    On several processes `batch` is this process's share of the global batch, holding
-    `fraction` of its nodes. Each process weights its mean by fraction x processes, so the
-    average of the gradients (DistributedDataParallel) is the gradient of the global batch's
-    per-node mean, as one process training on the whole batch; the returned loss is that mean.
-    Raises FloatingPointError, before the weights change, if the loss or the gradient is not finite.
-    """
-    for group in optimizer.param_groups:
-        group["lr"] = lr
-    loss = unrolled_loss(sim, batch, loss_kind, huber_delta, size_weight, rigid_loss, teacher, teacher_weight)
-    if processes > 1:
-        # every process sees the same global loss, so all stop together on a NaN
-        total = parallel.sum_over_processes(loss.detach() * fraction)
-        loss = loss * (fraction * processes)
-    else:
-        total = loss
-    if not torch.isfinite(total):
-        raise FloatingPointError(f"the loss is {total.item()}")
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    norm = torch.nn.utils.clip_grad_norm_(sim.parameters(), grad_clip or math.inf)
-    if not torch.isfinite(norm):
-        raise FloatingPointError(f"the gradient norm is {norm.item()}")
-    optimizer.step()
-    return total.item()
-
-
-def size_weights(graph: GraphBatch, power: float) -> torch.Tensor | None:
-    """(N,) each node's loss weight, its object's size^-power over the batch's mean, or None for
-    power 0. The metrics score errors in % of each object's size while the loss sums absolute
-    accelerations, so small objects, whose vertices move less, count for less in training than
-    in the score: power 2 evens that out (train.size_weight)."""
-    if not power:
-        return None
-    w = graph_sizes(graph).to(torch.float32)[graph.node_graph] ** -power
-    return w / w.mean()
-
-
-def unrolled_loss(sim: LearnedSimulator, batch: Batch, kind: str = "mse", delta: float = 1.0,
-                  size_weight: float = 0.0, rigid_loss: float = 0.0, teacher: Teacher | None = None,
-                  teacher_weight: float = 1.0) -> torch.Tensor:
-    """The one-step loss, averaged over the batch's target frames (pushforward training).
-
-    Step k > 1 starts from the model's own earlier predictions, shape-matched as in rollouts and
-    detached: the model learns to correct the errors it makes itself (after a bounce, say),
-    without backpropagating through time. Each step's target is the true frame, so the
-    acceleration asked for pulls a drifted prediction back toward the truth; with a `teacher`
-    (train.teacher), teacher_weight x the teacher's next frame from the same inputs plus the
-    rest x the true one."""
-    targets = batch.targets
-    frames = list(batch.history.unbind(1))
-    weight = size_weights(batch.graph, size_weight)
-    total = 0.0
-    for k in range(targets.shape[1]):
-        history = torch.stack(frames[-HISTORY:], dim=1)
-        target = targets[:, k]
-        if teacher is not None:
-            taught = teacher.next_frame(frames, batch.graph, batch.tracks)
-            target = teacher_weight * taught + (1 - teacher_weight) * target
-        total = total + sim.loss(history, target, batch.graph, kind, delta, weight, rigid_loss)
-        if k + 1 < targets.shape[1]:
-            with torch.no_grad():
-                x = sim.predict_next(*frames[-HISTORY:], batch.graph)
-                x = shape_match_packed(x, batch.graph.rest, batch.graph.node_graph, batch.graph.num_graphs)[2]
-            frames.append(x)
-    return total / targets.shape[1]
-
-
-@torch.no_grad()
-def window_errors(sim: LearnedSimulator, tracks: ObjectTracks, device: torch.device, chunk: int = 256) -> torch.Tensor:
-    """(num_windows,) each window's one-step error as a rollout keeps it: the shape-matched next
-    vertices against the true ones, squared in the target normaliser's units, mean over the
-    window's nodes; from the true history, without augmentation or noise (train.hard_fraction)."""
-    was_training = sim.training
-    sim.eval()
-    scale = sim.target_normalizer.std.to(device=device, dtype=torch.float64)
-    out = torch.empty(tracks.num_windows, dtype=torch.float64)
-    try:
-        for lo in range(0, tracks.num_windows, chunk):
-            windows = torch.arange(lo, min(lo + chunk, tracks.num_windows))
-            batch = tracks.batch(windows).to(device)
-            g = batch.graph
-            x = sim.predict_next(*batch.history.unbind(1), g)
-            kept = shape_match_packed(x, g.rest, g.node_graph, g.num_graphs)[2]
-            per_node = (((kept - batch.targets[:, 0]) / scale) ** 2).sum(-1).cpu()
-            node_window = tracks.window_tracks(windows)[1][g.node_graph.cpu()]   # graphs are grouped by window
-            total = torch.zeros(len(windows), dtype=torch.float64).index_add_(0, node_window, per_node)
-            count = torch.zeros(len(windows), dtype=torch.float64).index_add_(0, node_window, torch.ones_like(per_node))
-            out[lo:lo + len(windows)] = total / count
-    finally:
-        sim.train(was_training)
-    return out
-
-
-@torch.no_grad()
-def validate(sim: LearnedSimulator, valid: ObjectTracks, cfg: Config, device: torch.device) -> dict:
-    """One-step loss on evenly spaced valid windows; centre error of short shape-matched rollouts."""
-    sim.eval()
-    try:
-        n = min(cfg.valid.windows, valid.num_windows)
-        windows = torch.linspace(0, valid.num_windows - 1, n).round().long().unique()
-        total, nodes = 0.0, 0
-        for chunk in windows.split(cfg.train.batch_size):
-            batch = valid.batch(chunk).to(device)
-            total += float(sim.loss(batch.history, batch.target, batch.graph)) * batch.graph.num_nodes
-            nodes += batch.graph.num_nodes
-        out = {"valid_loss": total / nodes}
-        tracks = torch.nonzero(valid.track_scene < cfg.valid.rollout_scenes)[:, 0]
-        if len(tracks):
-            out.update(_rollout_error(sim, valid, tracks, cfg.valid.rollout_steps, device))
-        return out
-    finally:
-        sim.train()
-
-
-def _rollout_error(sim: LearnedSimulator, valid: ObjectTracks, tracks: torch.Tensor, max_steps: int,
-                   device: torch.device) -> dict:
-    """Mean distance (scene units) between predicted and true centres over a rollout from 3 true frames."""
-    steps = min(max_steps, int(valid.length[tracks].min()) - HISTORY)
-    graph, verts, centres = valid.track_vertices(tracks, HISTORY + steps)
-    graph = graph.to(device)
-    pred = sim.rollout(verts[:, :HISTORY].to(device), graph, steps)
-    pred_centres = torch.stack([shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)[1]
-                                for x in pred], dim=1).cpu()
-    error = (pred_centres - centres[:, HISTORY:]).norm(dim=-1).mean(dim=1)       # (B,)
-    finite = torch.isfinite(error)
-    # A diverged track is counted, not averaged in, so the log stays valid JSON and comparable.
-    return {"valid_rollout_position_error": float(error[finite].mean()) if finite.any() else None,
-            "valid_rollout_diverged": int((~finite).sum()), "valid_rollout_steps": steps}
-
-
-def _rng_state(rng: np.random.Generator) -> dict:
-    return {"torch": torch.get_rng_state(), "numpy": rng.bit_generator.state, "python": random.getstate()}
-
-
-def _restore_rng(state: dict, rng: np.random.Generator) -> None:
-    torch.set_rng_state(state["torch"])
-    rng.bit_generator.state = state["numpy"]
-    random.setstate(state["python"])
-
-
-def _check_run(run: Path, resume: bool, overwrite: bool) -> list[Path]:
-    """Refuse to start over a run's checkpoints unless asked; returns the files to delete."""
-    existing = checkpoint_paths(run) + [p for p in (run / LATEST, run / METRICS, run / PROVENANCE) if p.exists()]
-    existing += sorted((run / TENSORBOARD_DIR).glob("events.out.tfevents.*"))
-    if resume:
-        return []
-    if any(p.suffix == ".pt" for p in existing) and not overwrite:
-        raise CheckpointError(f"{run} already holds checkpoints; pass --resume to continue "
-                              f"or --overwrite to start again")
-    return existing
-
-
-def _drop_metrics_after(path: Path, step: int, log: Callable[[str], None] = print) -> None:
-    """Forget log lines of steps that a resumed run will train again (after a crash), and lines
-    that are not JSON: a crash mid-write leaves the last one torn."""
-    if not path.exists():
-        return
-    kept, torn = [], 0
-    for line in path.read_text(errors="replace").splitlines():
-        try:
-            entry = json.loads(line)
-            entry_step = int(entry["step"])
-        except (ValueError, KeyError, TypeError):
-            torn += bool(line.strip())
-            continue
-        if entry_step <= step:
-            kept.append(line)
-    if torn:
-        log(f"warning: dropped {torn} unreadable line{'s' if torn > 1 else ''} of {path} "
-            f"(a crash mid-write tears the last one)")
-    with atomic_file(path) as tmp:
-        tmp.write_text("".join(line + "\n" for line in kept))
-
-
-def parse_device(name: str, what: str = "train.device") -> torch.device:
-    """A device name as a torch device, checked before any work: one line, not torch's assertion."""
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise ConfigError(f"{what}={name!r} is not a torch device; use 'cpu' or 'cuda'") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"{what}={name} but CUDA is not available in this torch build "
-                          f"(torch {torch.__version__}); use {what}=cpu")
-    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
-        raise ConfigError(f"{what}={name} but this machine has {torch.cuda.device_count()} CUDA device(s)")
-    if device.type == "mps" and not torch.backends.mps.is_available():
-        raise ConfigError(f"{what}={name} but MPS is not available here; use {what}=cpu")
-    if device.type not in ("cpu", "cuda", "mps"):
-        raise ConfigError(f"{what}={name}: only cpu, cuda and mps are supported")
-    return device
-
-
 def _device(name: str, world: parallel.World = parallel.World()) -> torch.device:
     device = parse_device(name)
     if world.size > 1 and device.type == "cuda":
@@ -309,63 +101,6 @@ def _set_threads(threads: int, log: Callable[[str], None]) -> None:
             f"if steps/s collapse, use --set train.threads=1")
 
 
-def read_metrics(path: str | Path) -> list[dict]:
-    """The entries of a metrics.jsonl, in order; lines that are not JSON objects with a step (a
-    crash mid-write tears the last one) are skipped."""
-    entries = []
-    for line in Path(path).read_text(errors="replace").splitlines():
-        try:
-            entry = json.loads(line)
-        except ValueError:
-            continue
-        if isinstance(entry, dict) and isinstance(entry.get("step"), int):
-            entries.append(entry)
-    return entries
-
-
-def _tensorboard_writer(run: Path, purge_step: int | None):
-    """A SummaryWriter on RUN/tb. On resume, events after the checkpoint's step (logged before a
-    crash, trained again now) are purged, as _drop_metrics_after drops their metrics lines."""
-    from torch.utils.tensorboard import SummaryWriter
-    return SummaryWriter(log_dir=str(run / TENSORBOARD_DIR), purge_step=purge_step)
-
-
-def check_tensorboard() -> None:
-    """train.tensorboard needs the extra; checked before any work, one line."""
-    try:
-        import tensorboard  # noqa: F401
-    except ImportError:
-        raise ConfigError("train.tensorboard=true needs TensorBoard: pip install 'rigid-gns[tensorboard]'") from None
-
-
-def tensorboard_tag(key: str) -> str:
-    """metrics.jsonl key -> TensorBoard tag, grouped as TensorBoard shows them: train/, valid/, speed/."""
-    if key.startswith("valid_"):
-        return "valid/" + key[len("valid_"):]
-    if key.endswith("_per_sec"):
-        return "speed/" + key
-    return "train/" + key
-
-
-def _log_scalars(writer, entry: dict) -> None:
-    for key, value in entry.items():
-        if key in ("step", "time") or isinstance(value, bool) or not isinstance(value, (int, float)):
-            continue   # None (all rollouts diverged) is not a scalar; counts and rates are
-        writer.add_scalar(tensorboard_tag(key), value, entry["step"])
-    writer.flush()
-
-
-def run_provenance(data_dir: str | Path, fingerprint: str, step: int, earlier: dict | None) -> dict:
-    """What a run records of where it came from: versions, code commit, the data it trained on;
-    the sessions before a resume are kept in `earlier`, oldest first."""
-    from datagen.provenance import provenance
-    history = []
-    if isinstance(earlier, dict):
-        history = [*earlier.get("earlier", []), {k: v for k, v in earlier.items() if k != "earlier"}]
-    return {**provenance(), "data": {"path": str(data_dir), "fingerprint": fingerprint}, "start_step": step,
-            "earlier": history}
-
-
 def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTracks, ObjectTracks | None]:
     """Feature spec, train tracks and (if validating and present) valid tracks of a dataset."""
     dataset = Dataset(data_dir, stride=cfg.features.frame_stride)
@@ -379,13 +114,8 @@ def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTrack
         # of frames 0 .. k-1 gives them all (as many windows as at stride 1)
         full = Dataset(data_dir).load("train", limit)
         scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
-    settings = graph_settings(cfg.features)
-    unknown = sorted(set(settings["keep_surface"]) - set(dataset.meshes))
-    if unknown:
-        raise ConfigError(f"features.surface_edge_shapes names {', '.join(map(repr, unknown))}, not a mesh of "
-                          f"{data_dir} (its meshes: {', '.join(sorted(dataset.meshes))})")
     try:
-        library = MeshLibrary(dataset.meshes, **settings)
+        library = MeshLibrary(dataset.meshes, **graph_settings(cfg.features))
     except ValueError as e:
         raise DataError(f"{data_dir}: {e}") from None
     tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)
@@ -427,16 +157,9 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     resumed_from, ckpt = resumed if resumed else (None, {})
     finished = False
     try:
-        # checked, like the data and the checkpoint, before anything in the run folder changes
-        teacher = (Teacher(cfg.train.teacher, sim, device, tracks, spec.meshes,
-                           cfg.augment.mirror or cfg.augment.body_symmetry, symmetrize=cfg.train.teacher_symmetrize)
-                   if cfg.train.teacher else None)
-        if teacher is not None:
-            images = f", symmetrized {cfg.train.teacher_symmetrize}" if cfg.train.teacher_symmetrize else ""
-            log(f"teacher: {cfg.train.teacher}{images}, {cfg.train.teacher_weight:g} of each target")
         provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance"))
         step = _train_loop(run, cfg, sim, optimizer, tracks, valid, spec, step, rng, device, world,
-                           stale, resumed_from, provenance, log, teacher, average)
+                           stale, resumed_from, provenance, log, average)
         finished = True
         return step
     finally:
@@ -458,7 +181,7 @@ def _check_start(run: Path, cfg: Config, world: parallel.World, resume: bool, ov
     if world.size > 1 and cfg.train.batch_size < world.size:
         raise ConfigError(f"train.batch_size={cfg.train.batch_size} is the global batch, split over "
                           f"{world.size} processes: it must be at least {world.size}")
-    stale = _check_run(run, resume, overwrite)
+    stale = check_run(run, resume, overwrite)
     device = _device(cfg.train.device, world)
     resumed = None
     if resume:
@@ -488,13 +211,20 @@ def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] |
     the resumed checkpoint left them (weights, optimiser, step, feature ranges, random state).
     Returns (simulator, optimiser, spec, step, the weight average if train.ema_decay asks for one)."""
     sim = build_simulator(cfg, data_spec)
-    spec = with_layout(data_spec, sim)
+    spec = replace(data_spec, node_features=tuple(n for n, _ in sim.layout.node_groups),
+                   edge_features=tuple(n for n, _ in sim.layout.edge_groups),
+                   collision_features=tuple(n for n, _ in sim.layout.collision_groups))
     optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
     decay = cfg.train.ema_decay
+    # imported only where used: a plain training from scratch loads neither module
+    if decay:
+        from gns.weight_average import WeightAverage
     if resumed is None:
         if cfg.train.init_from:
+            from gns.fine_tune import init_from
             spec = init_from(sim, cfg.train.init_from, cfg, spec)
         return sim, optimizer, spec, 0, WeightAverage(sim, decay) if decay else None
+    from gns.fine_tune import incompatibility, merge_ranges
     path, ckpt = resumed
     trained = ModelSpec.from_dict(ckpt["spec"])
     problem = incompatibility(ckpt["config"], trained, cfg, spec)
@@ -505,7 +235,7 @@ def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] |
     optimizer.load_state_dict(ckpt["optimizer"])
     step = int(ckpt["step"])
     spec = merge_ranges(trained, spec)
-    _restore_rng(ckpt["rng"], rng)
+    restore_rng(ckpt["rng"], rng)
     average = None
     if decay:
         average = WeightAverage(sim, decay, step, ckpt["model"] if TRAINED in ckpt else None)
@@ -529,32 +259,32 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
                 tracks: ObjectTracks, valid: ObjectTracks | None, spec: ModelSpec, step: int,
                 rng: np.random.Generator, device: torch.device, world: parallel.World, stale: list[Path],
                 resumed_from: Path | None, provenance: dict, log: Callable[[str], None],
-                teacher: Teacher | None = None, average: WeightAverage | None = None) -> int:
+                average: WeightAverage | None = None) -> int:
     """Steps from `step` to cfg.train.steps: a batch, an Adam step, a metrics line every
     train.log_every steps (with validation every valid.every), a checkpoint every
     train.checkpoint_every. Returns the last step."""
     config_dict = config_to_dict(cfg)
     if world.main:
-        _start_run_folder(run, stale, resumed_from, step, config_dict, provenance, log)
+        start_run_folder(run, stale, resumed_from, step, config_dict, provenance, log)
 
     def state(step: int) -> dict:
         weights = {"model": sim.state_dict()} if average is None else \
             {"model": average.state_dict(sim), TRAINED: sim.state_dict()}
         return {"format": CHECKPOINT_FORMAT, "step": step, "seed": cfg.train.seed, "config": config_dict,
                 "spec": spec.to_dict(), **weights, "optimizer": optimizer.state_dict(),
-                "rng": _rng_state(rng), "provenance": provenance}
+                "rng": rng_state(rng), "provenance": provenance}
 
     log(_start_line(cfg, sim, tracks, spec, step, world, resumed_from))
     last_good = resumed_from
     bar = progress_bar(cfg.train.steps, step, log, enabled=world.main)
     metrics = open(run / METRICS, "a") if world.main else None
-    writer = (_tensorboard_writer(run, step + 1 if resumed_from else None)
+    writer = (tensorboard_writer(run, step + 1 if resumed_from else None)
               if cfg.train.tensorboard and world.main else None)
     stop = _StopRequest() if world.size == 1 else contextlib.nullcontext()
     try:
         with stop:
             step, last_good = _steps(run, cfg, sim, optimizer, tracks, valid, step, rng, device, world, state,
-                                     last_good, bar, metrics, writer, stop, teacher, average)
+                                     last_good, bar, metrics, writer, stop, average)
     finally:
         bar.close()
         if metrics is not None:
@@ -567,7 +297,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
 def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer, tracks: ObjectTracks,
            valid: ObjectTracks | None, step: int, rng: np.random.Generator, device: torch.device,
            world: parallel.World, state: Callable[[int], dict], last_good: Path | None, bar, metrics, writer,
-           stop, teacher: Teacher | None = None, average: WeightAverage | None = None) -> tuple[int, Path | None]:
+           stop, average: WeightAverage | None = None) -> tuple[int, Path | None]:
     """The loop of _train_loop; returns (step reached, last checkpoint). Stops on a signal
     (`stop.asked`) after the step under way, with a checkpoint there. Validation scores the
     weight average when there is one: the weights the checkpoints keep for use."""
@@ -577,13 +307,10 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
     while step < cfg.train.steps:
         t0 = time.perf_counter()
         lr = learning_rate(cfg, step)
-        if cfg.train.hard_fraction > 0 and (tracks.hard_cdf is None or step % cfg.train.hard_every == 0):
-            tracks.set_hardness(window_errors(sim, tracks, device))
         batch, fraction = _next_batch(tracks, rng, cfg, world, lo, hi)
         try:
-            loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, cfg.train.loss,
-                              cfg.train.huber_delta, fraction, world.size, cfg.train.size_weight,
-                              cfg.train.rigid_loss, teacher, cfg.train.teacher_weight)
+            loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, fraction, world.size,
+                              cfg.train.rigid_loss)
         except FloatingPointError as e:
             raise TrainingError(_stopped(str(e), step + 1, last_good)) from None
         if average is not None:
@@ -604,7 +331,7 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
             if validating:
                 with average.swapped_in() if average is not None else contextlib.nullcontext():
                     entry.update(validate(sim, valid, cfg, device))
-            _write_metrics(metrics, writer, entry)
+            write_metrics(metrics, writer, entry)
             loss_sum, loss_count, busy = 0.0, 0, 0.0
         if step % cfg.train.checkpoint_every == 0 or step == cfg.train.steps:
             if not all(torch.isfinite(p).all() for p in sim.parameters()):
@@ -619,20 +346,6 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
     return step, last_good
 
 
-def _start_run_folder(run: Path, stale: list[Path], resumed_from: Path | None, step: int, config_dict: dict,
-                      provenance: dict, log: Callable[[str], None]) -> None:
-    """The run folder as this session starts it: an earlier run's files deleted (--overwrite),
-    metrics of steps to be trained again dropped (resume), config and provenance written."""
-    for p in stale:
-        p.unlink()
-    run.mkdir(parents=True, exist_ok=True)
-    if resumed_from:
-        _drop_metrics_after(run / METRICS, step, log)
-    for name, content in (("config.json", config_dict), (PROVENANCE, provenance)):
-        with atomic_file(run / name) as tmp:
-            tmp.write_text(json.dumps(content, indent=2) + "\n")
-
-
 def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: ModelSpec, step: int,
                 world: parallel.World, resumed_from: Path | None) -> str:
     """The log's first line: what is trained on what."""
@@ -642,20 +355,12 @@ def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: 
         # the drawn share comes on top of the contact windows among the rest, drawn from all
         natural, f = float(tracks.contact.double().mean()), cfg.train.contact_fraction
         contact = f" ({natural:.0%} in contact, {f + (1 - f) * natural:.0%} of each batch: {f:.0%} drawn from them)"
-    if cfg.train.hard_fraction > 0:
-        contact += (f", {cfg.train.hard_fraction:.0%} of each batch drawn by one-step error "
-                    f"(rescored every {cfg.train.hard_every} steps)")
     processes = f" on {world.size} processes" if world.size > 1 else ""
     precision = f", network in {'bf16' if sim.autocast_used == 'bf16' else 'float32'} (autocast auto, measured)" \
         if cfg.train.autocast == "auto" else ""
-    meshes = ""
-    if cfg.features.mesh_vertices:
-        lib, centre = tracks.library, int(cfg.features.centre_node)
-        meshes = ", network meshes " + ", ".join(f"{name} {int(n) - centre}" for name, n in
-                                                 zip(lib.names, lib.num_vertices)) + " vertices"
     return (f"{'resuming' if resumed_from else 'training'} at step {step} of {cfg.train.steps}{processes}: "
             f"{tracks.num_windows} windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
-            f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}{meshes}{precision}")
+            f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}{precision}")
 
 
 def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, world: parallel.World,
@@ -665,7 +370,7 @@ def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, wor
     batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std,
                           cfg.augment.vertex_noise, cfg.augment.track_noise,
                           cfg.train.contact_fraction, cfg.augment.mirror,
-                          cfg.augment.body_symmetry, cfg.train.hard_fraction, spin_noise=cfg.augment.spin_noise)
+                          cfg.augment.body_symmetry)
     if world.size == 1:
         return batch, 1.0
     nodes = batch.graph.num_nodes
@@ -673,23 +378,7 @@ def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, wor
     return batch, batch.graph.num_nodes / nodes
 
 
-def _write_metrics(metrics, writer, entry: dict) -> None:
-    """One metrics.jsonl line, flushed so a crash loses nothing logged, and the TensorBoard scalars."""
-    metrics.write(json.dumps(entry) + "\n")
-    metrics.flush()
-    if writer is not None:
-        _log_scalars(writer, entry)
-
-
 def _stopped(what: str, step: int, last_good: Path | None) -> str:
     kept = f"the last good checkpoint is {last_good}" if last_good else "no checkpoint was written yet"
     return f"{what} at step {step}; training stopped, {kept}"
-
-
-def resolve_config(run_dir: str | Path, resume: bool, config_path: str | None, overrides: list[str]) -> Config:
-    """The config of a run: on resume the checkpoint's, updated by the file and overrides given."""
-    base = None
-    if resume and (checkpoint_paths(Path(run_dir)) or (Path(run_dir) / LATEST).exists()):
-        base = resume_point(run_dir)[1]["config"]
-    return build_config(base=base, path=config_path, overrides=overrides)
 

@@ -1,7 +1,7 @@
 """An exponential moving average of the network's weights during training (`train.ema_decay`).
 
 The weights a run saves for use ("model" in its checkpoints: what `gns eval`, `gns export`,
-`train.init_from`, ensembles and teachers read) are then the average, while training goes on from
+`train.init_from` and ensembles read) are then the average, while training goes on from
 its own weights (kept as "trained", which `gns export` drops). Averaging the last few thousand
 steps' weights smooths the step-to-step noise of Adam at a learning rate kept from decaying to
 nothing (`train.lr_final`); at the end of a fully decayed run the weights no longer move and the

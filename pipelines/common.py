@@ -8,9 +8,11 @@ import sys
 import time
 from pathlib import Path
 
-from datagen.config import config_dir, load_config as load_scene_config
+from plumbing.tomlconfig import config_dir
+from datagen.config import load_config as load_scene_config
 from datagen.generate import generate
-from datagen.shards import Dataset, DataError
+from datagen.shards import Dataset
+from plumbing.errors import DataError
 from gns.config import build_config, config_differences
 from gns.evaluate import write_json
 from gns.checkpoint import LATEST, CheckpointError, checkpoint_paths, resume_point

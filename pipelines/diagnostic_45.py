@@ -41,14 +41,16 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen.atomic import atomic_file, atomic_folder
+from plumbing.files import atomic_file, atomic_folder
 from datagen.config import load_config
 from datagen.generate import metadata, plan
 from datagen.shapes import get_shape
 from datagen.shards import Dataset, write_metadata, write_shard
 from datagen.simulate import simulate
 from datagen.tilted import side, tilted_scene, training_scene
-from gns.evaluate import checkpoint_of, evaluate_run, write_json
+from gns.checkpoint import checkpoint_of
+from gns.evaluate import evaluate_run, write_json
+from gns.options import RolloutOptions
 from gns.rollout import rollout_scenes
 from gns.spec import ModelSpec
 from gns.checkpoint import load_model, read_checkpoint
@@ -216,8 +218,7 @@ def evaluate(ckpt: Path, drops: Dataset, out: Path, shape: str) -> dict:
         say(f"eval: rolling out the drops ({name})")
         res, pred, true, _ = evaluate_run(ckpt, drops.root, "test", symmetrize=sym, body_frames=body, progress=False)
         results[name] = sides(pred, true, angles)
-        sim, _ = load_model(saved)
-        sim.symmetrize, sim.body_frames = sym, body
+        sim, _ = load_model(saved, options=RolloutOptions(symmetrize=sym, body_frames=body))
         mirror_check(sim, drops, true, angles, results[name])
         results["outside_training"] = res["outside_training"]
         curves[name] = pred

@@ -36,8 +36,9 @@ import sys
 import time
 from pathlib import Path
 
-from datagen.outputs import check_writable
-from datagen.shards import DataError, Dataset
+from plumbing.errors import DataError
+from plumbing.files import check_writable
+from datagen.shards import Dataset
 from gns.checkpoint import read_checkpoint
 from gns.evaluate import evaluate_run, score_predictions, write_json
 from gns.metrics import format_table, per_frame_curves
@@ -114,8 +115,7 @@ def score_model(out: Path, data: Dataset, ckpt: Path, preset: str) -> dict:
     results, pred, true, ds = evaluate_run(ckpt, data.root, "test", plots_dir=out / "plots")
     saved = read_checkpoint(ckpt)
     m = saved["config"]["model"]
-    results.update(checkpoint_step=int(saved["step"]), rollout_options=RolloutOptions().to_dict(),
-                   curves=_curves(pred, true, ds), load=os.getloadavg(), train={
+    results.update(checkpoint_step=int(saved["step"]), curves=_curves(pred, true, ds), load=os.getloadavg(), train={
                        "model": PRESETS[preset]["model"], "step": int(saved["step"]), "L": m["message_passing_steps"],
                        "K": m["processor_repeats"], "latent": m["latent_size"],
                        "parameters": sum(v.numel() for k, v in saved["model"].items() if "normalizer" not in k)})
@@ -133,7 +133,9 @@ def score_zoo(out: Path, data: Dataset) -> dict:
         say(f"eval: the zoo's {ZOO_MODEL} was scored on these scenes, skipping")
         return saved
     say(f"eval: rolling out the test split with the zoo's {ZOO_MODEL} ({RolloutOptions(**ZOO_OPTIONS).describe()})")
-    results, pred, true, ds = evaluate_run(ZOO_MODEL, data.root, "test", progress=False, **ZOO_OPTIONS)
+    # these options whole, not the card's on top (its autocast "auto" would make the row depend on the CPU)
+    results, pred, true, ds = evaluate_run(ZOO_MODEL, data.root, "test", options=RolloutOptions(**ZOO_OPTIONS),
+                                           progress=False)
     results.update(key, curves=_curves(pred, true, ds), load=os.getloadavg())
     results.pop("per_scene", None)
     write_json(path, results)

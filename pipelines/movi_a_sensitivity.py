@@ -46,8 +46,9 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen.atomic import atomic_file
-from datagen.shards import DataError, Dataset
+from plumbing.files import atomic_file
+from plumbing.errors import DataError
+from datagen.shards import Dataset
 from gns.evaluate import evaluate_run, score_predictions
 from gns.features import HISTORY
 from pipelines.common import guarded, say

@@ -22,7 +22,9 @@ import torch
 
 from gns.config import TrainConfig
 from gns.data import ObjectTracks, in_contact
-from gns.evaluate import load_simulator, load_split
+from gns.checkpoint import load_simulator
+from gns.evaluate import load_split
+from gns.options import RolloutOptions
 from gns.geometry import matrix_to_quat
 from gns.metrics import object_width, rotation_error_deg
 from gns.rigid import shape_match_packed
@@ -36,7 +38,7 @@ def one_step_errors(run, data, split: str = "test", limit: int | None = None, sy
     """{"contact": {...}, "airborne": {...}, "contact_share_of_rotation_error": float, "by_shape":
     {shape: {"contact": {...}, "airborne": {...}}}} where each part holds the mean position error (% of size) and rotation error (degrees) of one step,
     the 50/90/99th percentiles of the rotation error and the number of steps."""
-    sim, saved = load_simulator(run, symmetrize=symmetrize, autocast=autocast)
+    sim, saved = load_simulator(run, options=RolloutOptions(symmetrize=symmetrize, autocast=autocast))
     sim.eval()
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(data, split, limit, spec.frame_rate)

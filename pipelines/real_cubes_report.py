@@ -59,7 +59,7 @@ def _by_size(results: dict, who: str, key: str) -> np.ndarray:
 
 
 def make_plots(out: Path, results: dict) -> list[Path]:
-    from gns.plots import plot_bars, plot_curve
+    from gns.charts import plot_bars, plot_curve
     paths = []
     xs = [int(n) for n in results["sizes"]]
     for key in METRICS:

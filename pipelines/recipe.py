@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from datagen.config import config_dir
-from datagen.shards import DataError
+from plumbing.errors import DataError
 
 RECIPES = config_dir() / "recipes"
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
@@ -193,10 +193,8 @@ def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None) -> dict:
         else:
             from gns.evaluate import evaluate_run
             at_data_rate = bool(card and card.data.get("eval", {}).get("at_data_rate"))
-            results, *_ = evaluate_run(model, test, "test", progress=False, at_data_rate=at_data_rate,
-                                       symmetrize=options.symmetry_group or False, free_flight=options.free_flight,
-                                       free_clearance=options.free_clearance, autocast=options.autocast,
-                                       body_frames=options.body_frames)  # MERGE: options=options
+            results, *_ = evaluate_run(model, test, "test", options=options, progress=False,
+                                       at_data_rate=at_data_rate)
             scores = {k: round(results[k], 3) for k in METRICS}
         rows[name or "default options"] = {"options": options.to_dict(), "scores": scores,
                                            "card": card.data.get("scores", [{}])[0] if card else None}

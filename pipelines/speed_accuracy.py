@@ -32,7 +32,7 @@ from gns.metrics import METRICS, evaluate_scenes
 from gns.rollout import rollout_scenes, split_diverged
 from gns.simulator import LearnedSimulator
 from gns.checkpoint import load_model, read_checkpoint
-from datagen.outputs import check_writable
+from plumbing.files import check_writable
 from pipelines.common import CONFIGS, data_stage, guarded, say, train_stage
 
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
@@ -100,7 +100,8 @@ def _timed_rollout(sim, scenes, ds: Dataset, batch: int) -> float:
     """Wall seconds per simulated second per trajectory, rolling out `batch` scenes at a time."""
     t0 = time.perf_counter()
     for k in range(0, len(scenes), batch):
-        rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, batch_tracks=batch, progress=False)
+        with sim.using(batch=batch):
+            rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, progress=False)
     seconds = time.perf_counter() - t0
     return seconds / sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes)
 
@@ -162,16 +163,14 @@ def _rollout_all(sim, scenes, ds, batch: int, count: int, mode: str | None = Non
     accurate and 4x the network."""
     fast = mode is not None
     sim.set_speed("auto" if fast else "none", compile=fast and compile)
-    sim.symmetrize = mode == "fast sym"
     t0 = time.perf_counter()
     pred = []
-    for k in range(0, count, batch):
-        pred += rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, batch_tracks=batch,
-                               progress=False, free_flight=fast)
+    with sim.using(batch=batch, free_flight=fast, symmetrize="d2" if mode == "fast sym" else "none"):
+        for k in range(0, count, batch):
+            pred += rollout_scenes(sim, scenes[k:k + batch], ds.meshes, ds.frame_rate, progress=False)
     cost = (time.perf_counter() - t0) / sum((sc.num_frames - 3) / ds.frame_rate for sc in scenes[:len(pred)])
     precision = "bf16" if sim.autocast_used == "bf16" else "float32"
     sim.set_speed()
-    sim.symmetrize = False
     return pred, cost, precision
 
 
@@ -207,7 +206,6 @@ def gns_accuracy(runs: list[tuple[str, Path]], ref: Dataset, p: dict) -> list[di
             rows.append({"family": "gns" if batch == 1 else MODES[mode], "knob": knob,
                          "label": f"{run_name(run)}: L{m.message_passing_steps}xK{m.processor_repeats}, "
                                   f"latent {m.latent_size}"
-                                  + (f", {cfg.features.mesh_vertices} vertices a mesh" if cfg.features.mesh_vertices else "")
                                   + f", dt {1e3 / ds.frame_rate:.1f} ms, batch {batch}"
                                   + {None: "", "fast": f", free flight + {precision} + compile",
                                      "fast sym": f", free flight + {precision} + compile + symmetrized"}[mode],
@@ -234,8 +232,9 @@ def run_name(run: str) -> str:
 def pareto_plot(rows: list[dict], path: Path) -> Path:
     """Error against cost, log-log. A run's variants (one scene at a time, batched, fast, fast
     symmetrized) are joined by a thin line and the run is named once, at its most accurate
-    point; labels are placed where they overlap least (gns.plots.label_points)."""
-    from gns.plots import label_points, new_figure, save_figure
+    point; labels are placed where they overlap least (gns.charts.label_points)."""
+    from gns.charts import label_points
+    from gns.plots import new_figure, save_figure
     fig = new_figure((8.5, 5.6))
     ax = fig.subplots()
     cost = lambda r: r["seconds_per_simulated_second"]  # noqa: E731

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import torch
 
-from datagen.outputs import check_writable
-from gns.simulator import Sleep
+from plumbing.files import check_writable
+from gns.stepping import Sleep
 from gns.evaluate import checkpoint_of, load_split, write_json
 from gns.stability import REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene
 from gns.spec import ModelSpec
@@ -46,12 +46,12 @@ def run(run_dir: Path, data: Path, out: Path, limit: int, factor: int, rest_step
     scale = float(max(spec.ranges["scale"]))
     resting = [resting_scene(shape, scale, ds.meshes, floor_z or 0.0) for shape in spec.shapes]
     rest = at_rest(sim, resting, ds.meshes, rest_steps)
-    rest_sleeping = at_rest(sim, resting, ds.meshes, rest_steps, sleep=Sleep())
+    rest_sleeping = at_rest(sim, resting, ds.meshes, rest_steps, sleep=True)
     say("extreme inputs")
     extreme = extremes(sim, spec, scenes, ds)
     results = {"run": str(run_dir), "checkpoint": str(ckpt), "checkpoint_step": int(saved["step"]),
                "data": str(data), "long_rollouts": long, "at_rest": rest,
-               "at_rest_sleeping": {"sleep": dataclasses.asdict(Sleep()), "rows": rest_sleeping}, "extremes": extreme}
+               "at_rest_sleeping": {"sleep": dataclasses.asdict(Sleep(sim.options.sleep_fraction)), "rows": rest_sleeping}, "extremes": extreme}
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "results.json", results)
     (out / "report.md").write_text(report(results, factor) + "\n")
@@ -82,7 +82,7 @@ def report(r: dict, factor: int) -> str:
     for x in sleeping["rows"]:
         lines.append(f"| {x['shape']}, rollout with sleeping | {x['scale']:g} | "
                      f"{x[f'drift_pct_after_{steps // 10}']:.3g} | {x['drift_pct']:.3g} | {_verdict(x['passed'])} |")
-    lines += ["", f"Sleeping (`gns eval --sleep`, gns.simulator.Sleep): an object sleeps while no vertex moved "
+    lines += ["", f"Sleeping (`gns eval --sleep`, gns.stepping.Sleep): an object sleeps while no vertex moved "
                   f"{sleeping['sleep']['fraction']} x |g| dt^2 in either input step, until an awake object touches it."]
     lines += ["", "## Extreme inputs (handled, or warned as outside training)", "",
               "| input | rollout finite | same as the original, % of size | warnings | verdict |", "|---|---|---|---|---|"]

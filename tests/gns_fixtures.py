@@ -71,3 +71,9 @@ def write_toss_dataset(root: str | Path, train: int = 8, valid: int = 2, frames:
     write_metadata(root, {"frame_rate": FRAME_RATE, "gravity": list(GRAVITY), "floor": FLOOR if floor else None,
                           "materials_vary": materials_vary, "splits": splits})
     return root
+
+
+def rolled_out(sim, history, graph, steps: int, poses: bool = False, **options):
+    """sim.rollout with these rollout options (RolloutOptions fields) for the one rollout."""
+    with sim.using(**options):
+        return sim.rollout(history, graph, steps, poses=poses)

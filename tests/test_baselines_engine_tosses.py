@@ -64,7 +64,8 @@ def test_bad_arguments(templates):
 
 def test_fine_tuning_starts_from_the_other_runs_weights(tmp_path):
     from gns_fixtures import write_toss_dataset
-    from gns.train import CheckpointError, read_checkpoint, train
+    from gns.checkpoint import CheckpointError, read_checkpoint
+    from gns.train import train
     from test_gns_train import quiet, tiny
     data = write_toss_dataset(tmp_path / "data", train=3, valid=1, frames=10)
     train(data, tmp_path / "pre", tiny("train.steps=5", "valid.every=0", "features.normalizer_steps=2"), log=quiet)

@@ -11,11 +11,13 @@ import torch
 
 import gns
 from datagen.cli import main as datagen_main
-from datagen.shards import Dataset, DataError, Scene, write_metadata, write_shard
+from datagen.shards import Dataset, Scene, write_metadata, write_shard
+from plumbing.errors import DataError
 from gns.api import history_poses, matrix_to_quat, quat_to_matrix
 from gns.cli import main as gns_main
 from gns.config import ConfigError, build_config
-from gns.train import CheckpointError, export_model, read_checkpoint, train
+from gns.checkpoint import CheckpointError, export_model, read_checkpoint
+from gns.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ROOT / "tests" / "data" / "gns_movi_a_small.pt"
@@ -59,7 +61,7 @@ def test_load_returns_the_checkpoints_physics_and_meshes(run):
 
 
 def test_shipped_and_old_models_find_their_meshes_by_name():
-    model = gns.load("gns_real_cubes_n256")
+    model = gns.load("real_cubes")
     assert model.frame_stride == 8 and model.dt == pytest.approx(8 / 148.0)       # the model's step, stride included
     assert model.meshes["cube"][0].shape == (8, 3) and not model.uses_materials
     assert set(gns.load(SMALL).meshes) == {"beveled_cube", "cylinder", "sphere"}
@@ -226,7 +228,7 @@ def test_scipy_quaternion_order_in_and_out(run):
 
 
 def test_inputs_outside_training_warn():
-    model = gns.load("gns_real_cubes_n256")
+    model = gns.load("real_cubes")
     with pytest.warns(UserWarning, match="outside training: speed") as caught:
         model.rollout(shapes=["cube"], scales=2.0, positions=[[0, 0, 3]], quaternions=[[1, 0, 0, 0]],
                       velocities=[[500.0, 0, 0]], steps=1)
@@ -238,7 +240,7 @@ def test_inputs_outside_training_warn():
 
 
 def test_objects_of_one_scene_warn_with_a_model_without_collision_edges():
-    model = gns.load("gns_real_cubes_n256")
+    model = gns.load("real_cubes")
     two = dict(shapes=["cube", "cube"], scales=2.0, positions=[[0, 0, 3], [5, 0, 3]], quaternions=[[1, 0, 0, 0]] * 2,
                steps=1)
     with pytest.warns(UserWarning, match="no collision edges"):
@@ -325,26 +327,56 @@ def test_symmetrized_images_in_one_call_equal_one_call_per_image(run):
     # scenes of several touching objects: each image keeps its own collision edges
     from dataclasses import replace
 
-    import gns.simulator as simulator
+    import gns.symmetry as symmetry
     from gns.symmetry import FLOOR_SYMMETRIES
-    model = gns.load(run / "run")
+    model = gns.load(run / "run", symmetrize="d2")
     sim = model.simulator
     state = model.state(**three_cubes(), warn=False)
     history = torch.stack(state.frames, dim=1)
-    sim.symmetrize = True
+    batched = sim.predict_acceleration(history, state.graph)
+    one = []
+    for m in FLOOR_SYMMETRIES:
+        g = torch.tensor(m, dtype=torch.float64).diagonal()   # the mirrors: diagonal maps
+        mapped = replace(state.graph, rest=state.graph.rest * g, collision_edges=None)
+        one.append(sim.target_normalizer.inverse(sim(history * g, mapped).to(torch.float64)) * g)
+    torch.testing.assert_close(batched, sum(one) / 4, rtol=0, atol=1e-9)
+    # and split over several calls when the images exceed a call's size
+    old, symmetry.IMAGE_NODES = symmetry.IMAGE_NODES, state.graph.num_nodes
     try:
-        batched = sim.predict_acceleration(history, state.graph)
-        one = []
-        for m in FLOOR_SYMMETRIES:
-            g = torch.tensor(m, dtype=torch.float64).diagonal()   # the mirrors: diagonal maps
-            mapped = replace(state.graph, rest=state.graph.rest * g, collision_edges=None)
-            one.append(sim.target_normalizer.inverse(sim(history * g, mapped).to(torch.float64)) * g)
-        torch.testing.assert_close(batched, sum(one) / 4, rtol=0, atol=1e-9)
-        # and split over several calls when the images exceed a call's size
-        old, simulator.IMAGE_NODES = simulator.IMAGE_NODES, state.graph.num_nodes
-        try:
-            torch.testing.assert_close(sim.predict_acceleration(history, state.graph), batched, rtol=0, atol=1e-9)
-        finally:
-            simulator.IMAGE_NODES = old
+        torch.testing.assert_close(sim.predict_acceleration(history, state.graph), batched, rtol=0, atol=1e-9)
     finally:
-        sim.symmetrize = False
+        symmetry.IMAGE_NODES = old
+
+
+def test_options_given_at_load_are_the_models_and_its_rollouts_honour_them(run):
+    from dataclasses import replace
+
+    from gns.options import RolloutOptions
+    plain = gns.load(run / "run")
+    assert plain.options == RolloutOptions()   # a run folder outside the zoo: the defaults
+    fast = gns.load(run / "run", free_flight=True, body_frames=True)
+    assert fast.options == RolloutOptions(free_flight=True, body_frames=True)
+    assert gns.load(run / "run", options=fast.options, symmetrize="d1").options.symmetrize == "d1"
+    with pytest.raises(TypeError, match="unknown rollout option 'free_fligth'; known: .*free_flight"):
+        gns.load(run / "run", free_fligth=True)
+    # one cube high above the floor, alone: in free flight it follows the exact inertial update,
+    # its centre's second difference gravity's g dt^2 to rounding, which the network never is
+    toss = dict(shapes=["cube"], scales=0.7, friction=[0.5], restitution=[0.5], positions=[[0.0, 0.0, 5.0]],
+                quaternions=[[0.9, 0.1, 0.0, 0.3]],
+                velocities=[[1.0, 0.0, 0.0]], angular_velocities=[[0.0, 0.0, 3.0]])
+    g_step = torch.as_tensor(fast.gravity, dtype=torch.float64) * fast.dt ** 2
+    for model, exact in ((fast, True), (plain, False)):
+        p = model.rollout(**toss, steps=4).positions.to(torch.float64)
+        second = p[2:] - 2 * p[1:-1] + p[:-2]
+        assert torch.allclose(second, g_step.expand_as(second), rtol=0, atol=1e-9) == exact
+    # body frames: Model.rollout averages over each object's equivalent frames as gns eval's
+    # rollout does (LearnedSimulator.rollout, which adds the frames to its graph itself)
+    near_floor = dict(toss, positions=[[0.0, 0.0, 0.4]], velocities=[[0.0, 0.0, -1.0]])
+    frames = gns.load(run / "run", body_frames=True)
+    state = frames.state(**near_floor)
+    assert state.graph.symmetries is not None and int(state.graph.num_symmetries[0]) == 24
+    bare = replace(state.graph, symmetries=None, num_symmetries=None)
+    expected = frames.simulator.rollout(torch.stack(state.frames, 1), bare, 3)
+    torch.testing.assert_close(frames.rollout(**near_floor, steps=3).vertices[1:], expected, rtol=0, atol=1e-12)
+    # control: the averaging changes the answer
+    assert not torch.allclose(plain.rollout(**near_floor, steps=3).vertices[1:], expected, rtol=0, atol=1e-9)

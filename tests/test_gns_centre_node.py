@@ -13,7 +13,8 @@ from gns.fine_tune import init_from
 from gns.graph import MeshLibrary, centre_spokes
 from gns.rigid import shape_match_packed
 from gns.spec import ModelSpec
-from gns.train import CheckpointError, read_checkpoint, train
+from gns.checkpoint import CheckpointError, read_checkpoint
+from gns.train import train
 from test_gns_train import quiet, tiny
 
 
@@ -172,36 +173,3 @@ def test_a_centred_model_is_fine_tuned_onto_spokes_only_and_keeps_them(tmp_path)
     with pytest.raises(ConfigError, match="surface_edges=false needs features.centre_node"):
         train(data, tmp_path / "bad", tiny("train.steps=4", "features.surface_edges=false"), log=quiet)
 
-
-def test_spokes_only_graphs_keep_the_surface_edges_of_the_meshes_named():
-    """features.surface_edge_shapes: the sphere keeps its surface edges, the cube has spokes only."""
-    from gns.config import ConfigError, build_config
-    from gns.graph import graph_settings
-    meshes = {n: (get_shape(n).vertices, get_shape(n).faces) for n in ("sphere", "beveled_cube")}
-    full = MeshLibrary(meshes, centre_node=True)
-    cfg = build_config(overrides=["features.centre_node=true", "features.surface_edges=false",
-                                  "features.surface_edge_shapes=sphere"])
-    mixed = MeshLibrary(meshes, **graph_settings(cfg.features))
-    spokes = MeshLibrary(meshes, centre_node=True, surface_edges=False)
-    for name in meshes:
-        i = mixed.index[name]
-        n = len(meshes[name][0])
-        expected = full.num_edges[i] if name == "sphere" else 2 * n
-        assert mixed.num_edges[i] == expected and spokes.num_edges[i] == 2 * n
-    assert full.num_edges[full.index["sphere"]] > 3 * 2 * len(meshes["sphere"][0])   # surface edges kept: ~8n
-    # a name absent from a library's meshes changes nothing there (a sphere-and-cube model rolls out cubes)
-    absent = MeshLibrary(meshes, centre_node=True, surface_edges=False, keep_surface=("ball",))
-    assert torch.equal(absent.num_edges, spokes.num_edges)
-    with pytest.raises(ConfigError, match="surface_edge_shapes needs features.surface_edges=false"):
-        build_config(overrides=["features.centre_node=true", "features.surface_edge_shapes=sphere"])
-
-
-@pytest.mark.filterwarnings("ignore:outside training")
-def test_training_refuses_a_surface_edge_shape_its_data_lacks(tmp_path):
-    from gns.config import ConfigError
-    data = write_toss_dataset(tmp_path / "data", train=2, valid=1, frames=8)
-    with pytest.raises(ConfigError, match="surface_edge_shapes names 'ball', not a mesh of"):
-        train(data, tmp_path / "run", tiny("train.steps=2", "valid.every=0", "features.centre_node=true",
-                                           "features.surface_edges=false", "features.surface_edge_shapes=ball"),
-              log=quiet)
-    assert not (tmp_path / "run" / "latest.pt").exists()

@@ -9,7 +9,7 @@ from gns_fixtures import write_toss_dataset
 
 from gns.cli import main
 from gns.simulator import LearnedSimulator
-from gns.train import read_checkpoint
+from gns.checkpoint import read_checkpoint
 
 TINY = str(Path(__file__).resolve().parents[1] / "configs" / "gns_tiny.toml")
 

@@ -7,7 +7,8 @@ from gns_fixtures import cube_meshes
 from gns.config import ConfigError, build_config
 from gns.contacts import closest_point_on_triangle, surface_edges
 from gns.data import vertices_from_poses
-from gns.graph import MeshLibrary, collision_edges
+from gns.contacts import collision_edges
+from gns.graph import MeshLibrary
 
 DTYPE = torch.float64
 

@@ -1,5 +1,4 @@
-"""Training noise of the paper's Figure 7 (on the cube's corners and on its tracked pose) and the
-random walk on each object's orientation (augment.spin_noise)."""
+"""Training noise of the paper's Figure 7 (on the cube's corners and on its tracked pose)."""
 from pathlib import Path
 
 import numpy as np
@@ -40,10 +39,10 @@ def body_frame(tracks, w, x):
 
 def test_config_keys_default_to_off_and_refuse_negative_values():
     cfg = build_config()
-    assert cfg.augment.vertex_noise == 0.0 and cfg.augment.track_noise == 0.0 and cfg.augment.spin_noise == 0.0
-    cfg = build_config(overrides=["augment.vertex_noise=0.05", "augment.track_noise=0.5", "augment.spin_noise=2"])
-    assert (cfg.augment.vertex_noise, cfg.augment.track_noise, cfg.augment.spin_noise) == (0.05, 0.5, 2.0)
-    for key in ("vertex_noise", "track_noise", "spin_noise"):
+    assert cfg.augment.vertex_noise == 0.0 and cfg.augment.track_noise == 0.0
+    cfg = build_config(overrides=["augment.vertex_noise=0.05", "augment.track_noise=0.5"])
+    assert (cfg.augment.vertex_noise, cfg.augment.track_noise) == (0.05, 0.5)
+    for key in ("vertex_noise", "track_noise"):
         with pytest.raises(ConfigError, match=key):
             build_config(overrides=[f"augment.{key}=-0.1"])
 
@@ -79,41 +78,3 @@ def test_track_noise_moves_the_whole_cube_by_a_fraction_of_its_per_frame_motion(
     assert (~moving).any() and float(per_graph[~moving].abs().max()) < 6 * 0.5e-3  # a still cube barely moves
     assert not torch.allclose(per_graph[:, 0], per_graph[:, 1])             # independent per frame
 
-
-def _turns(rel_noisy: torch.Tensor, rel_clean: torch.Tensor, node_graph: torch.Tensor, num_graphs: int) -> torch.Tensor:
-    """Per graph, the rotation (G, 3, 3) taking the clean vertices about the centre onto the noisy ones."""
-    h = torch.zeros(num_graphs, 3, 3, dtype=rel_clean.dtype).index_add_(
-        0, node_graph, torch.einsum("ni,nj->nij", rel_noisy, rel_clean))
-    u, _, vt = torch.linalg.svd(h)
-    return u @ vt
-
-
-def test_spin_noise_turns_each_cube_rigidly_about_its_centre_in_a_random_walk():
-    """Frame 0 as recorded; frames 1, 2 turned by a walk that leaves the last input frame off by
-    spin_noise degrees a component; the target and the frame after it turned as the last input
-    frame; the centre and the shape kept."""
-    consts = read_experiment(SRC)
-    scenes = [toss_to_scene(read_toss(SRC / "tosses_processed" / f"{i}.pt"), i, f"{i}.pt", consts) for i in (55, 229)]
-    unrolled = ObjectTracks(scenes, MeshLibrary({"cube": (CUBE.vertices, CUBE.faces)}), unroll=2)
-    w = windows(unrolled, 800)
-    clean, noisy = unrolled.batch(w), unrolled.batch(w, np.random.default_rng(4), spin_noise=2.0)
-    x0 = torch.cat([clean.history, clean.target[:, None], clean.future], dim=1)   # (N, 5, 3)
-    x1 = torch.cat([noisy.history, noisy.target[:, None], noisy.future], dim=1)
-    graph = clean.graph
-    count = torch.bincount(graph.node_graph, minlength=graph.num_graphs).to(x0.dtype)[:, None, None]
-    def centre(x):
-        return torch.zeros(graph.num_graphs, *x.shape[1:], dtype=x.dtype).index_add_(0, graph.node_graph, x) / count
-    torch.testing.assert_close(x1[:, 0], x0[:, 0], atol=1e-12, rtol=0)            # the first frame untouched
-    torch.testing.assert_close(centre(x1), centre(x0), atol=1e-9, rtol=0)         # turned about the centre
-    rel0, rel1 = x0 - centre(x0)[graph.node_graph], x1 - centre(x1)[graph.node_graph]
-    torch.testing.assert_close(rel1.norm(dim=-1), rel0.norm(dim=-1), atol=1e-9, rtol=0)   # rigid
-    turns = [_turns(rel1[:, t], rel0[:, t], graph.node_graph, graph.num_graphs) for t in range(5)]
-    for t in (3, 4):                                                              # the targets turn with frame 2
-        torch.testing.assert_close(turns[t], turns[2], atol=1e-9, rtol=0)
-    angle = torch.stack([torch.rad2deg(torch.arccos(((r.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1)))
-                         for r in turns], dim=1)                                  # (B, 5) degrees
-    assert float(angle[:, 0].max()) < 1e-5
-    # three components of std 2 degrees at the last input frame: the angle's mean square is 12 deg^2
-    # there and half of it one frame before
-    assert float((angle[:, 2] ** 2).mean()) == pytest.approx(12.0, rel=0.15)
-    assert float((angle[:, 1] ** 2).mean()) == pytest.approx(6.0, rel=0.15)

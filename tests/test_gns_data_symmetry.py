@@ -97,13 +97,13 @@ def test_body_frame_averaging_is_exactly_invariant_to_the_body_frame(tmp_path):
     s = torch.from_numpy(mesh_symmetries(get_shape("cube").vertices)[7])
     relabelled = replace(g, rest=b.graph.rest @ s.T)
     for symmetrize in (False, True):
-        sim.symmetrize, sim.body_frames = symmetrize, True
+        sim.options = sim.options.replace(symmetrize=symmetrize, body_frames=True)
         a = sim.predict_acceleration(b.history, g)
         assert torch.allclose(sim.predict_acceleration(b.history, relabelled), a, atol=1e-6)
-        sim.body_frames = False   # control: without the averaging the labels matter
+        sim.options = sim.options.replace(body_frames=False)   # control: without the averaging the labels matter
         assert not torch.allclose(sim.predict_acceleration(b.history, relabelled),
                                   sim.predict_acceleration(b.history, g), atol=1e-6)
     # a rollout builds the groups itself
-    sim.symmetrize, sim.body_frames = True, True
+    sim.options = sim.options.replace(symmetrize=True, body_frames=True)
     x = sim.rollout(b.history, b.graph, 2)
     assert torch.isfinite(x).all()

@@ -11,12 +11,14 @@ from datagen.shards import Dataset, Scene
 from gns.config import FeatureConfig, ModelConfig, build_config
 from gns.data import ObjectTracks, feature_spec, vertices_from_poses
 from gns.geometry import quat_from_axis_angle
-from gns.graph import MeshLibrary, collision_edges, with_collision_edges
+from gns.contacts import collision_edges, with_collision_edges
+from gns.graph import MeshLibrary
 from gns.metrics import evaluate_scenes, interpenetration_pct
 from gns.rollout import rollout_scenes
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-from gns.train import load_model, train
+from gns.checkpoint import load_model
+from gns.train import train
 
 R = 0.15
 GAP = 0.02

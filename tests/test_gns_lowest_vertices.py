@@ -4,7 +4,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
-from gns_fixtures import write_toss_dataset
+from gns_fixtures import rolled_out, write_toss_dataset
 
 from datagen.shapes import get_shape
 from gns.checkpoint import build_simulator
@@ -12,7 +12,8 @@ from gns.config import ConfigError
 from gns.graph import MeshLibrary, lowest_nodes, select_nodes
 from gns.rigid import shape_match_packed
 from gns.spec import Floor, ModelSpec
-from gns.train import read_checkpoint, train
+from gns.checkpoint import read_checkpoint
+from gns.train import train
 from test_gns_train import quiet, tiny
 
 
@@ -107,14 +108,14 @@ def test_vertices_the_network_does_not_see_follow_the_pose_of_those_it_does():
 def _rollout_equals_the_plain_loop(sim, x_t, graph, steps):
     """sim.rollout (free flight, sleep, fitted poses handed over) against advance + a shape match
     of every vertex at each step, from x_t moving at constant velocity."""
-    from gns.simulator import Sleep
     history = torch.stack([x_t + torch.tensor([0.0, 0.01, 0.02 * k], dtype=torch.float64) for k in (2, 1, 0)], 1)
     with torch.no_grad():
-        out, rots, trans = sim.rollout(history, graph, steps, free_flight=True, sleep=Sleep(), poses=True)
+        out, rots, trans = rolled_out(sim, history, graph, steps, free_flight=True, sleep=True, poses=True)
         frames = list(history.unbind(1))
         pose = [shape_match_packed(f, graph.rest, graph.node_graph, graph.num_graphs)[:2] for f in frames[-2:]]
         for step in range(steps):
-            x = sim.advance(frames, graph, Sleep(), True, pose)
+            with sim.using(free_flight=True, sleep=True):
+                x = sim.advance(frames, graph, pose)
             rot, t, matched = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
             torch.testing.assert_close(out[step], matched, atol=1e-9, rtol=0)
             torch.testing.assert_close(rots[step], rot, atol=1e-9, rtol=0)
@@ -193,7 +194,7 @@ def test_with_other_objects_every_vertex_in_contact_is_seen():
     """Low graphs in scenes of several objects: the network also sees each vertex that has a
     collision edge (however high), the cut graph carries every collision edge of the whole one,
     and the kept nodes move exactly as the network says on that graph."""
-    from gns.graph import collision_edges
+    from gns.contacts import collision_edges
     sim = _simulator(6, collisions=True).eval()
     x_t, graph = _stacked_scene()
     full = collision_edges(x_t, graph, sim.layout.collision_radius)

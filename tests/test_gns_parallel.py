@@ -15,7 +15,8 @@ from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
 from datagen.shards import Dataset
 from gns.spec import ModelSpec
-from gns.train import build_simulator, read_checkpoint, train
+from gns.checkpoint import build_simulator, read_checkpoint
+from gns.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "gns_tiny.toml"

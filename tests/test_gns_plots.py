@@ -6,7 +6,8 @@ from PIL import Image
 from datagen.shapes import get_shape
 from datagen.shards import Scene
 from gns.geometry import quat_from_axis_angle
-from gns.plots import animate_rollout, contact_frames, plot_curve, plot_error_vs_time, plot_trajectory
+from gns.charts import plot_curve
+from gns.plots import animate_rollout, contact_frames, plot_error_vs_time, plot_trajectory
 
 T = 12
 

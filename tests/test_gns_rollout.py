@@ -11,8 +11,10 @@ from datagen.shards import Dataset, Scene
 from gns.config import build_config
 from gns.evaluate import evaluate_run
 from gns.geometry import pose_to_vertices
+from gns.options import RolloutOptions
 from gns.rollout import rollout_scenes, write_rollouts
-from gns.train import load_model, train
+from gns.checkpoint import load_model
+from gns.train import train
 
 
 @pytest.fixture(scope="module")
@@ -45,10 +47,10 @@ def test_rollout_is_finite_rigid_and_starts_from_the_truth(trained):
 
 def test_rollouts_are_written_in_the_data_format(trained, tmp_path):
     data, run = trained
-    sim, _ = load_model(run / "latest.pt")
+    sim, _ = load_model(run / "latest.pt", options=RolloutOptions(shape_matching=False))
     ds = Dataset(data)
     true = ds.load("test")
-    pred = rollout_scenes(sim, true, ds.meshes, ds.frame_rate, shape_matching=False, progress=False)
+    pred = rollout_scenes(sim, true, ds.meshes, ds.frame_rate, progress=False)
     write_rollouts(tmp_path / "r", pred, ds, "test", {"run": str(run)})
     back = Dataset(tmp_path / "r")
     assert back.meta["rollout"]["run"] == str(run) and back.frame_rate == ds.frame_rate
@@ -202,10 +204,10 @@ def test_a_compiled_eval_warms_up_first_and_counts_only_the_timed_rollouts(train
     torch.compile is replaced by the identity here, so only the bookkeeping is under test."""
     from gns.cli import main as gns_main
     data, run = trained
-    plain, *_ = evaluate_run(run, data, progress=False, free_flight=True, batch_tracks=2)
+    plain, *_ = evaluate_run(run, data, progress=False, free_flight=True, batch=2)
     assert plain["warmup_seconds"] is None
     monkeypatch.setattr(torch, "compile", lambda module, **kw: module)
-    warmed, *_ = evaluate_run(run, data, progress=False, free_flight=True, batch_tracks=2, compile=True)
+    warmed, *_ = evaluate_run(run, data, progress=False, free_flight=True, batch=2, compile=True)
     assert warmed["warmup_seconds"] > 0
     assert warmed["object_steps"] == plain["object_steps"]   # 3 scenes, not 3 + the warm-up's 2
     assert warmed["position_error_pct"] == plain["position_error_pct"]

@@ -212,13 +212,21 @@ def test_shape_match_of_a_diverged_graph_spoils_only_that_graph():
     assert torch.isfinite(proj[node_graph == 0]).all() and torch.isnan(proj[node_graph == 1]).all()
 
 
+def z_turns(angle: torch.Tensor) -> torch.Tensor:
+    """(N,) angles -> (N, 3, 3) rotations about z by them."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    turn = torch.zeros(angle.shape[0], 3, 3, dtype=angle.dtype, device=angle.device)
+    turn[:, 0, 0], turn[:, 0, 1], turn[:, 1, 0], turn[:, 1, 1], turn[:, 2, 2] = c, -s, s, c, 1.0
+    return turn
+
+
 def test_per_node_turns_equal_the_matrix_products():
-    """The rollout's cheap forms (session 29) against the plain matrix products they replace:
+    """The rollout's cheap forms against the plain matrix products they replace:
     each node turned by its graph's rotation, turns about z from cosines and sines, and the
     floor's diagonal maps of the body-frame symmetries."""
     from gns.graph import mapped_symmetries
     from gns.rigid import rotate_nodes
-    from gns.symmetry import turn_about_z, z_turns
+    from gns.symmetry import turn_about_z
     rot = random_rotations(4, seed=1)
     node_graph = torch.tensor([0, 0, 1, 2, 2, 2, 3])
     v = torch.from_numpy(np.random.default_rng(2).normal(size=(7, 3)))

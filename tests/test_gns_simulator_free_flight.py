@@ -11,16 +11,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from gns_fixtures import rolled_out
 from scipy.spatial.transform import Rotation
 
 from datagen.shapes import get_shape
 from gns.config import build_config
 from gns.data import ObjectTracks
-from gns.graph import EdgeSet, MeshLibrary, collision_edges, select_graphs
-from gns.simulator import LearnedSimulator, Sleep
+from gns.contacts import collision_edges
+from gns.graph import EdgeSet, MeshLibrary, select_graphs
+from gns.simulator import LearnedSimulator
 from gns.spec import Floor, ModelSpec
 from gns.stability import resting_scene
-from gns.train import load_model
+from gns.checkpoint import load_model
 
 MODEL = Path(__file__).parent / "data" / "gns_movi_a_small.pt"
 FRAME_RATE, G = 12.0, 10.0
@@ -60,7 +62,7 @@ def test_a_free_object_follows_the_parabola_and_keeps_its_spin_whatever_the_netw
     steps = 40
     frames, _ = flying_frames(lib, graph, [1.0, -2.0, 500.0], [3.0, 1.0, 4.0], [0.5, -2.0, 3.0], 3 + steps)
     sim = untrained()
-    pred, rot, centre = sim.rollout(frames[:, :3], graph, steps, free_flight=True, poses=True)
+    pred, rot, centre = rolled_out(sim, frames[:, :3], graph, steps, free_flight=True, poses=True)
     np.testing.assert_allclose(pred.numpy(), frames[:, 3:].permute(1, 0, 2).numpy(), rtol=0, atol=1e-8)
     assert sim.rollout_counts == {"object_steps": steps, "network": 0, "free_flight": steps, "asleep": 0}
     # the same network without the bypass is nowhere near it
@@ -77,7 +79,7 @@ def test_an_object_near_the_floor_enters_the_network_and_moves_as_without_the_by
     sc.positions[:, 0, 0] += np.arange(sc.num_frames) * 0.1
     graph, verts, _ = ObjectTracks([sc], MeshLibrary(ms)).track_vertices(torch.arange(1), 3)
     plain = sim.rollout(verts, graph, 12)
-    bypass = sim.rollout(verts, graph, 12, free_flight=True)
+    bypass = rolled_out(sim, verts, graph, 12, free_flight=True)
     assert torch.equal(plain, bypass)
     assert sim.rollout_counts["free_flight"] == 0 and sim.rollout_counts["network"] == 12
 
@@ -100,7 +102,7 @@ def test_what_shares_the_batch_does_not_change_an_object_the_network_moves():
     alone_graph, alone_verts, _ = tracks.track_vertices(torch.arange(1), 3)
     alone = sim.rollout(alone_verts, alone_graph, 10)
     graph, verts, _ = tracks.track_vertices(torch.tensor([1, 0, 2]), 3)  # the low one in the middle
-    mixed = sim.rollout(verts, graph, 10, free_flight=True)
+    mixed = rolled_out(sim, verts, graph, 10, free_flight=True)
     middle = graph.node_graph == 1
     np.testing.assert_allclose(mixed[:, middle].numpy(), alone.numpy(), rtol=0, atol=1e-9)
     assert sim.rollout_counts == {"object_steps": 30, "network": 10, "free_flight": 20, "asleep": 0}
@@ -137,7 +139,7 @@ def test_objects_near_each_other_stay_in_the_network_and_far_ones_leave_it():
     frames = torch.stack([graph.rest + (start + velocity * k * dt)[graph.node_graph]
                           + torch.tensor([0, 0, -0.5 * G * (k * dt) ** 2], dtype=torch.float64)
                           for k in range(3)], dim=1)
-    sim.rollout(frames, graph, 1, free_flight=True)
+    rolled_out(sim, frames, graph, 1, free_flight=True)
     assert sim.rollout_counts == {"object_steps": 3, "network": 2, "free_flight": 1, "asleep": 0}
 
 
@@ -159,9 +161,9 @@ def test_a_clearance_below_the_floor_clip_frees_an_object_that_cannot_reach_the_
 
     slow, fast = frames_at(0.3, 0.0), frames_at(0.3, -3.0)   # bottom after the step: 0.27; -0.02
     for clearance, counts in ((None, (1, 1)), (0.1, (0, 1))):
-        sim.free_clearance = clearance
+        sim.options = replace(sim.options, free_flight=True, free_clearance=clearance)
         for history, network in zip((slow, fast), counts):
-            pred = sim.rollout(history, one, 1, free_flight=True)
+            pred = sim.rollout(history, one, 1)
             assert sim.rollout_counts["network"] == network
             if not network:   # exactly ballistic: the bottom face 0.3 - g dt^2 / 2 up, whatever the weights
                 assert float(pred[0, :, 2].min()) == pytest.approx(0.3 - 0.5 * G * dt * dt, abs=1e-9)
@@ -204,7 +206,7 @@ def test_sleeping_objects_stay_out_of_the_network_and_keep_their_pose():
     ms = meshes("beveled_cube", "cylinder", "sphere")
     scenes = [resting_scene(s, 1.4, ms, floor_z=0.0) for s in ("beveled_cube", "cylinder", "sphere")]
     graph, verts, _ = ObjectTracks(scenes, MeshLibrary(ms)).track_vertices(torch.arange(3), 3)
-    pred = sim.rollout(verts, graph, 20, sleep=Sleep(), free_flight=True)
+    pred = rolled_out(sim, verts, graph, 20, sleep=True, free_flight=True)
     assert float((pred[-1] - verts[:, -1]).abs().max()) < 1e-12  # shape matching rounds, nothing more
     assert sim.rollout_counts == {"object_steps": 60, "network": 0, "free_flight": 0, "asleep": 60}
 
@@ -215,7 +217,7 @@ def test_free_flight_needs_gravity_and_frame_rate():
     lib = MeshLibrary(meshes("cube"))
     graph = lib.pack(lib.shape_ids(["cube"]), torch.ones(1, dtype=torch.float64), torch.ones(1), torch.ones(1))
     with pytest.raises(ValueError, match="free flight needs the model's gravity"):
-        sim.rollout(torch.stack([graph.rest] * 3, 1), graph, 1, free_flight=True)
+        rolled_out(sim, torch.stack([graph.rest] * 3, 1), graph, 1, free_flight=True)
 
 
 # --- the speed options as a user reaches them: gns eval / rollout / train flags -------------
@@ -276,7 +278,7 @@ def test_a_compiled_network_rolls_out_as_the_eager_one():
 def test_train_with_compile_and_bf16_writes_a_checkpoint_that_loads_uncompiled(tmp_path):
     from gns_fixtures import write_toss_dataset
     from gns.cli import main
-    from gns.train import read_checkpoint
+    from gns.checkpoint import read_checkpoint
     data = str(write_toss_dataset(tmp_path / "d", train=3, valid=1, frames=8))
     main(["train", "--data", data, "--out", str(tmp_path / "r"), "--config", "gns_tiny", "--steps", "3",
           "--compile", "--autocast", "bf16", "--set", "valid.every=0"])
@@ -303,11 +305,11 @@ def test_signed_floor_distance_shows_how_deep_a_vertex_is_below_the_floor():
 
 def test_the_python_api_rolls_out_with_free_flight_exactly_in_the_air():
     import gns
-    model = gns.load(MODEL)
+    from gns.options import RolloutOptions
+    model = gns.load(MODEL, options=RolloutOptions(free_flight=True))
     g = model.spec.gravity[2]
     out = model.rollout(["sphere"], positions=[[0.0, 0.0, 100.0]], quaternions=[[1.0, 0, 0, 0]],
-                        velocities=[[1.0, 0.0, 0.0]], steps=6, scales=1.4, friction=[0.4], restitution=[0.3],
-                        free_flight=True)
+                        velocities=[[1.0, 0.0, 0.0]], steps=6, scales=1.4, friction=[0.4], restitution=[0.3])
     t = torch.arange(7, dtype=torch.float64) * model.dt
     np.testing.assert_allclose(out.positions[:, 0, 2].numpy(), (100.0 + 0.5 * g * t ** 2).numpy(), atol=1e-9)
     np.testing.assert_allclose(out.positions[:, 0, 0].numpy(), t.numpy(), atol=1e-9)
@@ -317,7 +319,7 @@ def test_with_few_objects_free_the_network_runs_on_all_and_the_free_ones_still_f
     """Below SUBGRAPH_MIN_SHARE of the nodes left out, one call on the whole batch is cheaper
     than cutting it: the free object's rows are replaced by the inertial update, the others'
     answers are the plain rollout's."""
-    from gns.simulator import SUBGRAPH_MIN_SHARE
+    from gns.stepping import SUBGRAPH_MIN_SHARE
     torch.set_num_threads(1)
     sim, _ = load_model(MODEL)
     ms = meshes("beveled_cube", "cylinder", "sphere")
@@ -332,7 +334,7 @@ def test_with_few_objects_free_the_network_runs_on_all_and_the_free_ones_still_f
     graph, verts, _ = ObjectTracks(scenes, MeshLibrary(ms)).track_vertices(torch.arange(7), 3)
     assert int((graph.node_graph == 6).sum()) < SUBGRAPH_MIN_SHARE * graph.num_nodes
     plain = sim.rollout(verts, graph, 5)
-    mixed = sim.rollout(verts, graph, 5, free_flight=True)
+    mixed = rolled_out(sim, verts, graph, 5, free_flight=True)
     assert sim.rollout_counts == {"object_steps": 35, "network": 35, "free_flight": 5, "asleep": 0}
     low_nodes = graph.node_graph < 6
     assert torch.equal(mixed[:, low_nodes], plain[:, low_nodes])

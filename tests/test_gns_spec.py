@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from gns.spec import Floor, ModelSpec, SpecError
-from gns.train import CheckpointError, read_checkpoint
+from gns.checkpoint import CheckpointError, read_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKPOINTS = sorted((ROOT / "gns" / "models").glob("*.pt")) + [ROOT / "tests" / "data" / "gns_movi_a_small.pt"]

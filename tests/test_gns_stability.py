@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from gns_fixtures import rolled_out
 
 from datagen.cli import main as datagen_main
 from datagen.shards import Dataset
@@ -19,10 +20,11 @@ from gns.graph import MeshLibrary
 from gns.ranges import outside_training
 from gns.graph import EdgeSet
 from gns.rigid import shape_match
-from gns.simulator import LearnedSimulator, Sleep
+from gns.simulator import LearnedSimulator
+from gns.stepping import Sleep
 from gns.spec import ModelSpec
 from gns.stability import (REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene)
-from gns.train import load_model, read_checkpoint
+from gns.checkpoint import load_model, read_checkpoint
 from pipelines import stability as stability_pipeline
 
 MODEL = Path(__file__).parent / "data" / "gns_movi_a_small.pt"
@@ -112,7 +114,7 @@ def test_trained_model_at_rest_stays_at_rest_when_rollouts_sleep(movi, trained):
     ds, _ = movi
     sim, spec = trained
     resting = [resting_scene(s, 1.4, ds.meshes, 0.0) for s in spec.shapes]
-    rows = at_rest(sim, resting, ds.meshes, steps=1000, sleep=Sleep())
+    rows = at_rest(sim, resting, ds.meshes, steps=1000, sleep=True)
     assert all(r["drift_pct"] < REST_DRIFT_PCT for r in rows), rows
 
 
@@ -126,7 +128,7 @@ def test_sleeping_never_freezes_an_object_in_flight(movi):
     sc.positions[..., 2] += 3.0
     graph, verts, _ = ObjectTracks([sc], MeshLibrary(ds.meshes)).track_vertices(torch.arange(1), 3)
     plain = sim.rollout(verts, graph, 10)
-    sleeping = sim.rollout(verts, graph, 10, sleep=Sleep())
+    sleeping = rolled_out(sim, verts, graph, 10, sleep=True)
     assert torch.equal(plain, sleeping)
     assert float(verts[:, -1, 2].mean() - sleeping[-1, :, 2].mean()) > 0.5 * 10.0 * (10 * dt) ** 2 * 0.9
 

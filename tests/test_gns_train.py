@@ -10,7 +10,9 @@ from datagen.shards import Dataset
 from gns.config import build_config
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
-from gns.train import learning_rate, load_model, read_checkpoint, train
+from gns.checkpoint import load_model, read_checkpoint
+from gns.optimise import learning_rate
+from gns.train import train
 
 TINY = Path(__file__).resolve().parents[1] / "configs" / "gns_tiny.toml"
 
@@ -139,7 +141,7 @@ def test_resume_tolerates_a_torn_metrics_line(data, tmp_path):
 
 
 def test_an_exported_model_cannot_be_resumed_but_says_why(data, tmp_path):
-    from gns.train import CheckpointError, export_model
+    from gns.checkpoint import CheckpointError, export_model
     run = tmp_path / "run"
     train(data, run, tiny("train.steps=5", "train.checkpoint_every=5"), log=quiet)
     export_model(run / "latest.pt", tmp_path / "exported" / "latest.pt")

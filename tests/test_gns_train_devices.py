@@ -39,8 +39,8 @@ def test_device_flag_overrides_the_config(data, tmp_path, capsys):
 @pytest.mark.parametrize("command", ["train", "eval", "rollout"])
 def test_an_unusable_device_is_one_line(data, tmp_path, capsys, command):
     args = {"train": ["train", "--data", str(data), "--out", str(tmp_path / "r"), "--config", str(TINY)],
-            "eval": ["eval", "--run", "gns_real_cubes_n16", "--data", str(data)],
-            "rollout": ["rollout", "--run", "gns_real_cubes_n16", "--data", str(data), "--out", str(tmp_path / "o")]}
+            "eval": ["eval", "--run", "real_cubes_16", "--data", str(data)],
+            "rollout": ["rollout", "--run", "real_cubes_16", "--data", str(data), "--out", str(tmp_path / "o")]}
     code, out = run_cli(args[command] + ["--device", "warp-drive"], capsys)
     assert code == 2
     assert out.err.startswith("error: ") and "is not a torch device" in out.err and out.err.count("\n") == 1

@@ -12,7 +12,9 @@ from gns.config import ConfigError, build_config
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
 from gns.rigid import shape_match_packed
-from gns.train import build_simulator, read_checkpoint, train, unrolled_loss
+from gns.checkpoint import build_simulator, read_checkpoint
+from gns.optimise import unrolled_loss
+from gns.train import train
 from test_gns_train import TINY, metrics, quiet, tiny
 
 G_STEP = torch.tensor(GRAVITY, dtype=torch.float64) / FRAME_RATE ** 2
@@ -139,50 +141,17 @@ def sim_and_batch(tmp_path, *overrides):
     return sim, ObjectTracks(scenes, MeshLibrary(ds.meshes)).batch(torch.tensor([0, 3, 6]))
 
 
-def test_huber_and_l1_losses_are_what_they_say(tmp_path):
-    sim, b = sim_and_batch(tmp_path)
-    mse = sim.loss(b.history, b.target, b.graph)
-    # within delta the Huber loss is half the squared error; with a tiny delta it is delta x |e|
-    assert torch.allclose(sim.loss(b.history, b.target, b.graph, "huber", 1e6), mse / 2)
-    l1 = sim.loss(b.history, b.target, b.graph, "l1")
-    assert torch.allclose(sim.loss(b.history, b.target, b.graph, "huber", 1e-4), 1e-4 * l1, rtol=1e-3)
-    assert l1 > 0
-    with pytest.raises(ValueError):
-        sim.loss(b.history, b.target, b.graph, "l3")
-
-
-def test_velocity_direction_is_the_direction_of_motion_above_its_scale_and_fades_at_rest(tmp_path):
-    from gns.features import raw_node_features
-    sim, b = sim_and_batch(tmp_path, "features.velocity_direction=0.3")
-    layout = sim.layout
-    assert "velocity_direction" in dict(layout.node_groups)
-    assert layout.velocity_scale == pytest.approx(0.3 * 10 / FRAME_RATE ** 2)
-    s = layout.velocity_scale
-    x0 = torch.zeros(2, 3, dtype=torch.float64)
-    fast = torch.stack([x0, x0 + torch.tensor([1000 * s, 0, 0]), x0 + torch.tensor([2000 * s, 0, 0])], 1)
-    still = torch.stack([x0, x0, x0], 1)
-    g = b.graph
-    f_fast = raw_node_features(layout, fast, g)["velocity_direction"]
-    f_still = raw_node_features(layout, still, g)["velocity_direction"]
-    assert torch.allclose(f_fast[:, 0], torch.full((2,), 1000 / 1001, dtype=torch.float32))
-    assert float(f_still.abs().max()) == 0.0
-    # the model stays equivariant to horizontal translation (z would change the floor distance)
-    assert torch.isfinite(sim(b.history, g)).all()
-    shift = torch.tensor([5.0, -3.0, 0.0], dtype=torch.float64)
-    assert torch.allclose(sim(b.history + shift, g), sim(b.history, g), atol=1e-5)
-
-
 def test_symmetrized_predictions_are_exactly_mirror_and_half_turn_equivariant(tmp_path):
     sim, b = sim_and_batch(tmp_path)
     from dataclasses import replace
-    sim.symmetrize = True
+    sim.options = sim.options.replace(symmetrize=True)
     a = sim.predict_acceleration(b.history, b.graph)
     scale = float(a.abs().max())   # an untrained network's answers are small: compare relative to them
     for m in ((-1.0, 1.0, 1.0), (1.0, -1.0, 1.0), (-1.0, -1.0, 1.0)):
         g = torch.tensor(m, dtype=torch.float64)
         mapped = sim.predict_acceleration(b.history * g, replace(b.graph, rest=b.graph.rest * g))
         assert float((mapped - a * g).abs().max()) < 1e-6 * scale, m
-    sim.symmetrize = False   # the network alone is not exactly equivariant (control)
+    sim.options = sim.options.replace(symmetrize=False)   # the network alone is not exactly equivariant (control)
     plain = sim.predict_acceleration(b.history, b.graph)
     g = torch.tensor((-1.0, 1.0, 1.0), dtype=torch.float64)
     mirrored = sim.predict_acceleration(b.history * g, replace(b.graph, rest=b.graph.rest * g))
@@ -202,9 +171,9 @@ def test_d4_symmetrized_predictions_are_exactly_quarter_turn_equivariant(tmp_pat
         a = sim.predict_acceleration(b.history, b.graph)
         m = sim.predict_acceleration(b.history @ g.T, replace(b.graph, rest=b.graph.rest @ g.T))
         return float((m - a @ g.T).abs().max() / a.abs().max())
-    sim.symmetrize = "d4"
+    sim.options = sim.options.replace(symmetrize="d4")
     assert off(quarter) < 1e-6 and off(diagonal) < 1e-6
-    sim.symmetrize = "d2"    # the mirrors alone do not hold a quarter turn (control)
+    sim.options = sim.options.replace(symmetrize="d2")    # the mirrors alone do not hold a quarter turn (control)
     assert off(quarter) > 1e-3
     assert symmetry_group(True) == "d2" and symmetry_group(False) is None
     with pytest.raises(ValueError, match="unknown symmetry group 'd6'"):
@@ -223,42 +192,11 @@ def test_the_two_and_four_image_groups_hold_exactly_their_own_maps_and_not_the_o
         m = sim.predict_acceleration(b.history @ g.T, replace(b.graph, rest=b.graph.rest @ g.T))
         return float((m - a @ g.T).abs().max() / a.abs().max())
     for group, holds, fails in (("d1", mirror_x, half), ("c2", half, mirror_x), ("c4", quarter, mirror_x)):
-        sim.symmetrize = group
+        sim.options = sim.options.replace(symmetrize=group)
         assert off(holds) < 1e-6, group
         assert off(fails) > 1e-3, group   # an untrained network is far from the map the group lacks
-    sim.symmetrize = "c4"
+    sim.options = sim.options.replace(symmetrize="c4")
     assert off(half) < 1e-6   # the half turn is two quarter turns
-
-
-def test_random_headings_turn_each_scene_back_and_repeat_from_their_seed(tmp_path):
-    sim, b = sim_and_batch(tmp_path)
-    # a network with a fixed answer in the world frame (a bias that does not turn with the scene)
-    bias = torch.tensor([1.0, 0.0, -0.5])
-    sim.forward = lambda history, graph: bias.expand(history.shape[0], 3)
-    plain = sim.predict_acceleration(b.history, b.graph)
-    sim.symmetrize = "r1"
-    sim.reset_turns()
-    turned = sim.predict_acceleration(b.history, b.graph)
-    # each scene's answer is the bias turned back from its own heading: same length, same
-    # vertical part, a different horizontal direction per scene and the same within one
-    assert torch.allclose(turned.norm(dim=1), plain.norm(dim=1)) and torch.allclose(turned[:, 2], plain[:, 2])
-    heading = torch.atan2(turned[:, 1], turned[:, 0])
-    scene = b.graph.node_scene
-    for k in range(int(scene.max()) + 1):
-        assert float(heading[scene == k].std()) < 1e-9
-    assert len({round(float(heading[scene == k][0]), 6) for k in range(int(scene.max()) + 1)}) == 3
-    # with the half turn averaged in (r2), a horizontal bias cancels exactly, the vertical stays
-    sim.symmetrize = "r2"
-    both = sim.predict_acceleration(b.history, b.graph)
-    assert float(both[:, :2].abs().max()) < 1e-12 * float(plain.abs().max())
-    assert torch.allclose(both[:, 2], plain[:, 2])
-    # the same seed repeats the headings, another seed does not
-    sim.symmetrize = "r1"
-    sim.reset_turns()
-    assert torch.equal(sim.predict_acceleration(b.history, b.graph), turned)
-    sim.turn_seed = 1
-    sim.reset_turns()
-    assert not torch.allclose(sim.predict_acceleration(b.history, b.graph), turned)
 
 
 def test_a_canonical_heading_makes_the_model_exactly_equivariant_to_any_turn_about_z(tmp_path):
@@ -285,77 +223,6 @@ def test_a_canonical_heading_makes_the_model_exactly_equivariant_to_any_turn_abo
     assert torch.allclose(sim(still, b.graph), ref, atol=1e-6)
 
 
-def test_a_canonical_mirror_makes_the_model_exactly_equivariant_to_floor_mirrors_at_one_call(tmp_path):
-    from gns.config import ConfigError
-    from gns.symmetry import mirror_signs
-
-    def mirrored_off(sim, b, g, shift=(0.0, 0.0, 0.0), body=None):
-        """How far the prediction for the scene mirrored by g (and moved) is from the mirrored
-        prediction, relative to it; the body frame mirrored by `body` (default g), so that the
-        network is still shown a proper rotation."""
-        g = torch.tensor(g, dtype=torch.float64)
-        body = g if body is None else torch.tensor(body, dtype=torch.float64)
-        a = sim.predict_acceleration(b.history, b.graph)
-        m = sim.predict_acceleration(b.history * g + torch.tensor(shift, dtype=torch.float64),
-                                     replace(b.graph, rest=b.graph.rest * body))
-        return float((m - a * g).abs().max() / a.abs().max())
-    sim, b = sim_and_batch(tmp_path, "features.canonical_heading=true", "features.canonical_mirror=true")
-    assert sim.canonical_mirror
-    assert mirrored_off(sim, b, (1.0, -1.0, 1.0), (0.4, -2.0, 0.0)) < 1e-5
-    # the mirror in x is the one in y and a half turn, which the heading undoes in the world but
-    # not in the body frame: exact with the body frame mirrored in y, not with it mirrored in x
-    # (the body frames' half turn, as for --symmetrize c2 images of a canonical model)
-    assert mirrored_off(sim, b, (-1.0, 1.0, 1.0), (0.4, -2.0, 0.0), body=(1.0, -1.0, 1.0)) < 1e-5
-    assert mirrored_off(sim, b, (-1.0, 1.0, 1.0)) > 1e-3
-    heading_only, _ = sim_and_batch(tmp_path / "heading", "features.canonical_heading=true")
-    assert mirrored_off(heading_only, b, (1.0, -1.0, 1.0)) > 1e-3   # control: the heading alone is not
-    # the sign reads angular momentum about each scene's centre: a mirror in y flips it, a shift does not
-    scene = b.graph.node_scene
-    signs = mirror_signs(b.history, scene, 3)
-    assert torch.equal(mirror_signs(b.history + torch.tensor([3.0, -1.0, 0.5], dtype=torch.float64), scene, 3), signs)
-    assert torch.equal(mirror_signs(b.history * torch.tensor([1.0, -1.0, 1.0], dtype=torch.float64), scene, 3), -signs)
-    with pytest.raises(ConfigError, match="canonical_mirror needs features.canonical_heading"):
-        sim_and_batch(tmp_path / "bad", "features.canonical_mirror=true")
-
-
-def test_a_canonical_body_frame_makes_the_answer_independent_of_which_equivalent_frame_describes_a_cube(tmp_path):
-    """The same world vertices, the cube's rest shape described in another of its 24 frames
-    (r -> S r, pose R S^T): the same prediction with features.canonical_body_frame, not without;
-    also under the canonical heading and through symmetrized images (mirrors map the groups)."""
-    from gns.graph import mesh_symmetries
-    from gns.symmetry import canonical_body_frame
-
-    def relabelled_off(sim, b, k):
-        g = b.graph
-        s = torch.from_numpy(mesh_symmetries(g.rest[g.node_graph == 0].numpy()))[k]
-        a = sim.predict_acceleration(b.history, g)
-        m = sim.predict_acceleration(b.history, replace(g, rest=g.rest @ s.T))
-        return float((m - a).abs().max() / a.abs().max())
-
-    for heading in ("false", "true"):
-        sim, b = sim_and_batch(tmp_path / heading, "features.canonical_body_frame=true",
-                               f"features.canonical_heading={heading}")
-        assert sim.canonical_body_frame and b.graph.symmetries.shape[1] == 24
-        for k in (5, 13, 23):
-            assert relabelled_off(sim, b, k) < 1e-5, (heading, k)
-        sim.symmetrize = True
-        assert relabelled_off(sim, b, 7) < 1e-5, heading
-    plain, b = sim_and_batch(tmp_path / "plain")      # control: the network alone is not invariant
-    assert relabelled_off(plain, b, 13) > 1e-3
-    # the frame chosen is the one whose pose is closest to the identity: a cube turned 100 degrees
-    # about z is described as turned 10, the world vertices unchanged
-    c, s = math.cos(math.radians(100)), math.sin(math.radians(100))
-    turn = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    one = replace(b.graph, symmetries=b.graph.symmetries)
-    x = b.graph.rest @ turn.T
-    chosen, pose = canonical_body_frame(x, one, shape_match_packed(x, one.rest, one.node_graph, one.num_graphs)[0])
-    rot, _, _ = shape_match_packed(x, chosen.rest, one.node_graph, one.num_graphs)
-    assert torch.allclose(pose, rot, atol=1e-9)
-    angle = torch.rad2deg(torch.acos(((rot.diagonal(dim1=1, dim2=2).sum(1) - 1) / 2).clamp(-1, 1)))
-    assert torch.allclose(angle, torch.full_like(angle, 10.0), atol=1e-6)
-    assert torch.allclose(rot @ chosen.rest[one.node_graph == 0].T, (b.graph.rest[one.node_graph == 0] @ turn.T).T)
-
-
 def test_an_ensemble_averages_its_members_predictions_and_refuses_a_member_reading_other_graphs(tmp_path):
     sim, b = sim_and_batch(tmp_path)
     other, _ = sim_and_batch(tmp_path / "other")   # a second build draws other initial weights
@@ -363,19 +230,19 @@ def test_an_ensemble_averages_its_members_predictions_and_refuses_a_member_readi
     assert not torch.allclose(a, o, atol=1e-6)
     sim.set_ensemble([other])
     torch.testing.assert_close(sim.predict_acceleration(b.history, b.graph), (a + o) / 2, rtol=0, atol=1e-9)
-    sim.symmetrize = True    # each member symmetrized as the model is asked to be: still exactly equivariant
+    sim.options = sim.options.replace(symmetrize=True)    # each member symmetrized as the model is asked to be: still exactly equivariant
     both = sim.predict_acceleration(b.history, b.graph)
     g = torch.tensor((-1.0, 1.0, 1.0), dtype=torch.float64)
     mirrored = sim.predict_acceleration(b.history * g, replace(b.graph, rest=b.graph.rest * g))
     assert float((mirrored - both * g).abs().max()) < 1e-6 * float(both.abs().max())
-    coarse, _ = sim_and_batch(tmp_path / "coarse", "features.mesh_vertices=4")
+    centred, _ = sim_and_batch(tmp_path / "centred", "features.centre_node=true")
     with pytest.raises(ValueError, match="member 1 differs .* network mesh"):
-        sim.set_ensemble([coarse])
+        sim.set_ensemble([centred])
     # other node features over the same graphs (the floor seen from farther): each member
     # computes its own, and free flight waits until the farthest-seeing member's floor is clear
     far, _ = sim_and_batch(tmp_path / "far", "features.floor_clip=1.5", "features.floor_signed=true")
     f = far.predict_acceleration(b.history, b.graph)
-    sim.symmetrize = False
+    sim.options = sim.options.replace(symmetrize=False)
     assert sim.free_flight_clip == sim.layout.floor_clip == 0.5
     sim.set_ensemble([far])
     torch.testing.assert_close(sim.predict_acceleration(b.history, b.graph), (a + f) / 2, rtol=0, atol=1e-9)
@@ -410,10 +277,6 @@ def test_an_ensemble_member_on_spokes_only_reads_its_own_mesh_edges(tmp_path):
     full.set_ensemble([])
     a = spokes.members[0].predict_acceleration(bf.history, bf.graph)
     torch.testing.assert_close(spokes.predict_acceleration(bs.history, bs.graph), (a + o) / 2, rtol=0, atol=1e-9)
-    # some shapes' surfaces kept (features.surface_edge_shapes) cannot be told from the faces alone
-    kept, _ = built("features.surface_edges=false", "features.surface_edge_shapes=cube")
-    with pytest.raises(ValueError, match="member 1 differs .* network mesh"):
-        full.set_ensemble([kept])
 
 
 def test_upsampling_a_strided_rollout_recovers_a_smooth_trajectory_at_every_frame():
@@ -466,29 +329,3 @@ def test_train_scenes_trains_on_the_first_scenes_exactly_as_a_dataset_of_that_ma
     with pytest.raises(ConfigError, match="train.scenes=7, but .* holds 6 train scenes"):
         load_data(large, tiny("train.scenes=7"))
 
-
-def test_size_weights_make_a_small_objects_error_count_as_its_share_of_its_size(tmp_path):
-    from gns.graph import graph_sizes
-    from gns.train import size_weights
-    from gns.data import feature_spec
-    ds = Dataset(write_toss_dataset(tmp_path, train=8, valid=0, frames=6))
-    scenes = ds.load("train")
-    assert len({float(sc.scale[0]) for sc in scenes}) == 2      # both MOVi-A sizes
-    sim = build_simulator(build_config(path=TINY), feature_spec(ds, scenes)).eval()
-    tracks = ObjectTracks(scenes, MeshLibrary(ds.meshes))
-    b = tracks.batch(torch.arange(tracks.num_windows))
-    assert size_weights(b.graph, 0.0) is None
-    w = size_weights(b.graph, 2.0)
-    size = graph_sizes(b.graph)[b.graph.node_graph].to(torch.float32)
-    assert torch.allclose(w.mean(), torch.tensor(1.0))
-    # two nodes' weights stand in the inverse square of their objects' sizes
-    i, j = int(size.argmin()), int(size.argmax())
-    assert size[i] < size[j]
-    assert torch.allclose(w[i] / w[j], (size[j] / size[i]) ** 2)
-    # equal weights change nothing; weights move the loss toward the heavier nodes
-    plain = sim.loss(b.history, b.target, b.graph)
-    assert torch.allclose(sim.loss(b.history, b.target, b.graph, node_weight=torch.ones_like(w)), plain)
-    weighted = sim.loss(b.history, b.target, b.graph, node_weight=w)
-    assert not torch.allclose(weighted, plain)
-    with pytest.raises(ConfigError, match="train.size_weight"):
-        build_config(path=TINY, overrides=["train.size_weight=-1"])

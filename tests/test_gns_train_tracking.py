@@ -10,7 +10,8 @@ from gns_fixtures import write_toss_dataset
 
 from datagen.shards import Dataset
 from gns.cli import main
-from gns.train import TENSORBOARD_DIR, read_checkpoint, read_metrics
+from gns.checkpoint import read_checkpoint
+from gns.run_folder import TENSORBOARD_DIR, read_metrics
 
 TINY = str(Path(__file__).resolve().parents[1] / "configs" / "gns_tiny.toml")
 LIBRARIES = ("python", "torch", "numpy", "pybullet", "h5py", "trimesh", "scipy")

@@ -5,7 +5,8 @@ from gns_fixtures import write_toss_dataset
 
 from gns.checkpoint import TRAINED, export_model, load_model
 from gns.config import ConfigError, build_config
-from gns.train import read_checkpoint, train
+from gns.checkpoint import read_checkpoint
+from gns.train import train
 from gns.weight_average import WeightAverage, decay_at
 from test_gns_train import TINY, metrics, quiet, tiny
 

@@ -4,7 +4,7 @@ import json
 from test_real_cubes import SRC
 
 from pipelines import real_cubes_accuracy
-from gns.train import load_model
+from gns.checkpoint import load_model
 
 
 def test_tiny_preset_end_to_end_and_rerun(tmp_path, capsys):

@@ -18,7 +18,8 @@ from gns.cli import main as gns_main
 from gns.config import build_config
 from gns.evaluate import evaluate_run
 from gns.simulator import LearnedSimulator
-from gns.train import read_checkpoint, train
+from gns.checkpoint import read_checkpoint
+from gns.train import train
 from pipelines import movi_a
 from pipelines.common import guarded, train_stage
 
