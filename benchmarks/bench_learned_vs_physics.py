@@ -19,7 +19,7 @@ batched, in each variant asked:
   sym       each step averaged over the floor's 4 mirror symmetries (`--symmetrize`): the most
             accurate rollouts, at 4x the network's work
   d1, c2, c4, d4
-            the other averages of `--symmetrize GROUP` (c2: the half turn, 2x the work; docs/speed.md)
+            the other averages of `--symmetrize GROUP` (c2: the half turn, 2x the work; experiments/log.md)
 
 joined with "+" (e.g. free+bf16). Several --run give every variant of every model, all in the
 same rounds (e.g. a small model against a large one). Cost is wall-clock ms per simulated second per trajectory

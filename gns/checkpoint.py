@@ -6,7 +6,7 @@ A checkpoint is a `torch.save` dict of format CHECKPOINT_FORMAT: "format", "step
 "model" (weights and normalisers), "provenance", and in a training checkpoint also
 "optimizer" and "rng", and with `train.ema_decay` "trained" (the weights training goes on from;
 "model" then holds their moving average, gns.weight_average). An exported model (`export_model`)
-drops the last three. docs/gns.md documents the keys.
+drops the last three. docs/model.md documents the keys.
 """
 from __future__ import annotations
 

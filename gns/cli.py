@@ -190,23 +190,23 @@ def _add_rollout_args(p) -> None:
     # dest = the RolloutOptions field (OPTION_FLAGS); every default None: unset, the model's own stays
     o.add_argument("--batch", type=int, metavar="B",
                    help="object tracks rolled out together (default 1024: the 400 test scenes of MOVi-A in one "
-                        "batch, 10-20%% faster than 256, docs/speed.md; smaller if memory is short)")
+                        "batch, 10-20%% faster than 256, experiments/log.md; smaller if memory is short)")
     o.add_argument("--shape-matching", action=argparse.BooleanOptionalAction,
                    help="project each prediction onto the rigid shape (default); --no-shape-matching feeds raw "
                         "predictions back (the paper's -sm ablation)")
     o.add_argument("--sleep", action=argparse.BooleanOptionalAction,
                    help="hold resting objects still until another object touches them, as physics engines "
-                        "deactivate bodies (docs/stability.md); off by default")
+                        "deactivate bodies (docs/results.md); off by default")
     # the keys of gns.symmetry.SYMMETRY_GROUPS, written out so that --help does not import torch
     o.add_argument("--symmetrize", nargs="?", const="d2", choices=["none", "d2", "d4", "d1", "c2", "c4"],
                    metavar="GROUP",
                    help="average each step's prediction over the floor's symmetries: d2 (the default when no GROUP "
                         "is given) the mirrors in x and y and the half turn, exactly mirror-equivariant rollouts "
                         "at 4x the network cost; d4 also the quarter turns and diagonal mirrors, at 8x "
-                        "(measured 0.2 points better, docs/accuracy.md); d1 (the mirror in x) and "
+                        "(measured 0.2 points better, experiments/log.md); d1 (the mirror in x) and "
                         "c2 (the half turn) at 2x, c4 (the quarter turns) at 4x; none: one network call (default). "
                         "For a model trained with features.canonical_heading (every recent MOVi-A model) d1 "
-                        "measured nearly d2's accuracy at half its cost (docs/speed.md)")
+                        "measured nearly d2's accuracy at half its cost (experiments/log.md)")
     o.add_argument("--body-frames", action=argparse.BooleanOptionalAction,
                    help="also average over each object's equivalent body frames (a cube's 24 rotations onto "
                         "itself): exactly invariant to which one describes it, at that many times the cost")
@@ -219,7 +219,7 @@ def _add_rollout_args(p) -> None:
     o.add_argument("--compile", action=argparse.BooleanOptionalAction,
                    help="run the network through torch.compile with inductor's freezing (the weights as constants, "
                         "laid out once for the CPU's matrix kernels: ~6%% faster rollouts than compiling alone, "
-                        "docs/speed.md); the first steps compile, tens of seconds, on a first batch rolled out before "
+                        "experiments/log.md); the first steps compile, tens of seconds, on a first batch rolled out before "
                         "the timed rollouts and not counted in their wall clock")
     o.add_argument("--free-flight", action=argparse.BooleanOptionalAction,
                    help="objects out of reach of the floor and of other objects follow the exact inertial update "
@@ -229,7 +229,7 @@ def _add_rollout_args(p) -> None:
                         "after the inertial step, to be in free flight (default: the model's floor clip, beyond "
                         "which its network does not see the floor). Lower takes objects near the floor that "
                         "cannot reach it within the step out of the network too: on MOVi-A 0.5 cut the object-"
-                        "steps in the network from 88%% to ~80%%, accuracy level within 0.1 (docs/speed.md)")
+                        "steps in the network from 88%% to ~80%%, accuracy level within 0.1 (experiments/log.md)")
     o.add_argument("--ensemble", action="append", metavar="RUN",
                    help="another trained run (same network mesh, floor and time step; e.g. another seed or "
                         "recipe) whose prediction each step averages with the model's; repeat for more members, "

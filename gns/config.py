@@ -47,12 +47,12 @@ class FeatureConfig:
     centre_node: bool = False
     # with centre_node: false leaves each object's graph only its spokes, no surface edges. The
     # graph stays 2 steps across, with 2n edges instead of 2n + ~6n: a cheaper network call for
-    # the fast end of the speed trade (docs/speed.md)
+    # the fast end of the speed trade (experiments/log.md)
     surface_edges: bool = True
     # the network sees each scene turned about z so that its mean horizontal velocity points
     # along +x, and its answer is turned back: exactly equivariant to turns about z at one network
     # call (rotation augmentation only teaches it approximately; averaging turned images, as
-    # --symmetrize c2 does, measured 1.6 points better at twice the cost, docs/accuracy.md;
+    # --symmetrize c2 does, measured 1.6 points better at twice the cost, experiments/log.md;
     # fine-tuned with it, 1.25 points and 2.3 degrees better at one call on MOVi-A, no gain on real
     # cubes)
     canonical_heading: bool = False

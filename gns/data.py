@@ -18,7 +18,7 @@ Augmentation (training only):
   its mesh's equivalent body frames (r -> S r, R -> R S^T, S a rotation mapping the mesh's
   vertices onto themselves, gns.graph.mesh_symmetries): the world vertices are unchanged, only
   the labels move, so the model learns that a cube's answer does not hang on which of its 24
-  frames describes it (docs/diagnostic_45.md);
+  frames describes it (docs/results.md);
 - random-walk position noise as in learning_to_simulate: per node, each input velocity gets
   N(0, noise_std^2 / 2) noise, accumulated over the history, so the last input frame carries
   noise of std noise_std. The target position is shifted by the last frame's noise, so the

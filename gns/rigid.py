@@ -27,7 +27,7 @@ def posed(rot: torch.Tensor, t: torch.Tensor, node_graph: torch.Tensor, rest: to
 def rotate_nodes(rot: torch.Tensor, node_graph: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """v (N, 3) turned by its graph's rotation rot (G, 3, 3): rot[node_graph] @ v per node. As
     three column products after index_select: on CPU, rot[node_graph] and a batched (N, 3, 3) x
-    (N, 3, 1) matmul cost ~4x as much, ~10% of a rollout step of a small model (docs/speed.md)."""
+    (N, 3, 1) matmul cost ~4x as much, ~10% of a rollout step of a small model (experiments/log.md)."""
     r = rot.index_select(0, node_graph)
     return r[:, :, 0] * v[:, :1] + r[:, :, 1] * v[:, 1:2] + r[:, :, 2] * v[:, 2:]
 

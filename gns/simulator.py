@@ -162,7 +162,7 @@ class LearnedSimulator(Stepping, nn.Module):
 
         `freeze` (with `compile`, for rollouts of a trained model only): inductor's freezing, which
         takes the weights as constants at the first call and lays them out for the CPU's matrix
-        kernels once (6-7% off a rollout here, docs/speed.md). Weights changed after
+        kernels once (6-7% off a rollout here, experiments/log.md). Weights changed after
         that call are not seen, so a training never freezes; in training mode the unfrozen
         compile (or the plain network) runs."""
         if autocast != "none":   # auto decides here; bf16 on a CPU that emulates it warns

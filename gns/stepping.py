@@ -23,7 +23,7 @@ class Sleep:
 
     A learned model's acceleration at rest is never exactly zero (the small cpu model predicts
     a few % of gravity for an object lying still), and integration turns any such bias into
-    drift (docs/stability.md). An object sleeps, i.e. keeps its pose, while it lies on the
+    drift (docs/results.md). An object sleeps, i.e. keeps its pose, while it lies on the
     floor (lowest vertex within `contact` x its diameter of it) and every vertex moved less than
     `fraction` x |g| dt^2 in both input steps: a tenth of what gravity alone moves a body in
     one frame, which a body in flight cannot do twice in a row (its steps differ by |g| dt^2).
@@ -80,7 +80,7 @@ class Stepping:
         if set.
         A clearance below the clip also takes the band where the network sees the floor but no
         vertex can reach it within the step (now or after the ballistic step): fewer object-steps
-        in the network, at an accuracy measured in docs/speed.md."""
+        in the network, at an accuracy measured in experiments/log.md."""
         if self.options.free_clearance is not None:
             return float(self.options.free_clearance)
         return max([self.layout.floor_clip] + [m.layout.floor_clip for m in self.members])
@@ -100,7 +100,7 @@ class Stepping:
         an object depends on its own motion only: its learned free flight, which the exact
         inertial update replaces. (Free only at t measured 25.9% position against 29.0% with the
         network everywhere on MOVi-A, but penetration 0.38% against 0.29%: an object one step
-        from the floor had been moved into it; docs/speed.md.)"""
+        from the floor had been moved into it; experiments/log.md.)"""
         x = frames[-1]
         free = torch.ones(graph.num_graphs, dtype=torch.bool, device=x.device)
         if self.layout.floor_z is not None:

@@ -21,7 +21,7 @@ _MIRRORS = _maps(((1, 0, 0), (0, 1, 0), (0, 0, 1)), ((-1, 0, 0), (0, 1, 0), (0, 
 # identity, the mirrors in x and in y and the half turn; "d4" also the quarter turns and the
 # diagonal mirrors (x and y swapped), at twice the cost; "d1" (the identity and the mirror in x)
 # and "c2" (the identity and the half turn) at half the cost, "c4" (the quarter turns) at the same:
-# which of d2's gain is the exact mirror and which the average over images (docs/speed.md)
+# which of d2's gain is the exact mirror and which the average over images (experiments/log.md)
 SYMMETRY_GROUPS = {"d2": _MIRRORS,
                    "d4": _MIRRORS + tuple(tuple((m[1], m[0], m[2])) for m in _MIRRORS),
                    "d1": (_MIRRORS[0], _MIRRORS[1]),
@@ -61,7 +61,7 @@ def averaged_over_images(model, history: torch.Tensor, graph: GraphBatch, symmet
     world's floor symmetries, e.g. d2's {identity, mirror x, mirror y, half turn about z}: each maps
     the input, the network predicts, the map is undone. The result is exactly equivariant
     to those maps applied to the scene, body frames included (a cube tilted 45 + d is the mirror
-    of one tilted 45 - d only up to its body frame: docs/diagnostic_45.md), where
+    of one tilted 45 - d only up to its body frame: docs/results.md), where
     the network alone is only approximately so (trained with random z rotations).
     With `body_frames` too, each object's rest shape is also described in every one of
     its equivalent body frames (graph.symmetries, the rotations mapping its mesh onto itself,

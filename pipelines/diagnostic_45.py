@@ -65,7 +65,7 @@ VARIANTS = (("plain", False, False), ("symmetrized", True, False), ("body frames
 
 PRESETS = {
     "tiny": dict(counts={"train": 8, "valid": 2}, model="tiny", steps=40),
-    # mirror and body-symmetry augmentation: with --body-frames rollouts, 8 of 8 (docs/diagnostic_45.md)
+    # mirror and body-symmetry augmentation: with --body-frames rollouts, 8 of 8 (docs/results.md)
     "quick": dict(counts={"train": 400, "valid": 20}, model="cpu", steps=24000,
                   train=("augment.mirror=true", "augment.body_symmetry=true")),
 }

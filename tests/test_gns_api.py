@@ -287,7 +287,7 @@ def test_example_script_runs():
     assert z[0] == 3.0 and 0.9 < z[-1] < 1.1     # tossed from 3 half-widths, it comes to rest on a face
     assert all(b >= a - 0.05 for a, b in zip(x, x[1:])) and x[-1] > 1.0   # thrown forward, it goes forward
     # a toss symmetric in y veers sideways only as far as the cube's triangulated faces (diagonals one
-    # way) break the mirror: symmetrized, 0.06 half-widths; the network alone 0.16 (measured, session 26)
+    # way) break the mirror: symmetrized, 0.06 half-widths; the network alone 0.16 (measured)
     assert max(abs(v) for v in y) <= 0.1
 
 

@@ -101,7 +101,7 @@ def test_constructed_gravity_model_falls_exactly_as_the_parabola(movi):
 
 
 @pytest.mark.xfail(strict=True, reason="measured: the small trained model slides off when at rest "
-                                       "(drift 10-40x its size over 1000 steps); see docs/stability.md")
+                                       "(drift 10-40x its size over 1000 steps); see docs/results.md")
 def test_trained_model_at_rest_stays_at_rest(movi, trained):
     ds, _ = movi
     sim, spec = trained

@@ -78,7 +78,7 @@ def test_run_and_checkpoints_record_versions_commit_and_data_fingerprint(tb_run,
     prov = json.loads((tb_run / "provenance.json").read_text())
     assert prov["data"] == {"path": str(data), "fingerprint": fingerprint}
     assert all(prov["versions"][k] for k in LIBRARIES)
-    assert prov["start_step"] == 6 and prov["earlier"][0]["start_step"] == 0    # the resume is a second session
+    assert prov["start_step"] == 6 and prov["earlier"][0]["start_step"] == 0    # the resume is a second run of the training
     assert prov["earlier"][0]["data"]["fingerprint"] == fingerprint
     ckpt = read_checkpoint(tb_run / "latest.pt")
     assert ckpt["provenance"] == prov

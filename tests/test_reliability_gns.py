@@ -2,7 +2,7 @@
 
 Torn checkpoints and logs, outputs that overlap the input, diverging rollouts, outputs that
 cannot be written, a missing GPU, an exported model given to resume, single-object models on
-multi-object scenes (docs/reliability_gns.md lists each case and its line).
+multi-object scenes (docs/reliability.md lists each case and its line).
 """
 import json
 import shutil
