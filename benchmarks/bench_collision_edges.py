@@ -2,7 +2,7 @@
 
 For scenes of N MOVi-A spheres (62 vertices each), laid out either apart (a grid, no two
 within the radius) or touching in a row (each neighbour pair in contact), times
-gns.graph.collision_edges (broad phase on object bounds, then only vertices near a contact)
+gns.contacts.collision_edges (broad phase on object bounds, then only vertices near a contact)
 against the brute force (all vertex pairs of different objects, one cdist), both in the same
 run, and checks that both find the same edges. The last columns time vertex-to-surface edges
 (gns.contacts, `features.collision_mode = "surface"`) on the same scenes.
