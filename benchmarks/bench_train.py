@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from datagen.shapes import get_shape
-from plumbing.tomlconfig import config_dir
+from plumbing import config_dir
 from datagen.shards import Dataset, Scene
 from gns.config import build_config
 from gns.data import ObjectTracks, feature_spec

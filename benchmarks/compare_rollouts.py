@@ -31,7 +31,7 @@ from gns.checkpoint import CheckpointError  # noqa: E402
 from gns.config import ConfigError  # noqa: E402
 from gns.evaluate import evaluate_run, write_json  # noqa: E402
 from gns.symmetry import SYMMETRY_GROUPS  # noqa: E402
-from plumbing.errors import DataError  # noqa: E402
+from plumbing import DataError  # noqa: E402
 
 METRICS = {"position_error_pct": "position %", "rotation_error_deg": "rotation deg"}
 GROUPS = tuple(SYMMETRY_GROUPS)

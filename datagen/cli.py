@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from plumbing.errors import ConfigError
+from plumbing import ConfigError
 from .config import load_config
 from .version import version_line
 
@@ -143,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from plumbing.errors import DataError
+    from plumbing import DataError
     a = build_parser().parse_args(argv)
     try:
         return a.func(a)

@@ -11,8 +11,7 @@ import difflib
 import math
 from pathlib import Path
 
-from plumbing.errors import ConfigError
-from plumbing.tomlconfig import DEFAULT_PRESET, config_dir, load_toml, parse_value, typed_value
+from plumbing import config_dir, ConfigError, DEFAULT_PRESET, load_toml, parse_value, typed_value
 
 # Tables whose entries a user may add to (each new entry must have the built-in entries' keys).
 OPEN_TABLES = ("materials", "sizes")

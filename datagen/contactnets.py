@@ -27,10 +27,9 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from plumbing.files import check_output_folder
+from plumbing import check_output_folder, DataError
 from datagen.shapes import get_shape
 from datagen.shards import METADATA_FILE, SPLITS, Scene, clear_dataset, shard_name, write_metadata, write_shard
-from plumbing.errors import DataError
 
 HALF_WIDTH_M = 0.0524         # 1 data unit in metres (10.48 cm cube)
 CUBE_SCALE = 2.0              # unit asset spans 1; the data's cube spans 2 half-widths

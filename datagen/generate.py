@@ -33,8 +33,7 @@ from .provenance import file_sha256
 from .shards import (METADATA_FILE, SHARED, SPLITS, clear_dataset, dataset_files, shard_image,
                      shard_name, write_error, write_metadata, write_shard_image)
 from .simulate import FLOOR_HALF_WIDTH, check_floor_covers, off_floor, simulate, steps_per_frame
-from plumbing.errors import ConfigError, DataError
-from plumbing.files import atomic_file
+from plumbing import atomic_file, ConfigError, DataError
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .shards import METADATA_FILE, Dataset, Scene, read_shard
-from plumbing.errors import DataError
+from plumbing import DataError
 from .provenance import file_sha256
 
 # A recorded frame can catch an impact between the physics step that crossed the floor and the

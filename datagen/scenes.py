@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from plumbing.errors import ConfigError
+from plumbing import ConfigError
 from .config import parse_objects
 from .shapes import get_shape
 

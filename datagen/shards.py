@@ -16,8 +16,7 @@ from typing import Iterator
 import h5py
 import numpy as np
 
-from plumbing.errors import DataError
-from plumbing.files import atomic_file
+from plumbing import atomic_file, DataError
 
 from .provenance import file_sha256, fingerprint, provenance
 

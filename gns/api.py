@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from plumbing.errors import DataError
+from plumbing import DataError
 from gns.config import Config, ConfigError, build_config
 from gns.features import HISTORY
 from gns.graph import GraphBatch, with_symmetries

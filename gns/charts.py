@@ -10,7 +10,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from gns.plots import new_figure, save_figure
-from plumbing.files import atomic_file
+from plumbing import atomic_file
 
 # Offsets (points) tried around a point, nearest first, with the text alignment each needs.
 _LABEL_OFFSETS = [((5, 3), "left", "bottom"), ((5, -3), "left", "top"), ((-5, 3), "right", "bottom"),

@@ -15,8 +15,7 @@ from pathlib import Path
 
 import torch
 
-from plumbing.files import atomic_file, check_writable
-from plumbing.errors import DataError
+from plumbing import atomic_file, check_writable, DataError
 from gns.config import Config, ConfigError, build_config
 from gns.options import RolloutOptions
 from gns.simulator import LearnedSimulator

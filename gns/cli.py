@@ -10,7 +10,7 @@ import os
 import sys
 import warnings
 
-from plumbing.errors import DataError
+from plumbing import DataError
 from gns.config import ConfigError
 
 EXIT_FAILED = 1
@@ -113,7 +113,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
 def cmd_eval(args: argparse.Namespace) -> None:
     from gns.evaluate import evaluate_run, write_json
     from gns.metrics import format_table
-    from plumbing.files import check_json_output
+    from plumbing import check_json_output
 
     _threads(args.threads)
     if args.json:
@@ -282,7 +282,7 @@ def add_export_parser(sub) -> None:
 def cmd_plot_curves(args: argparse.Namespace) -> None:
     from pathlib import Path
 
-    from plumbing.files import check_writable
+    from plumbing import check_writable
     from gns.charts import plot_training_curves
     from gns.run_folder import METRICS, read_metrics
 

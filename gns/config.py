@@ -13,8 +13,7 @@ from pathlib import Path
 
 
 # one error class, one value parser and one typing rule for datagen's and gns's configs
-from plumbing.errors import ConfigError
-from plumbing.tomlconfig import load_toml, parse_value, typed_value
+from plumbing import ConfigError, load_toml, parse_value, typed_value
 
 
 @dataclass

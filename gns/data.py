@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from datagen.shards import Dataset, Scene
-from plumbing.errors import DataError
+from plumbing import DataError
 from gns.features import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
 from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_sizes, mapped_symmetries, ragged_arange

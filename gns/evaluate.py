@@ -9,9 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plumbing.files import atomic_file, check_writable
+from plumbing import atomic_file, check_writable, DataError
 from datagen.shards import Dataset
-from plumbing.errors import DataError
 from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, split_diverged, timed_rollout, upsample_scene
 from gns.data import feature_spec

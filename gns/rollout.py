@@ -19,11 +19,10 @@ import torch
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from plumbing.files import check_output_folder, check_writable, overlapping
+from plumbing import check_output_folder, check_writable, DataError, overlapping
 from datagen.quaternions import continuous
 from datagen.quaternions import rotation, wxyz
 from datagen.shards import Dataset, Scene, shard_name, write_metadata, write_shard
-from plumbing.errors import DataError
 from gns.data import ObjectTracks
 from gns.features import HISTORY
 from gns.geometry import matrix_to_quat

@@ -13,7 +13,7 @@ import torch
 
 from gns.checkpoint import LATEST, CheckpointError, checkpoint_paths, resume_point
 from gns.config import Config, ConfigError, build_config
-from plumbing.files import atomic_file
+from plumbing import atomic_file
 
 
 METRICS = "metrics.jsonl"

@@ -39,8 +39,7 @@ from gns.spec import ModelSpec
 from gns.checkpoint import (CHECKPOINT_FORMAT, TRAINED, CheckpointError, build_simulator, resume_point,
                             save_checkpoint)
 from gns.precision import parse_device
-from plumbing.errors import DataError
-from plumbing.files import check_writable
+from plumbing import check_writable, DataError
 
 
 if TYPE_CHECKING:

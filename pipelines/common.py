@@ -8,11 +8,10 @@ import sys
 import time
 from pathlib import Path
 
-from plumbing.tomlconfig import config_dir
+from plumbing import config_dir, DataError
 from datagen.config import load_config as load_scene_config
 from datagen.generate import generate
 from datagen.shards import Dataset
-from plumbing.errors import DataError
 from gns.config import build_config, config_differences
 from gns.evaluate import write_json
 from gns.checkpoint import LATEST, CheckpointError, checkpoint_paths, resume_point

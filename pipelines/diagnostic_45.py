@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plumbing.files import atomic_file, atomic_folder
+from plumbing import atomic_file, atomic_folder
 from datagen.config import load_config
 from datagen.generate import metadata, plan
 from datagen.shapes import get_shape

@@ -17,7 +17,7 @@ from pathlib import Path
 from baselines import baseline_engine
 from baselines.engine_tosses import engine_tosses
 from baselines.toss import GRAVITY
-from plumbing.files import atomic_folder
+from plumbing import atomic_folder
 from datagen.shards import METADATA_FILE, Dataset, shard_name, write_metadata, write_shard
 from pipelines.common import finished_dataset, say
 

@@ -36,8 +36,7 @@ import sys
 import time
 from pathlib import Path
 
-from plumbing.errors import DataError
-from plumbing.files import check_writable
+from plumbing import check_writable, DataError
 from datagen.shards import Dataset
 from gns.checkpoint import read_checkpoint
 from gns.evaluate import evaluate_run, score_predictions, write_json

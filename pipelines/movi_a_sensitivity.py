@@ -46,8 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plumbing.files import atomic_file
-from plumbing.errors import DataError
+from plumbing import atomic_file, DataError
 from datagen.shards import Dataset
 from gns.evaluate import evaluate_run, score_predictions
 from gns.features import HISTORY

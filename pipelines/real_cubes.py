@@ -31,9 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plumbing.files import check_writable
+from plumbing import check_writable, DataError
 from datagen.shards import Dataset
-from plumbing.errors import DataError
 from gns.evaluate import evaluate_run, write_json
 from gns.checkpoint import read_checkpoint
 from pipelines.common import Costs, done, guarded, remove_output, say, train_stage, trained_step

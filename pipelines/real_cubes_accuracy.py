@@ -26,7 +26,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from plumbing.errors import DataError
+from plumbing import DataError
 from gns.evaluate import evaluate_baseline, evaluate_run, write_json
 from gns.checkpoint import export_model, read_checkpoint
 from pipelines.common import Costs, done, guarded, say, train_stage

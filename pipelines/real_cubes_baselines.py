@@ -21,7 +21,7 @@ from pathlib import Path
 from baselines import baseline_engine
 from baselines.pybullet import PUBLISHED
 from datagen.shards import Dataset
-from plumbing.errors import DataError
+from plumbing import DataError
 from gns.evaluate import evaluate_baseline, write_json
 from gns.metrics import METRICS
 from pipelines.common import Costs, guarded, say

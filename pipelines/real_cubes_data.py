@@ -14,7 +14,7 @@ import numpy as np
 
 from datagen.contactnets import import_contactnets, list_toss_ids, read_toss
 from datagen.shards import Dataset
-from plumbing.errors import DataError
+from plumbing import DataError
 
 SPLIT_SEED = 2022
 DUPLICATE_TOL = 1e-6   # half-widths; the known rotated copies agree to 1e-15

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from datagen.config import config_dir
-from plumbing.errors import DataError
+from plumbing import DataError
 
 RECIPES = config_dir() / "recipes"
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")

@@ -32,7 +32,7 @@ from gns.metrics import METRICS, evaluate_scenes
 from gns.rollout import rollout_scenes, split_diverged
 from gns.simulator import LearnedSimulator
 from gns.checkpoint import load_model, read_checkpoint
-from plumbing.files import check_writable
+from plumbing import check_writable
 from pipelines.common import CONFIGS, data_stage, guarded, say, train_stage
 
 SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"

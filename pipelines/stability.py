@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from plumbing.files import check_writable
+from plumbing import check_writable
 from gns.stepping import Sleep
 from gns.evaluate import checkpoint_of, load_split, write_json
 from gns.stability import REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene

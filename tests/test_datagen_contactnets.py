@@ -8,7 +8,7 @@ import torch
 
 from datagen import contactnets
 from datagen.contactnets import import_contactnets, list_toss_ids, read_toss
-from plumbing.errors import DataError
+from plumbing import DataError
 from datagen.shards import Dataset
 from gns.geometry import quat_multiply, quat_conjugate, quat_to_matrix
 from gns.metrics import evaluate_scenes

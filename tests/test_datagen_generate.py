@@ -13,7 +13,7 @@ import pytest
 from datagen import generate as gen_mod
 from datagen.cli import main
 from datagen.shards import Dataset
-from plumbing.errors import DataError
+from plumbing import DataError
 
 SMALL = ["--scenes", "6", "--valid", "2", "--test", "1", "--frames", "6", "--scenes-per-shard", "2", "--quiet"]
 LIBRARIES = ("python", "torch", "numpy", "pybullet", "h5py", "trimesh", "scipy")

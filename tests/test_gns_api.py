@@ -12,7 +12,7 @@ import torch
 import gns
 from datagen.cli import main as datagen_main
 from datagen.shards import Dataset, Scene, write_metadata, write_shard
-from plumbing.errors import DataError
+from plumbing import DataError
 from gns.api import history_poses, matrix_to_quat, quat_to_matrix
 from gns.cli import main as gns_main
 from gns.config import ConfigError, build_config

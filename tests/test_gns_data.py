@@ -6,7 +6,7 @@ from gns_fixtures import cube_meshes, write_toss_dataset
 
 from datagen.shapes import get_shape
 from datagen.shards import Dataset
-from plumbing.errors import DataError
+from plumbing import DataError
 from gns.config import FeatureConfig
 from gns.data import ObjectTracks, feature_spec, rotation_z, vertices_from_poses
 from gns.features import make_layout

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from datagen.cli import main as datagen_main
-from plumbing.errors import DataError
+from plumbing import DataError
 from pipelines.movi_a_sensitivity import Perturbation, main, study
 
 

@@ -53,7 +53,7 @@ def test_dataset_stride_reads_every_kth_frame_and_refuses_bad_strides(tmp_path):
     import pytest
     from datagen.cli import main as datagen_main
     from datagen.shards import Dataset
-    from plumbing.errors import DataError
+    from plumbing import DataError
     out = tmp_path / "d"
     assert datagen_main(["toss", "--out", str(out), "--scenes", "0", "--test", "1", "--frames", "9",
                          "--frame-rate", "24", "--quiet"]) == 0
