@@ -6,7 +6,7 @@ import sys
 
 from plumbing import ConfigError
 from .config import load_config
-from .version import version_line
+from .provenance import version_line
 
 EPILOG = """examples:
   datagen toss --shapes cube,sphere --sizes small --materials metal --scenes 100 --out data/toy

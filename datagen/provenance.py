@@ -13,6 +13,8 @@ import subprocess
 from functools import lru_cache
 from importlib import metadata as importlib_metadata
 from pathlib import Path
+import importlib.metadata
+import tomllib
 
 # The libraries whose versions can change a dataset or a trained model (distribution names).
 LIBRARIES = ("rigid-gns", "torch", "numpy", "pybullet", "h5py", "trimesh", "scipy")
@@ -82,3 +84,27 @@ def fingerprint(meta: dict, checksums: dict[str, str]) -> str:
             "shards": dict(sorted(checksums.items()))}
     text = json.dumps(body, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+DISTRIBUTION = "rigid-gns"
+PYPROJECT = Path(__file__).resolve().parent.parent / "pyproject.toml"
+
+
+def version() -> str:
+    # In a source checkout its pyproject.toml is the truth: an install's metadata keeps the version
+    # it was installed at (an editable install too) until it is reinstalled.
+    try:
+        with open(PYPROJECT, "rb") as f:
+            project = tomllib.load(f).get("project", {})
+        if project.get("name") == DISTRIBUTION and project.get("version"):
+            return str(project["version"])
+    except (OSError, tomllib.TOMLDecodeError):
+        pass
+    try:
+        return importlib.metadata.version(DISTRIBUTION)
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def version_line() -> str:
+    return f"{DISTRIBUTION} {version()}"

@@ -35,7 +35,7 @@ from plumbing import DataError
 from gns.config import Config, ConfigError, build_config
 from gns.features import HISTORY
 from gns.graph import GraphBatch, with_symmetries
-from gns.ranges import outside_training
+from gns.spec import outside_training
 from gns.rigid import posed, shape_match_packed
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec

@@ -17,7 +17,7 @@ from gns.data import feature_spec
 from gns.precision import parse_device
 from gns.features import HISTORY
 from gns.options import RolloutOptions
-from gns.ranges import outside_training
+from gns.spec import outside_training
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import checkpoint_of, load_simulator

@@ -7,7 +7,7 @@ Three kinds of check, each returning plain dicts for a report (pipelines/stabili
 - extreme inputs: the test scenes changed one way at a time (3x speeds, friction and
   restitution at 0 and 1, sizes 0.01x and 100x, 1e4 units from the origin, float32 arrays).
   Each must be either handled (a rollout that is finite and, where an exact answer exists,
-  equal to it) or named by the range check (gns.ranges) as outside training.
+  equal to it) or named by the range check (gns.spec.outside_training) as outside training.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from datagen.shards import Scene
 from gns.data import ObjectTracks, feature_spec
 from gns.features import HISTORY
 from gns.graph import MeshLibrary, graph_centres, graph_sizes, per_graph
-from gns.ranges import outside_training
+from gns.spec import outside_training
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 

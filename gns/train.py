@@ -33,7 +33,7 @@ from gns.graph import MeshLibrary, graph_settings
 from gns.optimise import learning_rate, train_step, validate
 from gns.run_folder import (METRICS, check_run, check_tensorboard, restore_rng, rng_state, run_provenance,
                             start_run_folder, tensorboard_writer, write_metrics)
-from gns.progress import progress_bar
+from gns.run_folder import progress_bar
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import (CHECKPOINT_FORMAT, TRAINED, CheckpointError, build_simulator, resume_point,

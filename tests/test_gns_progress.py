@@ -1,4 +1,4 @@
-"""Training progress off a terminal (gns.progress): lines a batch job's log can show."""
+"""Training progress off a terminal (gns.run_folder): lines a batch job's log can show."""
 import io
 import os
 import re
@@ -10,7 +10,7 @@ import pytest
 from gns_fixtures import write_toss_dataset
 
 from gns.config import ConfigError
-from gns.progress import ProgressLines, every_seconds, progress_bar
+from gns.run_folder import ProgressLines, every_seconds, progress_bar
 
 ROOT = Path(__file__).resolve().parent.parent
 LINE = re.compile(r"step (\d+)/(\d+)  loss (\S+)  lr (\S+)  (\S+) steps/s(?:  eta (.+))?$")

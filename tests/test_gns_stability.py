@@ -17,7 +17,7 @@ from datagen.shards import Dataset
 from gns.config import build_config
 from gns.data import ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
-from gns.ranges import outside_training
+from gns.spec import outside_training
 from gns.graph import EdgeSet
 from gns.rigid import shape_match
 from gns.simulator import LearnedSimulator
