@@ -15,13 +15,11 @@ refused by name, never folded into the checksums.
 from __future__ import annotations
 
 import multiprocessing as mp
-import os
 import sys
-from contextlib import contextmanager, nullcontext
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
 from . import __version__
@@ -33,7 +31,7 @@ from .provenance import file_sha256
 from .shards import (METADATA_FILE, SHARED, SPLITS, clear_dataset, dataset_files, shard_image,
                      shard_name, write_error, write_metadata, write_shard_image)
 from .simulate import FLOOR_HALF_WIDTH, check_floor_covers, off_floor, simulate, steps_per_frame
-from plumbing import atomic_file, ConfigError, DataError
+from plumbing import atomic_file, DataError
 
 
 @dataclass(frozen=True)
@@ -286,108 +284,6 @@ def prepare_shared_output(out: Path, meta: dict, mine: list[ShardTask]) -> list[
     return todo
 
 
-def require_ray():
-    """The ray module, or one line naming the extra (checked before anything is written)."""
-    try:
-        import ray
-    except ImportError:
-        raise ConfigError("--backend ray needs Ray: pip install 'rigid-gns[ray]'") from None
-    return ray
-
-
-# How long a Ray cluster at --ray-address may take to answer before the run gives up (seconds):
-# ray.init itself retries an address where nothing listens for minutes.
-RAY_CONNECT_TIMEOUT = float(os.environ.get("DATAGEN_RAY_CONNECT_TIMEOUT", "15"))
-
-
-def _probe(address: str, timeout: float) -> None:
-    """Refuse at once a host:port (or ray://host:port) where nothing accepts a connection."""
-    import socket
-    hostport = address.split("://", 1)[-1]
-    host, _, port = hostport.rpartition(":")
-    if not host or not port.isdigit():
-        return                          # "auto", "local" and such: ray.init decides
-    try:
-        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
-    except OSError as e:
-        why = "timed out" if isinstance(e, socket.timeout) else (e.strerror or type(e).__name__)
-        raise DataError(f"cannot reach the Ray cluster at {address}: nothing answers at {hostport} ({why})") from None
-
-
-def _answers_within(address: str, timeout: float) -> None:
-    """Refuse a cluster that does not let a Ray client connect within `timeout` seconds.
-
-    Tried in a child process: ray.init blocks in C++ where no signal reaches it, and started
-    from another thread it fails, so a child, killed at the deadline, is the one bounded wait."""
-    import subprocess
-    code = ("import logging, ray; ray.init(address=%r, logging_level=logging.ERROR, log_to_driver=False); "
-            "ray.shutdown()" % address)
-    try:
-        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
-        raise DataError(f"cannot reach the Ray cluster at {address}: no answer within {timeout:g} s "
-                        "(DATAGEN_RAY_CONNECT_TIMEOUT)") from None
-    if r.returncode:
-        lines = [ln.strip() for ln in r.stderr.splitlines() if ln.strip()]
-        raise DataError(f"cannot reach the Ray cluster at {address}: {lines[-1] if lines else 'ray.init failed'}")
-
-
-@contextmanager
-def ray_cluster(workers: int, address: str | None, timeout: float | None = None):
-    """The ray module, connected to the cluster at `address` (or RAY_ADDRESS) or to a local
-    cluster of `workers` CPUs started here and stopped afterwards. Entered before the output
-    folder is touched, so a cluster that does not answer leaves nothing behind."""
-    ray = require_ray()
-    import logging
-    address = address or os.environ.get("RAY_ADDRESS") or None
-    timeout = RAY_CONNECT_TIMEOUT if timeout is None else timeout
-    started = not ray.is_initialized()
-    if started:
-        where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
-        try:
-            if address:
-                _probe(address, timeout)
-                _answers_within(address, timeout)
-                ray.init(address=address, logging_level=logging.WARNING)
-            else:
-                ray.init(num_cpus=workers, include_dashboard=False, logging_level=logging.WARNING)
-        except DataError:
-            raise
-        except Exception as e:  # ray raises ConnectionError, RuntimeError, ValueError... for a bad address
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise DataError(f"cannot start or reach {where}: {first}") from None
-    try:
-        yield ray
-    finally:
-        if started:
-            ray.shutdown()
-
-
-def _ray_tasks(ray, jobs: list[ShardTask], cfg: dict, seed: int, out: Path, planned: dict):
-    """Run shards as Ray tasks, yielding (name, count, tunnelled ids) as each is written.
-
-    A task returns its shard's bytes and the driver writes them, so the cluster's nodes need no
-    shared file system with --out."""
-    remote = ray.remote(num_cpus=1)(build_task)  # retried if a node dies: a shard is a pure function of its task
-    cfg_ref = ray.put(cfg)
-    pending = {remote.remote(t, cfg_ref, seed): t for t in jobs}
-    while pending:
-        done, _ = ray.wait(list(pending), num_returns=1)
-        task = pending.pop(done[0])
-        try:
-            image, bad = ray.get(done[0])
-        except ray.exceptions.RayTaskError as e:
-            cause = getattr(e, "cause", None)
-            if isinstance(cause, (DataError, ConfigError)):
-                raise cause from None
-            if isinstance(cause, OSError):
-                raise write_error(out / task.name, cause) from None
-            raise DataError(f"ray task for {task.name} failed: {type(cause or e).__name__}: "
-                            f"{str(cause or e).splitlines()[0] if str(cause or e) else ''}") from None
-        commit_shard(out, planned, task.name, image)
-        yield task.name, task.count, bad
-
-
 BACKENDS = ("process", "ray")
 
 
@@ -408,6 +304,7 @@ def _check_arguments(counts: dict[str, int], workers: int, per_shard: int, backe
     if ray_address and backend != "ray":
         raise DataError("--ray-address needs --backend ray (the process backend runs on this machine only)")
     if backend == "ray":
+        from .ray_backend import require_ray
         require_ray()
 
 
@@ -463,7 +360,8 @@ def _shard_results(todo: list[ShardTask], cfg: dict, seed: int, out: Path, worke
     """Write the shards of `todo` on the chosen backend, yielding (name, count, tunnelled ids) for each."""
     jobs = [(t, cfg, seed, str(out), planned) for t in todo]
     if ray is not None and todo:
-        yield from _ray_tasks(ray, todo, cfg, seed, out, planned)
+        from .ray_backend import ray_tasks
+        yield from ray_tasks(ray, todo, cfg, seed, out, planned)
     elif workers == 1 or len(todo) <= 1:
         for job in jobs:
             yield run_task(job)
@@ -536,6 +434,8 @@ def generate(cfg: dict, seed: int, counts: dict[str, int], out: str | Path, work
     meta = metadata(cfg, seed, counts, tasks, complete=False)
     mine = [t for k, t in enumerate(tasks) if not sharded or k % num_shards == shard_index]
     check_output(out, meta, sharded, resume, overwrite)     # fails fast, before a cluster is asked
+    if backend == "ray":
+        from .ray_backend import ray_cluster
     with (ray_cluster(workers, ray_address) if backend == "ray" else nullcontext()) as ray:
         try:
             with claim(out, shared=sharded):
