@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from baselines import baseline_engine
 from baselines.toss import initial_state
-from datagen.quaternions import rotation, wxyz
+from datagen.shards import rotation, wxyz
 from datagen.shards import Scene
 from gns.features import HISTORY
 

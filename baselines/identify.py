@@ -17,7 +17,7 @@ from scipy.optimize import minimize
 from scipy.stats import qmc
 
 from baselines.toss import FRAME_RATE, first_frames, half_extent, toss_errors
-from datagen.quaternions import rotation
+from datagen.shards import rotation
 from datagen.shards import Scene
 
 # One degree of rotation error weighs as much as 0.5% of the width in the fitting objective:

@@ -30,7 +30,7 @@ import numpy as np
 from baselines.identify import identify
 from baselines.toss import FRAME_RATE, GRAVITY, half_extent, initial_state, prediction_arrays, prediction_scene
 from datagen.contactnets import DEFAULTS as CONTACTNETS
-from datagen.quaternions import rotation
+from datagen.shards import rotation
 from datagen.shards import Scene
 from gns.features import HISTORY
 

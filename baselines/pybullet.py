@@ -37,7 +37,7 @@ from baselines.identify import identify
 from baselines.toss import FRAME_RATE, GRAVITY, half_extent, initial_state, prediction_arrays, prediction_scene
 from datagen.contactnets import DEFAULTS as CONTACTNETS
 from datagen.shards import Scene
-from datagen.quaternions import wxyz, xyzw
+from datagen.shards import wxyz, xyzw
 from datagen.simulate import add_floor, new_world, pb
 from gns.features import HISTORY
 

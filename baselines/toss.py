@@ -19,7 +19,7 @@ from dataclasses import replace
 import numpy as np
 
 from datagen.contactnets import DEFAULTS as CONTACTNETS
-from datagen.quaternions import continuous, rotation
+from datagen.shards import continuous, rotation
 from datagen.shards import Scene
 from gns.features import HISTORY
 

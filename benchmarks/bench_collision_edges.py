@@ -16,7 +16,7 @@ import time
 
 import torch
 
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from gns.contacts import surface_edges
 from gns.contacts import collision_edges
 from gns.graph import MeshLibrary

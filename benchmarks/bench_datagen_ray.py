@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from datagen.config import load_config  # noqa: E402
+from datagen.scenes import load_config  # noqa: E402
 from datagen.generate import generate  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

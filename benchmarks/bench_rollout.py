@@ -77,7 +77,7 @@ def breakdown(sim, tracks, which, frames) -> list[tuple[str, float]]:
     network = max(v[3] for (f, _, fn), v in stats.items() if f.endswith("gns/network.py") and fn == "forward")
     parts = [("network (encode, process, decode)", network),
              ("node and edge features + normalisers", cumulative("gns/simulator.py", "_inputs")),
-             ("shape matching (rollout and poses)", cumulative("gns/rigid.py", "shape_match_packed"))]
+             ("shape matching (rollout and poses)", cumulative("gns/geometry.py", "shape_match_packed"))]
     parts.append(("everything else (integration, bookkeeping)", total - sum(p for _, p in parts)))
     return [(name, p / total) for name, p in parts]
 

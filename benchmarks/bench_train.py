@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from plumbing import config_dir
 from datagen.shards import Dataset, Scene
 from gns.config import build_config

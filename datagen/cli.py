@@ -5,7 +5,7 @@ import argparse
 import sys
 
 from plumbing import ConfigError
-from .config import load_config
+from .scenes import load_config
 from .provenance import version_line
 
 EPILOG = """examples:

@@ -28,7 +28,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from plumbing import check_output_folder, DataError
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from datagen.shards import METADATA_FILE, SPLITS, Scene, clear_dataset, shard_name, write_metadata, write_shard
 
 HALF_WIDTH_M = 0.0524         # 1 data unit in metres (10.48 cm cube)

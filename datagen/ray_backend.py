@@ -10,7 +10,8 @@ from pathlib import Path
 
 from plumbing import ConfigError, DataError
 
-from .generate import ShardTask, build_task, commit_shard
+from .generate import ShardTask, build_task
+from .output import commit_shard
 from .shards import write_error
 
 

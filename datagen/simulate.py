@@ -31,10 +31,8 @@ def _import_pybullet_quietly():
 
 pb = _import_pybullet_quietly()
 
-from .quaternions import continuous, wxyz, xyzw
-from .scenes import SceneSpec
-from .shapes import get_shape
-from .shards import Scene
+from .scenes import SceneSpec, get_shape
+from .shards import Scene, continuous, wxyz, xyzw
 
 
 FLOOR_HALF_WIDTH = 1000.0
@@ -44,7 +42,7 @@ def check_floor_covers(cfg: dict) -> None:
     """Refuse a spawn box the physics floor (a box of half-width FLOOR_HALF_WIDTH) does not cover:
     the metadata declares a floor everywhere, so objects beyond its edge would fall through what
     the data calls a floor. (A wider box is no answer: contact precision falls with its size.)"""
-    from .config import ConfigError
+    from .scenes import ConfigError
     if not cfg["floor"]["enabled"]:
         return
     sp = cfg["spawn"]
@@ -200,3 +198,38 @@ def step_only(spec: SceneSpec, cfg: dict) -> None:
             pb.stepSimulation(physicsClientId=c)
     finally:
         pb.disconnect(c)
+
+
+# A recorded frame can catch an impact between the physics step that crossed the floor and the
+# one that resolves it, so a vertex may legitimately sit one physics step of travel below the
+# floor, or a few % of the size in a resting contact. Deeper than both is a bug or tunnelling.
+MAX_SINK_FRACTION = 0.05
+
+
+def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors v (..., V, 3) by unit quaternions q (..., 4) in w x y z order."""
+    w, u = q[..., None, :1], q[..., None, 1:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def floor_violations(sc: Scene, meshes: dict, floor_z: float, physics_dt: float) -> list[tuple[int, int, float]]:
+    """(object, first bad frame, depth) for objects sunk deeper than contact can explain.
+
+    Between two physics steps a vertex can travel (|v| + |w| r) dt into the floor before the
+    solver reacts; a recorded frame may hold that depth, or the frame after it (when the
+    bounce has already slowed the object), so the bound uses the faster of the two frames.
+    """
+    out = []
+    for n, name in enumerate(sc.shape):
+        rest = sc.scale[n] * meshes[name][0]
+        verts = rotate(sc.quaternions[:, n], rest[None])
+        sink = floor_z - (verts[..., 2] + sc.positions[:, n, 2:3]).min(axis=-1)
+        reach = np.linalg.norm(rest, axis=-1).max()
+        speed = np.linalg.norm(sc.velocities[:, n], axis=-1) + np.linalg.norm(sc.angular_velocities[:, n], axis=-1) * reach
+        speed[1:] = np.maximum(speed[1:], speed[:-1])
+        bad = sink > np.maximum(MAX_SINK_FRACTION * sc.scale[n], 2.0 * speed * physics_dt)
+        if bad.any():
+            t = int(np.argmax(bad))
+            out.append((n, t, float(sink[t])))
+    return out

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from .scenes import ObjectSpec, SceneSpec, scene_rng, sample_scene
-from .shapes import get_shape
+from .scenes import get_shape
 
 UNDECIDED_FRACTION = 0.25  # of the size: a fallen cube's centre is half its size from the edge
 

@@ -36,13 +36,13 @@ from gns.config import Config, ConfigError, build_config
 from gns.features import HISTORY
 from gns.graph import GraphBatch, with_symmetries
 from gns.spec import outside_training
-from gns.rigid import posed, shape_match_packed
+from gns.geometry import posed, shape_match_packed
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import CheckpointError, checkpoint_of, load_simulator
-from gns.precision import parse_device
-from gns.options import RolloutOptions
-from gns.zoo import default_options
+from gns.hardware import parse_device
+from gns.spec import RolloutOptions
+from gns.checkpoint import default_options
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
@@ -162,7 +162,7 @@ class Model:
                               doc="friction and restitution are inputs (they varied in training)")
     collisions = property(lambda self: self.spec.collision_edges,
                           doc="objects of a scene interact (collision edges)")
-    options = property(lambda self: self.simulator.options, doc="how it rolls out (gns.options.RolloutOptions)")
+    options = property(lambda self: self.simulator.options, doc="how it rolls out (gns.spec.RolloutOptions)")
 
     def __repr__(self) -> str:
         return (f"gns.Model({self.source!r}, {self.frame_rate:g} steps/s, shapes {self.shapes}, "
@@ -306,7 +306,7 @@ def _meshes_of(spec: ModelSpec, where: str) -> dict:
     which are looked up among datagen's shapes."""
     if spec.meshes:
         return {name: (v.numpy(), f.numpy()) for name, (v, f) in spec.meshes.items()}
-    from datagen.shapes import SHAPES, get_shape
+    from datagen.scenes import SHAPES, get_shape
     unknown = [s for s in spec.shapes if s not in SHAPES]
     if unknown:
         raise CheckpointError(f"{where} holds no meshes (written before they were kept) and its shape "
@@ -320,13 +320,13 @@ def load(model: str | Path, device: str | torch.device = "cpu", quaternion_order
     """A trained model: a zoo name (`gns models` lists them), a run folder (its latest.pt) or a
     .pt checkpoint or export. device: "cpu", "cuda", "cuda:1", ... meshes {name: (vertices,
     faces)} replaces the checkpoint's (needed only for old checkpoints of custom shapes).
-    options: how it rolls out (gns.options.RolloutOptions; default gns.zoo.default_options(model),
+    options: how it rolls out (gns.spec.RolloutOptions; default gns.checkpoint.default_options(model),
     for a zoo model the options it was scored with). Keywords (RolloutOptions fields) change those
     options, e.g. free_flight=True, sleep=True or autocast="auto"; symmetrize True or "d2"
     averages each step over the floor's mirror images (`gns eval --symmetrize`; four network
     calls a step), rollouts exactly
     mirror-equivariant as far as the mesh graph is (a cube's triangulated faces are not quite),
-    or another group of gns.symmetry.SYMMETRY_GROUPS ("none": off); ensemble: more models (names,
+    or another group of gns.stepping.SYMMETRY_GROUPS ("none": off); ensemble: more models (names,
     folders, files) whose predictions each step averages with this one's (`gns eval --ensemble`);
     they must read the same graphs."""
     device = parse_device(str(device), "device")

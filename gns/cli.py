@@ -18,7 +18,7 @@ EXIT_BAD_INPUT = 2
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    from gns.parallel import world_from_env
+    from gns.hardware import world_from_env
     from gns.run_folder import resolve_config
     from gns.train import train
 
@@ -77,7 +77,7 @@ def _threads(n: int) -> None:
 
 def cmd_rollout(args: argparse.Namespace) -> None:
     from gns.checkpoint import checkpoint_of, load_simulator
-    from gns.precision import parse_device
+    from gns.hardware import parse_device
     from gns.evaluate import check_ranges, load_split, options_record, provenance_of
     from gns.rollout import (DivergedError, check_output, diverged_line, scene_label, timed_rollout,
                              write_rollouts)
@@ -151,9 +151,9 @@ def _at_data_rate(args: argparse.Namespace) -> bool:
     """--at-data-rate as given, else as a zoo model's card says it was scored (its [eval] table)."""
     if args.at_data_rate is not None:
         return args.at_data_rate
-    from gns import zoo
-    if zoo.is_name(args.run_dir) and args.run_dir in zoo.names():
-        return bool(zoo.card(args.run_dir).data.get("eval", {}).get("at_data_rate", False))
+    from gns import checkpoint
+    if checkpoint.is_name(args.run_dir) and args.run_dir in checkpoint.names():
+        return bool(checkpoint.card(args.run_dir).data.get("eval", {}).get("at_data_rate", False))
     return False
 
 
@@ -163,9 +163,9 @@ OPTION_FLAGS = ("shape_matching", "symmetrize", "body_frames", "free_flight", "f
 
 
 def _rollout_options(args: argparse.Namespace):
-    """The model's default options (a zoo model's scored ones, gns.zoo.default_options) with the
+    """The model's default options (a zoo model's scored ones, gns.checkpoint.default_options) with the
     flags given on top."""
-    from gns.zoo import default_options
+    from gns.checkpoint import default_options
     given = {k: getattr(args, k) for k in OPTION_FLAGS}
     if given["ensemble"] is not None:
         given["ensemble"] = tuple(given["ensemble"])
@@ -184,7 +184,7 @@ def _add_rollout_args(p) -> None:
     p.add_argument("--threads", type=int, default=1, metavar="T",
                    help="torch threads (default 1: on a shared machine more wait on each other)")
     p.add_argument("--device", default="cpu", metavar="DEV", help="cpu, cuda or cuda:N (default cpu)")
-    o = p.add_argument_group("rollout options", "how the model is rolled out (gns.options.RolloutOptions). "
+    o = p.add_argument_group("rollout options", "how the model is rolled out (gns.spec.RolloutOptions). "
                              "Unset, each is a zoo model's scored setting (its card's [rollout]), else the default "
                              "given; the options used are recorded in the output as rollout_options")
     # dest = the RolloutOptions field (OPTION_FLAGS); every default None: unset, the model's own stays
@@ -197,7 +197,7 @@ def _add_rollout_args(p) -> None:
     o.add_argument("--sleep", action=argparse.BooleanOptionalAction,
                    help="hold resting objects still until another object touches them, as physics engines "
                         "deactivate bodies (docs/results.md); off by default")
-    # the keys of gns.symmetry.SYMMETRY_GROUPS, written out so that --help does not import torch
+    # the keys of gns.stepping.SYMMETRY_GROUPS, written out so that --help does not import torch
     o.add_argument("--symmetrize", nargs="?", const="d2", choices=["none", "d2", "d4", "d1", "c2", "c4"],
                    metavar="GROUP",
                    help="average each step's prediction over the floor's symmetries: d2 (the default when no GROUP "
@@ -318,8 +318,8 @@ def add_plot_parser(sub) -> None:
 
 
 def cmd_models(args: argparse.Namespace) -> None:
-    from gns import zoo
-    print(zoo.format_card(args.name) if args.name else zoo.format_list())
+    from gns import checkpoint
+    print(checkpoint.format_card(args.name) if args.name else checkpoint.format_list())
 
 
 def add_models_parser(sub) -> None:
@@ -360,8 +360,8 @@ def main(argv: list[str] | None = None) -> None:
     warnings.formatwarning = lambda message, *_args, **_kw: f"warning: {message}\n"
     # Imported after parsing so that `gns --help` and usage errors do not wait for torch.
     from gns.checkpoint import CheckpointError
-    from gns.options import OptionsError
-    from gns.zoo import ZooError
+    from gns.spec import OptionsError
+    from gns.checkpoint import ZooError
 
     try:
         args.run(args)

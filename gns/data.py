@@ -78,7 +78,7 @@ class Batch:
 
     def windows(self, lo: int, hi: int) -> "Batch":
         """The windows [lo, hi) of this batch (its graphs of scenes lo .. hi-1), renumbered: a
-        process's share of a global batch (gns.parallel.share)."""
+        process's share of a global batch (gns.hardware.share)."""
         g = self.graph
         keep_graph = (g.graph_scene >= lo) & (g.graph_scene < hi)
         keep = keep_graph[g.node_graph]

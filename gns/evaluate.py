@@ -14,14 +14,14 @@ from datagen.shards import Dataset
 from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, split_diverged, timed_rollout, upsample_scene
 from gns.data import feature_spec
-from gns.precision import parse_device
+from gns.hardware import parse_device
 from gns.features import HISTORY
-from gns.options import RolloutOptions
+from gns.spec import RolloutOptions
 from gns.spec import outside_training
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import checkpoint_of, load_simulator
-from gns.zoo import default_options
+from gns.checkpoint import default_options
 
 
 def _worst_first(per_scene: list[float]) -> list[int]:
@@ -50,7 +50,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
                  options: RolloutOptions | None = None, plots_dir: str | Path | None = None, progress: bool = True,
                  at_data_rate: bool = False, device: str = "cpu", **changes) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it, rolled out with
-    `options` (default: gns.zoo.default_options(run), a zoo model's scored ones), with `changes`
+    `options` (default: gns.checkpoint.default_options(run), a zoo model's scored ones), with `changes`
     (RolloutOptions fields, e.g. symmetrize="d1") on top.
 
     A model trained at every k-th frame rolls out at its own rate from frames 0, k, 2k; it is

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from gns import parallel
+from gns import hardware
 from gns.config import ConfigError
 from gns.graph import GraphBatch
 
@@ -57,7 +57,7 @@ class Normalizer(nn.Module):
         size = self.sum.shape[0]
         # one vector, summed over the processes of a multi-process run, so that every process
         # holds the statistics of the whole global batch (identical to one process training it)
-        stats = parallel.sum_over_processes(torch.cat([x.sum(0), (x * x).sum(0), x.new_full((1,), x.shape[0])]))
+        stats = hardware.sum_over_processes(torch.cat([x.sum(0), (x * x).sum(0), x.new_full((1,), x.shape[0])]))
         if stats[-1] == 0:
             return
         self.count += stats[-1]

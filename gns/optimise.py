@@ -7,11 +7,11 @@ import math
 
 import torch
 
-from gns import parallel
+from gns import hardware
 from gns.config import Config
 from gns.data import Batch, ObjectTracks
 from gns.features import HISTORY
-from gns.rigid import shape_match_packed
+from gns.geometry import shape_match_packed
 from gns.simulator import LearnedSimulator
 
 
@@ -36,7 +36,7 @@ def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: B
     loss = unrolled_loss(sim, batch, rigid_loss)
     if processes > 1:
         # every process sees the same global loss, so all stop together on a NaN
-        total = parallel.sum_over_processes(loss.detach() * fraction)
+        total = hardware.sum_over_processes(loss.detach() * fraction)
         loss = loss * (fraction * processes)
     else:
         total = loss

@@ -20,8 +20,8 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from plumbing import check_output_folder, check_writable, DataError, overlapping
-from datagen.quaternions import continuous
-from datagen.quaternions import rotation, wxyz
+from datagen.shards import continuous
+from datagen.shards import rotation, wxyz
 from datagen.shards import Dataset, Scene, shard_name, write_metadata, write_shard
 from gns.data import ObjectTracks
 from gns.features import HISTORY

@@ -4,7 +4,7 @@ Owns everything around the network: feature building and normalisation, how the 
 (autocast, compile), the ensemble, which nodes it sees, and the loss. The rollout (which objects
 the network moves, which fly free or sleep) is gns.stepping, which LearnedSimulator inherits; the
 rigid-body steps (the integrator x_{t+1} = x_t + (x_t - x_{t-1}) + a and its exact inverse, shape
-matching) are gns.rigid; the floor's symmetries and the averages over them gns.symmetry.
+matching) are gns.geometry; the floor's symmetries and the averages over them gns.stepping.
 Positions are float64 throughout; the network runs in float32 on normalised features.
 """
 from __future__ import annotations
@@ -23,12 +23,12 @@ from gns.contacts import collision_edges, surface_edges
 from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes,
                        select_nodes, with_surface_edges)
 from gns.network import EncodeProcessDecode
-from gns.options import OptionsError, RolloutOptions
-from gns.precision import resolve_autocast
-from gns.rigid import acceleration_of, integrate, posed, shape_match_packed
+from gns.spec import OptionsError, RolloutOptions
+from gns.hardware import resolve_autocast
+from gns.geometry import acceleration_of, integrate, posed, shape_match_packed
 from gns.spec import ModelSpec
 from gns.stepping import Stepping
-from gns.symmetry import averaged_over_images, turn_about_z
+from gns.stepping import averaged_over_images, turn_about_z
 
 # the options applied when a model is loaded (gns.checkpoint.load_simulator), not per rollout
 LOAD_OPTIONS = ("autocast", "compile", "ensemble")
@@ -67,7 +67,7 @@ def _surface_free(settings: dict, other: "LearnedSimulator") -> dict:
 
 class LearnedSimulator(Stepping, nn.Module):
     """GNS for rigid meshes. `spec` is what it is trained on (gns.spec.ModelSpec; gns.data.feature_spec);
-    `options` how it is rolled out (gns.options.RolloutOptions; not saved with the model)."""
+    `options` how it is rolled out (gns.spec.RolloutOptions; not saved with the model)."""
 
     autocast: torch.dtype | None = None  # the network (only) runs in this dtype under autocast (train.autocast)
     autocast_used: str = "none"  # what set_speed took: "none" or "bf16" ("auto" resolved)
@@ -158,7 +158,7 @@ class LearnedSimulator(Stepping, nn.Module):
         edge counts), compiled once and reused when switched on again. The compiled module is
         kept out of the module tree like `distribute`, so state_dict keys and checkpoints are
         unchanged. The first calls compile (tens of seconds on a CPU). autocast "auto": bf16 if it
-        measures faster here (gns.precision); `self.autocast_used` says which was taken.
+        measures faster here (gns.hardware); `self.autocast_used` says which was taken.
 
         `freeze` (with `compile`, for rollouts of a trained model only): inductor's freezing, which
         takes the weights as constants at the first call and lays them out for the CPU's matrix
@@ -303,8 +303,8 @@ class LearnedSimulator(Stepping, nn.Module):
 
     def _predict_one(self, history: torch.Tensor, graph: GraphBatch, symmetrize, body_frames: bool) -> torch.Tensor:
         """This model's acceleration (N, 3) float64, averaged over the images of `symmetrize` (a
-        group of gns.symmetry.SYMMETRY_GROUPS, a rollout option) and with `body_frames` over each
-        object's equivalent body frames (gns.symmetry.averaged_over_images)."""
+        group of gns.stepping.SYMMETRY_GROUPS, a rollout option) and with `body_frames` over each
+        object's equivalent body frames (gns.stepping.averaged_over_images)."""
         if not symmetrize and not body_frames:
             return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
         return averaged_over_images(self, history, graph, symmetrize, body_frames)
@@ -354,7 +354,7 @@ class LearnedSimulator(Stepping, nn.Module):
         (already corrected for the input noise). The target normaliser accumulates in training.
         rigid > 0 adds rigid x the same loss of the shape-matched prediction against the
         shape-matched target (train.rigid_loss): what a rollout keeps of a step. Shape matching
-        runs through the differentiable polar factor (`gns.rigid._rotation_differentiable`).
+        runs through the differentiable polar factor (`gns.geometry._rotation_differentiable`).
         """
         seen = self.network_nodes(history[:, -1], graph)
         if seen is not None:   # the loss of the nodes the network sees (predict_next)

@@ -12,7 +12,6 @@ scheduler state to save.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import random
 import signal
@@ -26,7 +25,7 @@ import numpy as np
 import torch
 
 from datagen.shards import Dataset
-from gns import parallel
+from gns import hardware
 from gns.config import Config, ConfigError, config_to_dict
 from gns.data import Batch, ObjectTracks, feature_spec
 from gns.graph import MeshLibrary, graph_settings
@@ -38,7 +37,7 @@ from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import (CHECKPOINT_FORMAT, TRAINED, CheckpointError, build_simulator, resume_point,
                             save_checkpoint)
-from gns.precision import parse_device
+from gns.hardware import parse_device
 from plumbing import check_writable, DataError
 
 
@@ -79,7 +78,7 @@ class _StopRequest:
         return False
 
 
-def _device(name: str, world: parallel.World = parallel.World()) -> torch.device:
+def _device(name: str, world: hardware.World = hardware.World()) -> torch.device:
     device = parse_device(name)
     if world.size > 1 and device.type == "cuda":
         return torch.device("cuda", world.local_rank)  # torchrun: one GPU per process
@@ -136,14 +135,14 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     """Train until cfg.train.steps; returns the final step.
 
     Launched by torchrun with WORLD_SIZE > 1, each process trains on its share of every global
-    batch of cfg.train.batch_size windows (DistributedDataParallel; see gns.parallel): the
+    batch of cfg.train.batch_size windows (DistributedDataParallel; see gns.hardware): the
     same updates as one process with that batch, in 1/WORLD_SIZE of the network time. Only
     rank 0 writes the run folder and logs.
 
     Raises DataError, CheckpointError or TrainingError with one-line messages. Nothing in the
     run folder changes until the data, config and checkpoint have all been checked.
     """
-    world = parallel.world_from_env()
+    world = hardware.world_from_env()
     if not world.main:
         log = _quiet
     run = Path(run_dir)
@@ -165,14 +164,14 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
         # the DDP reducer must go before its process group: freed after it (when train returned),
         # its destructor hung 3 runs in ~45 (none in 80 since)
         sim.distribute(None)
-        parallel.stop(world, together=finished)
+        hardware.stop(world, together=finished)
 
 
 def _quiet(line: str) -> None:
     """The log of processes other than rank 0: one copy of every line is enough."""
 
 
-def _check_start(run: Path, cfg: Config, world: parallel.World, resume: bool, overwrite: bool,
+def _check_start(run: Path, cfg: Config, world: hardware.World, resume: bool, overwrite: bool,
                  log: Callable[[str], None]) -> tuple[list[Path], torch.device, tuple[Path, dict] | None]:
     """Everything checked before the data is read: the batch split, the run folder, the device,
     the checkpoint to resume, the extras asked for. Returns (files of an earlier run to delete,
@@ -241,14 +240,14 @@ def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] |
     return sim, optimizer, spec, step, average
 
 
-def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world: parallel.World) -> None:
+def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world: hardware.World) -> None:
     """The simulator on its device in training mode, under bf16 autocast and compiled if asked, joined to
     the other processes' (DistributedDataParallel) when there are several."""
     sim.to(device).train()
     sim.set_speed(cfg.train.autocast, cfg.train.compile)
     if device.type == "cuda":
         torch.cuda.set_device(device)
-    parallel.start(world, device)
+    hardware.start(world, device)
     if world.size > 1:
         from torch.nn.parallel import DistributedDataParallel
         sim.distribute(DistributedDataParallel(sim.network, device_ids=[device.index] if device.type == "cuda" else None))
@@ -256,7 +255,7 @@ def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world
 
 def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer,
                 tracks: ObjectTracks, valid: ObjectTracks | None, spec: ModelSpec, step: int,
-                rng: np.random.Generator, device: torch.device, world: parallel.World, stale: list[Path],
+                rng: np.random.Generator, device: torch.device, world: hardware.World, stale: list[Path],
                 resumed_from: Path | None, provenance: dict, log: Callable[[str], None],
                 average: WeightAverage | None = None) -> int:
     """Steps from `step` to cfg.train.steps: a batch, an Adam step, a metrics line every
@@ -295,12 +294,12 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
 
 def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer, tracks: ObjectTracks,
            valid: ObjectTracks | None, step: int, rng: np.random.Generator, device: torch.device,
-           world: parallel.World, state: Callable[[int], dict], last_good: Path | None, bar, metrics, writer,
+           world: hardware.World, state: Callable[[int], dict], last_good: Path | None, bar, metrics, writer,
            stop, average: WeightAverage | None = None) -> tuple[int, Path | None]:
     """The loop of _train_loop; returns (step reached, last checkpoint). Stops on a signal
     (`stop.asked`) after the step under way, with a checkpoint there. Validation scores the
     weight average when there is one: the weights the checkpoints keep for use."""
-    lo, hi = parallel.share(cfg.train.batch_size, world)
+    lo, hi = hardware.share(cfg.train.batch_size, world)
     loss_sum, loss_count, busy = 0.0, 0, 0.0
     t_mark = time.perf_counter()
     while step < cfg.train.steps:
@@ -346,7 +345,7 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
 
 
 def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: ModelSpec, step: int,
-                world: parallel.World, resumed_from: Path | None) -> str:
+                world: hardware.World, resumed_from: Path | None) -> str:
     """The log's first line: what is trained on what."""
     n_params = sum(p.numel() for p in sim.parameters())
     contact = ""
@@ -362,7 +361,7 @@ def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: 
             f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}{precision}")
 
 
-def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, world: parallel.World,
+def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, world: hardware.World,
                 lo: int, hi: int) -> tuple[Batch, float]:
     """The next global batch of windows, augmented, or this process's share [lo, hi) of it, and
     the fraction of the global batch's nodes that share holds."""

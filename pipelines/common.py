@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from plumbing import config_dir, DataError
-from datagen.config import load_config as load_scene_config
+from datagen.scenes import load_config as load_scene_config
 from datagen.generate import generate
 from datagen.shards import Dataset
 from gns.config import build_config, config_differences

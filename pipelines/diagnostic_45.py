@@ -42,15 +42,15 @@ from pathlib import Path
 import numpy as np
 
 from plumbing import atomic_file, atomic_folder
-from datagen.config import load_config
+from datagen.scenes import load_config
 from datagen.generate import metadata, plan
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from datagen.shards import Dataset, write_metadata, write_shard
 from datagen.simulate import simulate
 from datagen.tilted import side, tilted_scene, training_scene
 from gns.checkpoint import checkpoint_of
 from gns.evaluate import evaluate_run, write_json
-from gns.options import RolloutOptions
+from gns.spec import RolloutOptions
 from gns.rollout import rollout_scenes
 from gns.spec import ModelSpec
 from gns.checkpoint import load_model, read_checkpoint

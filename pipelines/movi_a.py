@@ -41,7 +41,7 @@ from datagen.shards import Dataset
 from gns.checkpoint import read_checkpoint
 from gns.evaluate import evaluate_run, score_predictions, write_json
 from gns.metrics import format_table, per_frame_curves
-from gns.options import RolloutOptions
+from gns.spec import RolloutOptions
 from pipelines.common import data_stage, done, guarded, remove_output, say, train_stage, trained_step
 
 # The zoo's MOVi-A model and the rollout options it was scored with (its card's).

@@ -24,10 +24,10 @@ from gns.config import TrainConfig
 from gns.data import ObjectTracks, in_contact
 from gns.checkpoint import load_simulator
 from gns.evaluate import load_split
-from gns.options import RolloutOptions
+from gns.spec import RolloutOptions
 from gns.geometry import matrix_to_quat
 from gns.metrics import object_width, rotation_error_deg
-from gns.rigid import shape_match_packed
+from gns.geometry import shape_match_packed
 from gns.spec import ModelSpec
 
 CONTACT = TrainConfig.contact_threshold  # |a - g| > CONTACT |g|: the step is in contact (gns.data.in_contact)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from datagen.config import load_config as scene_config
+from datagen.scenes import load_config as scene_config
 from datagen.scenes import sample_scene
 from datagen.shards import Dataset
 from datagen.simulate import simulate
@@ -149,7 +149,7 @@ def sweep_runs(p: dict, out: Path) -> list[tuple[str, Path]]:
 
 
 # the rollout options of issue 12: gns eval --free-flight --autocast auto --compile (and --symmetrize);
-# auto: bf16 where it measures faster on this machine (gns.precision), else float32; each row says which
+# auto: bf16 where it measures faster on this machine (gns.hardware), else float32; each row says which
 FAST = "free flight + auto precision + compile"
 FAST_SYM = FAST + " + symmetrized"
 MODES = {None: "gns batched", "fast": "gns fast", "fast sym": "gns fast sym"}

@@ -1,9 +1,9 @@
 """Scenes built by hand (exact pose, no sampling) for physics tests."""
 import numpy as np
 
-from datagen.config import load_config
+from datagen.scenes import load_config
 from datagen.scenes import ObjectSpec, SceneSpec
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 
 
 def config(frame_rate=12, frames=24, **sets):

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from datagen.shards import Scene, shard_name, write_metadata, write_shard
 from gns.geometry import quat_from_axis_angle, quat_multiply
 

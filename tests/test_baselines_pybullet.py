@@ -13,7 +13,7 @@ from baselines.identify import (fit_floor, fit_gravity, free_flight_frames, obje
 from baselines.pybullet import BOUNDS, FIT, PUBLISHED, BaselineParams, fit_parameters, simulate_toss
 from baselines.toss import initial_state, toss_errors
 from datagen.contactnets import read_experiment, read_toss, toss_to_scene
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from datagen.shards import Scene
 from gns.metrics import evaluate_scenes
 

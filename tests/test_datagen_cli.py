@@ -79,7 +79,7 @@ def test_another_seed_gives_other_scenes(dataset, tmp_path):
 def test_multi_object_scenes_do_not_overlap(tmp_path):
     out = tmp_path / "m"
     assert main(["toss", "--out", str(out), "--objects", "3-10", "--scenes", "4", "--frames", "4", "--quiet"]) == 0
-    from datagen.shapes import get_shape
+    from datagen.scenes import get_shape
     for sc in Dataset(out).load("train"):
         assert 3 <= sc.num_objects <= 10
         p = sc.positions[0]

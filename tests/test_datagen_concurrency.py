@@ -15,6 +15,7 @@ import h5py
 import pytest
 
 from datagen import generate as gen_mod
+from datagen import output as output_mod
 from datagen.cli import main
 from datagen.shards import Dataset, write_shard
 
@@ -52,7 +53,7 @@ def _run_forked(argv, barrier, errfile):
     child's: both have looked at the folder before either wrote, the race made certain."""
     import sys as child_sys
     child_sys.stderr = open(errfile, "w")
-    real = gen_mod.write_metadata
+    real = output_mod.write_metadata
     first = [True]
 
     def slowed(out, meta):
@@ -63,7 +64,7 @@ def _run_forked(argv, barrier, errfile):
             except threading.BrokenBarrierError:
                 pass
         return real(out, meta)
-    gen_mod.write_metadata = slowed
+    output_mod.write_metadata = slowed
     try:
         code = main(argv)
     except BaseException as e:  # noqa: BLE001 - reported through the exit code

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from datagen.shapes import SHAPES, get_shape, parse_shapes
+from datagen.scenes import SHAPES, get_shape, parse_shapes
 
 
 @pytest.mark.parametrize("name", SHAPES)

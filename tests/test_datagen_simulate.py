@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from datagen.config import load_config
+from datagen.scenes import load_config
 from datagen.inspect import rotate
 from datagen.scenes import sample_scene
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from datagen.simulate import simulate
 from tests.datagen_helpers import config, one_object
 

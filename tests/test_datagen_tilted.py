@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from datagen.config import load_config
+from datagen.scenes import load_config
 from datagen.inspect import rotate
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from datagen.simulate import simulate
 from datagen.tilted import side, tilted_scene, training_scene
 

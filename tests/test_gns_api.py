@@ -327,8 +327,8 @@ def test_symmetrized_images_in_one_call_equal_one_call_per_image(run):
     # scenes of several touching objects: each image keeps its own collision edges
     from dataclasses import replace
 
-    import gns.symmetry as symmetry
-    from gns.symmetry import FLOOR_SYMMETRIES
+    import gns.stepping as symmetry
+    from gns.stepping import FLOOR_SYMMETRIES
     model = gns.load(run / "run", symmetrize="d2")
     sim = model.simulator
     state = model.state(**three_cubes(), warn=False)
@@ -351,7 +351,7 @@ def test_symmetrized_images_in_one_call_equal_one_call_per_image(run):
 def test_options_given_at_load_are_the_models_and_its_rollouts_honour_them(run):
     from dataclasses import replace
 
-    from gns.options import RolloutOptions
+    from gns.spec import RolloutOptions
     plain = gns.load(run / "run")
     assert plain.options == RolloutOptions()   # a run folder outside the zoo: the defaults
     fast = gns.load(run / "run", free_flight=True, body_frames=True)

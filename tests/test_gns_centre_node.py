@@ -7,11 +7,11 @@ from scipy.sparse.csgraph import shortest_path
 from gns_fixtures import write_toss_dataset
 
 import gns
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from gns.checkpoint import build_simulator
 from gns.fine_tune import init_from
 from gns.graph import MeshLibrary, centre_spokes
-from gns.rigid import shape_match_packed
+from gns.geometry import shape_match_packed
 from gns.spec import ModelSpec
 from gns.checkpoint import CheckpointError, read_checkpoint
 from gns.train import train

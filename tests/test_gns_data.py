@@ -4,7 +4,7 @@ import pytest
 import torch
 from gns_fixtures import cube_meshes, write_toss_dataset
 
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from datagen.shards import Dataset
 from plumbing import DataError
 from gns.config import FeatureConfig
@@ -12,7 +12,7 @@ from gns.data import ObjectTracks, feature_spec, rotation_z, vertices_from_poses
 from gns.features import make_layout
 from gns.geometry import pose_to_vertices, quat_from_axis_angle, quat_to_matrix
 from gns.graph import MeshLibrary, mesh_edges
-from gns.rigid import acceleration_of, shape_match_packed
+from gns.geometry import acceleration_of, shape_match_packed
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from datagen.contactnets import read_experiment, read_toss, toss_to_scene
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from gns.config import ConfigError, build_config
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary

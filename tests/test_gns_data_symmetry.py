@@ -5,11 +5,11 @@ import torch
 import trimesh
 from gns_fixtures import write_toss_dataset
 
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from datagen.shards import Dataset
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary, mesh_symmetries
-from gns.rigid import shape_match_packed
+from gns.geometry import shape_match_packed
 
 
 def _tracks(tmp_path):

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from gns.geometry import (matrix_to_quat, pose_to_vertices, quat_conjugate, quat_from_axis_angle,
                           quat_multiply, quat_normalize, quat_to_matrix, rotation_angle)
 

@@ -6,11 +6,11 @@ import pytest
 import torch
 from gns_fixtures import rolled_out, write_toss_dataset
 
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from gns.checkpoint import build_simulator
 from gns.config import ConfigError
 from gns.graph import MeshLibrary, lowest_nodes, select_nodes
-from gns.rigid import shape_match_packed
+from gns.geometry import shape_match_packed
 from gns.spec import Floor, ModelSpec
 from gns.checkpoint import read_checkpoint
 from gns.train import train

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from datagen.shards import Scene
 from gns.geometry import quat_from_axis_angle, quat_normalize
 from gns.metrics import (evaluate_scenes, format_table, penetration_pct, per_frame_curves, per_frame_errors,

@@ -9,7 +9,7 @@ import torch
 from gns_fixtures import write_toss_dataset
 
 from datagen.cli import main as datagen_main
-from gns import parallel
+from gns import hardware
 from gns.config import build_config
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
@@ -93,7 +93,7 @@ def test_two_processes_resume_where_they_stopped(runs):
 def test_share_splits_the_global_batch_into_disjoint_contiguous_parts():
     for size in (1, 2, 3):
         for batch in (size, 5, 8):
-            parts = [parallel.share(batch, parallel.World(r, size)) for r in range(size)]
+            parts = [hardware.share(batch, hardware.World(r, size)) for r in range(size)]
             assert parts[0][0] == 0 and parts[-1][1] == batch
             assert all(a[1] == b[0] for a, b in zip(parts, parts[1:]))
             assert max(hi - lo for lo, hi in parts) - min(hi - lo for lo, hi in parts) <= 1

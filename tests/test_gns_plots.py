@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from datagen.shards import Scene
 from gns.geometry import quat_from_axis_angle
 from gns.charts import plot_curve

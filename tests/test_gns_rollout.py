@@ -11,7 +11,7 @@ from datagen.shards import Dataset, Scene
 from gns.config import build_config
 from gns.evaluate import evaluate_run
 from gns.geometry import pose_to_vertices
-from gns.options import RolloutOptions
+from gns.spec import RolloutOptions
 from gns.rollout import rollout_scenes, write_rollouts
 from gns.checkpoint import load_model
 from gns.train import train

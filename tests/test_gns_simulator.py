@@ -9,7 +9,7 @@ from gns.data import vertices_from_poses
 from gns.features import Normalizer, raw_node_features
 from gns.geometry import quat_to_matrix
 from gns.graph import MeshLibrary
-from gns.rigid import acceleration_of, integrate, shape_match, shape_match_packed
+from gns.geometry import acceleration_of, integrate, shape_match, shape_match_packed
 from gns.simulator import LearnedSimulator
 from gns.spec import Floor, ModelSpec
 
@@ -225,8 +225,8 @@ def test_per_node_turns_equal_the_matrix_products():
     each node turned by its graph's rotation, turns about z from cosines and sines, and the
     floor's diagonal maps of the body-frame symmetries."""
     from gns.graph import mapped_symmetries
-    from gns.rigid import rotate_nodes
-    from gns.symmetry import turn_about_z
+    from gns.geometry import rotate_nodes
+    from gns.stepping import turn_about_z
     rot = random_rotations(4, seed=1)
     node_graph = torch.tensor([0, 0, 1, 2, 2, 2, 3])
     v = torch.from_numpy(np.random.default_rng(2).normal(size=(7, 3)))

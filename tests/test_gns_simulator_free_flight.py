@@ -14,7 +14,7 @@ import torch
 from gns_fixtures import rolled_out
 from scipy.spatial.transform import Rotation
 
-from datagen.shapes import get_shape
+from datagen.scenes import get_shape
 from gns.config import build_config
 from gns.data import ObjectTracks
 from gns.contacts import collision_edges
@@ -305,7 +305,7 @@ def test_signed_floor_distance_shows_how_deep_a_vertex_is_below_the_floor():
 
 def test_the_python_api_rolls_out_with_free_flight_exactly_in_the_air():
     import gns
-    from gns.options import RolloutOptions
+    from gns.spec import RolloutOptions
     model = gns.load(MODEL, options=RolloutOptions(free_flight=True))
     g = model.spec.gravity[2]
     out = model.rollout(["sphere"], positions=[[0.0, 0.0, 100.0]], quaternions=[[1.0, 0, 0, 0]],

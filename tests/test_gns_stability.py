@@ -19,7 +19,7 @@ from gns.data import ObjectTracks, feature_spec
 from gns.graph import MeshLibrary
 from gns.spec import outside_training
 from gns.graph import EdgeSet
-from gns.rigid import shape_match
+from gns.geometry import shape_match
 from gns.simulator import LearnedSimulator
 from gns.stepping import Sleep
 from gns.spec import ModelSpec

@@ -11,7 +11,7 @@ from datagen.shards import Dataset, Scene
 from gns.config import ConfigError, build_config
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
-from gns.rigid import shape_match_packed
+from gns.geometry import shape_match_packed
 from gns.checkpoint import build_simulator, read_checkpoint
 from gns.optimise import unrolled_loss
 from gns.train import train
@@ -162,7 +162,7 @@ def test_d4_symmetrized_predictions_are_exactly_quarter_turn_equivariant(tmp_pat
     sim, b = sim_and_batch(tmp_path)
     from dataclasses import replace
 
-    from gns.symmetry import symmetry_group
+    from gns.stepping import symmetry_group
     quarter = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     diagonal = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from datagen.config import config_dir
+from plumbing import config_dir
 from gns.checkpoint import read_checkpoint
 from gns.config import build_config, config_differences, config_to_dict
 from pipelines.common import SETTINGS_FREE

@@ -1,11 +1,11 @@
-"""--autocast auto: bf16 only where it measures faster (gns.precision)."""
+"""--autocast auto: bf16 only where it measures faster (gns.hardware)."""
 import warnings
 
 import pytest
 import torch
 
 from gns.config import ConfigError
-from gns.precision import MARGIN, bf16_speedup, resolve_autocast
+from gns.hardware import MARGIN, bf16_speedup, resolve_autocast
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from test_gns_train import tiny
