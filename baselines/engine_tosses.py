@@ -26,7 +26,7 @@ from baselines import baseline_engine
 from baselines.toss import initial_state
 from datagen.shards import rotation, wxyz
 from datagen.shards import Scene
-from gns.features import HISTORY
+from gns.network import HISTORY
 
 
 def _start_scene(template: Scene, p: np.ndarray, q: Rotation, v: np.ndarray, w: np.ndarray,

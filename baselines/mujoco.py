@@ -32,7 +32,7 @@ from baselines.toss import FRAME_RATE, GRAVITY, half_extent, initial_state, pred
 from datagen.contactnets import DEFAULTS as CONTACTNETS
 from datagen.shards import rotation
 from datagen.shards import Scene
-from gns.features import HISTORY
+from gns.network import HISTORY
 
 
 MISSING = "the MuJoCo baseline needs the mujoco package: pip install -e '.[mujoco]'"

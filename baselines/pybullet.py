@@ -39,7 +39,7 @@ from datagen.contactnets import DEFAULTS as CONTACTNETS
 from datagen.shards import Scene
 from datagen.shards import wxyz, xyzw
 from datagen.simulate import add_floor, new_world, pb
-from gns.features import HISTORY
+from gns.network import HISTORY
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ import numpy as np
 from datagen.contactnets import DEFAULTS as CONTACTNETS
 from datagen.shards import continuous, rotation
 from datagen.shards import Scene
-from gns.features import HISTORY
+from gns.network import HISTORY
 
 FRAME_RATE = 1.0 / CONTACTNETS["dt"]          # 148 Hz
 GRAVITY = float(CONTACTNETS["g"])             # half-widths / s^2

@@ -33,7 +33,7 @@ from gns.data import ObjectTracks, feature_spec
 from gns.geometry import quat_from_axis_angle
 from gns.graph import MeshLibrary
 from gns.checkpoint import build_simulator
-from gns.optimise import learning_rate, train_step
+from gns.train import learning_rate, train_step
 
 CONFIGS = config_dir()
 SHAPES = ("beveled_cube", "cylinder", "sphere")  # MOVi-A's shapes: 51-64 vertices each

@@ -6,7 +6,7 @@ import sys
 
 from plumbing import ConfigError
 from .scenes import load_config
-from .provenance import version_line
+from plumbing import version_line
 
 EPILOG = """examples:
   datagen toss --shapes cube,sphere --sizes small --materials metal --scenes 100 --out data/toy

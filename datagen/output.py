@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
 
 from plumbing import atomic_file, DataError
-from .provenance import file_sha256
+from plumbing import file_sha256
 from .shards import METADATA_FILE, SHARED, clear_dataset, dataset_files, write_metadata, write_shard_image
 
 if TYPE_CHECKING:

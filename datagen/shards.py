@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from plumbing import atomic_file, DataError
-from .provenance import file_sha256, fingerprint, provenance
+from plumbing import file_sha256, fingerprint, provenance
 
 FORMAT_VERSION = 1
 METADATA_FILE = "metadata.json"

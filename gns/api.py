@@ -33,7 +33,7 @@ from scipy.spatial.transform import Rotation
 
 from plumbing import DataError
 from gns.config import Config, ConfigError, build_config
-from gns.features import HISTORY
+from gns.network import HISTORY
 from gns.graph import GraphBatch, with_symmetries
 from gns.spec import outside_training
 from gns.geometry import posed, shape_match_packed

@@ -333,7 +333,7 @@ def add_models_parser(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from datagen.provenance import version_line
+    from plumbing import version_line
     parser = argparse.ArgumentParser(prog="gns", description="Graph network simulator for rigid bodies.")
     parser.add_argument("--version", action="version", version=version_line())
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

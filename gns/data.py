@@ -36,15 +36,17 @@ themselves noisy, target included, and nothing corrects for it:
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from datagen.shards import Dataset, Scene
+from gns.config import Config, ConfigError
 from plumbing import DataError
-from gns.features import HISTORY
+from gns.network import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
-from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_sizes, mapped_symmetries, ragged_arange
+from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, graph_sizes, mapped_symmetries, ragged_arange
 from gns.spec import Floor, ModelSpec, SpecError
 
 
@@ -318,3 +320,34 @@ def feature_spec(dataset: Dataset, scenes: list[Scene]) -> ModelSpec:
             "restitution": _range([sc.restitution for sc in scenes]),
         },
     )
+
+
+def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTracks, ObjectTracks | None]:
+    """Feature spec, train tracks and (if validating and present) valid tracks of a dataset."""
+    dataset = Dataset(data_dir, stride=cfg.features.frame_stride)
+    limit = cfg.train.scenes or None
+    scenes = dataset.load("train", limit)
+    if limit is not None and len(scenes) < limit:
+        raise ConfigError(f"train.scenes={limit}, but {data_dir} holds {len(scenes)} train scenes")
+    k = cfg.features.frame_stride
+    if k > 1 and cfg.train.all_phases:
+        # read at stride k from frame 0 only, a scene gives 1/k of its windows; starting at each
+        # of frames 0 .. k-1 gives them all (as many windows as at stride 1)
+        full = Dataset(data_dir).load("train", limit)
+        scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
+    try:
+        library = MeshLibrary(dataset.meshes, **graph_settings(cfg.features))
+    except ValueError as e:
+        raise DataError(f"{data_dir}: {e}") from None
+    tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)
+    if cfg.train.contact_fraction > 0:
+        tracks.mark_contacts(torch.as_tensor(dataset.gravity, dtype=torch.float64) / dataset.frame_rate ** 2,
+                             cfg.train.contact_threshold)
+    valid = None
+    if cfg.valid.every > 0 and "valid" in dataset.splits:
+        valid = ObjectTracks(dataset.load("valid"), library, "valid split")
+    # the meshes travel with the model: gns.load rolls out without the dataset
+    spec = replace(feature_spec(dataset, scenes),
+                   meshes={name: (torch.as_tensor(np.asarray(v, np.float64)), torch.as_tensor(np.asarray(f, np.int64)))
+                           for name, (v, f) in dataset.meshes.items()})
+    return spec, tracks, valid

@@ -15,7 +15,7 @@ from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scen
 from gns.rollout import diverged_line, split_diverged, timed_rollout, upsample_scene
 from gns.data import feature_spec
 from gns.hardware import parse_device
-from gns.features import HISTORY
+from gns.network import HISTORY
 from gns.spec import RolloutOptions
 from gns.spec import outside_training
 from gns.simulator import LearnedSimulator
@@ -94,7 +94,7 @@ def provenance_of(saved: dict, ds: Dataset) -> dict:
     """What an evaluation or rollout records of where it came from: this code's versions and
     commit, the fingerprint of the data it ran on, and of the data the model was trained on
     (None for a checkpoint written before runs recorded it), so a mismatch can be seen."""
-    from datagen.provenance import provenance
+    from plumbing import provenance
     trained = saved.get("provenance") if isinstance(saved.get("provenance"), dict) else {}
     return {"provenance": provenance(), "data_fingerprint": ds.fingerprint,
             "trained_on_fingerprint": (trained.get("data") or {}).get("fingerprint")}

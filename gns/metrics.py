@@ -23,7 +23,7 @@ scale (2 for the real cube of half-width 1) as in the paper, and stays right if 
 mesh that does not span 1 (e.g. the ContactNets cube with vertices at +-1 and scale 1).
 
 The formulas are numpy, no autograd: they score analytic simulators as well as the GNS. Only the
-number of given frames comes from the model (gns.features.HISTORY).
+number of given frames comes from the model (gns.network.HISTORY).
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from gns.features import HISTORY
+from gns.network import HISTORY
 from gns.geometry import pose_to_vertices, quat_to_matrix, rotation_angle
 
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")

@@ -20,7 +20,7 @@ from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from scipy.spatial import ConvexHull, QhullError
 
-from gns.features import HISTORY
+from gns.network import HISTORY
 from gns.geometry import feature_edges, pose_to_vertices
 from gns.metrics import object_width
 

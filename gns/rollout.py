@@ -24,7 +24,7 @@ from datagen.shards import continuous
 from datagen.shards import rotation, wxyz
 from datagen.shards import Dataset, Scene, shard_name, write_metadata, write_shard
 from gns.data import ObjectTracks
-from gns.features import HISTORY
+from gns.network import HISTORY
 from gns.geometry import matrix_to_quat
 from gns.simulator import LearnedSimulator
 

@@ -5,19 +5,23 @@ made before a run starts over or goes on
 from __future__ import annotations
 
 import json
+import os
 import random
+import signal
+import sys
+import threading
+import time
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import torch
 
+from gns import hardware
 from gns.checkpoint import LATEST, CheckpointError, checkpoint_paths, resume_point
 from gns.config import Config, ConfigError, build_config
-from plumbing import atomic_file
-import os
-import sys
-import time
+from gns.hardware import training_device
+from plumbing import atomic_file, check_writable
 
 
 METRICS = "metrics.jsonl"
@@ -122,7 +126,7 @@ def _log_scalars(writer, entry: dict) -> None:
 def run_provenance(data_dir: str | Path, fingerprint: str, step: int, earlier: dict | None) -> dict:
     """What a run records of where it came from: versions, code commit, the data it trained on;
     earlier runs of a resumed training are kept in `earlier`, oldest first."""
-    from datagen.provenance import provenance
+    from plumbing import provenance
     history = []
     if isinstance(earlier, dict):
         history = [*earlier.get("earlier", []), {k: v for k, v in earlier.items() if k != "earlier"}]
@@ -249,3 +253,51 @@ def _duration(seconds: float) -> str:
     if seconds < 90 * 60:
         return f"{seconds / 60:.0f} min"
     return f"{seconds / 3600:.1f} h"
+
+
+class StopRequest:
+    """SIGINT and SIGTERM, while installed, ask the loop to stop after the step under way (a
+    checkpoint of a half-done Adam step would not resume exactly); a second signal stops at once.
+    One process only: processes of a parallel run stopping at different steps would hang."""
+
+    def __init__(self):
+        self.asked, self.previous = None, {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self.previous[sig] = signal.signal(sig, self._ask)
+        return self
+
+    def _ask(self, signum, frame):
+        if self.asked is not None:  # asked twice: do not wait for the step
+            raise KeyboardInterrupt
+        self.asked = signal.Signals(signum).name
+
+    def __exit__(self, *exc):
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+        return False
+
+
+def check_start(run: Path, cfg: Config, world: hardware.World, resume: bool, overwrite: bool,
+                 log: Callable[[str], None]) -> tuple[list[Path], torch.device, tuple[Path, dict] | None]:
+    """Everything checked before the data is read: the batch split, the run folder, the device,
+    the checkpoint to resume, the extras asked for. Returns (files of an earlier run to delete,
+    device, (checkpoint path, checkpoint) when resuming)."""
+    if world.size > 1 and cfg.train.batch_size < world.size:
+        raise ConfigError(f"train.batch_size={cfg.train.batch_size} is the global batch, split over "
+                          f"{world.size} processes: it must be at least {world.size}")
+    stale = check_run(run, resume, overwrite)
+    device = training_device(cfg.train.device, world)
+    resumed = None
+    if resume:
+        path, ckpt, note = resume_point(run)
+        if note:
+            log(note)
+        resumed = (path, ckpt)
+    if world.main:
+        check_writable(run, "run folder")
+    if cfg.train.tensorboard:
+        check_tensorboard()
+    return stale, device, resumed

@@ -17,7 +17,7 @@ from dataclasses import replace
 import torch
 from torch import nn
 
-from gns.features import FeatureLayout, Normalizer, make_layout, raw_collision_features, raw_edge_features, raw_node_features
+from gns.network import FeatureLayout, Normalizer, make_layout, raw_collision_features, raw_edge_features, raw_node_features
 from gns.config import ConfigError
 from gns.contacts import collision_edges, surface_edges
 from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes,

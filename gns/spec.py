@@ -61,7 +61,7 @@ class ModelSpec:
 
     frame_rate and gravity are None only for a simulator built without them (tests and
     benchmarks: no sleeping, no free flight); every checkpoint holds both. node_features,
-    edge_features and collision_features (the layout, gns.features) are set by training
+    edge_features and collision_features (the layout, gns.network) are set by training
     (None before: a spec of data). meshes {name: (vertices (V, 3) float64, faces (F, 3) int64)}
     tensors; None in checkpoints written before they were kept."""
 

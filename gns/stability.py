@@ -1,4 +1,4 @@
-"""Stability at the extremes: what a simulator does where users push it (issue 6).
+"""Stability at the extremes: what a simulator does where users push it.
 
 Three kinds of check, each returning plain dicts for a report (pipelines/stability.py) or a test:
 - long rollouts: scenes rolled out far past the length the model was trained on: finite,
@@ -18,7 +18,7 @@ import torch
 
 from datagen.shards import Scene
 from gns.data import ObjectTracks, feature_spec
-from gns.features import HISTORY
+from gns.network import HISTORY
 from gns.graph import MeshLibrary, graph_centres, graph_sizes, per_graph
 from gns.spec import outside_training
 from gns.simulator import LearnedSimulator

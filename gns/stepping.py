@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from gns.features import HISTORY
+from gns.network import HISTORY
 from gns.contacts import candidate_pairs
 from gns.geometry import posed, shape_match_packed
 from gns.graph import EdgeSet, GraphBatch, mapped_symmetries, per_graph, select_graphs, stack_graphs, with_symmetries

@@ -12,10 +12,8 @@ scheduler state to save.
 from __future__ import annotations
 
 import contextlib
-import os
+import math
 import random
-import signal
-import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -26,19 +24,16 @@ import torch
 
 from datagen.shards import Dataset
 from gns import hardware
-from gns.config import Config, ConfigError, config_to_dict
-from gns.data import Batch, ObjectTracks, feature_spec
-from gns.graph import MeshLibrary, graph_settings
-from gns.optimise import learning_rate, train_step, validate
-from gns.run_folder import (METRICS, check_run, check_tensorboard, restore_rng, rng_state, run_provenance,
+from gns.checkpoint import CHECKPOINT_FORMAT, TRAINED, CheckpointError, build_simulator, save_checkpoint
+from gns.config import Config, config_to_dict
+from gns.data import Batch, ObjectTracks, load_data
+from gns.network import HISTORY
+from gns.geometry import shape_match_packed
+from gns.hardware import set_threads
+from gns.run_folder import (METRICS, StopRequest, check_start, progress_bar, restore_rng, rng_state, run_provenance,
                             start_run_folder, tensorboard_writer, write_metrics)
-from gns.run_folder import progress_bar
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-from gns.checkpoint import (CHECKPOINT_FORMAT, TRAINED, CheckpointError, build_simulator, resume_point,
-                            save_checkpoint)
-from gns.hardware import parse_device
-from plumbing import check_writable, DataError
 
 
 if TYPE_CHECKING:
@@ -51,83 +46,6 @@ class TrainingError(Exception):
 
 class TrainingInterrupted(KeyboardInterrupt):
     """Ctrl-C or SIGTERM stopped a training after saving a checkpoint at the step it had reached."""
-
-
-class _StopRequest:
-    """SIGINT and SIGTERM, while installed, ask the loop to stop after the step under way (a
-    checkpoint of a half-done Adam step would not resume exactly); a second signal stops at once.
-    One process only: processes of a parallel run stopping at different steps would hang."""
-
-    def __init__(self):
-        self.asked, self.previous = None, {}
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self.previous[sig] = signal.signal(sig, self._ask)
-        return self
-
-    def _ask(self, signum, frame):
-        if self.asked is not None:  # asked twice: do not wait for the step
-            raise KeyboardInterrupt
-        self.asked = signal.Signals(signum).name
-
-    def __exit__(self, *exc):
-        for sig, handler in self.previous.items():
-            signal.signal(sig, handler)
-        return False
-
-
-def _device(name: str, world: hardware.World = hardware.World()) -> torch.device:
-    device = parse_device(name)
-    if world.size > 1 and device.type == "cuda":
-        return torch.device("cuda", world.local_rank)  # torchrun: one GPU per process
-    if world.size > 1 and device.type == "mps":
-        raise ConfigError("training on several processes runs on cpu or cuda, not mps")
-    return device
-
-
-def _set_threads(threads: int, log: Callable[[str], None]) -> None:
-    """Use `threads` (0 = all cores), warning when other processes already load the cores:
-    OpenMP threads that get descheduled stall every parallel region (measured: 16 -> 0.6 steps/s)."""
-    cores = os.cpu_count() or 1
-    threads = threads or cores
-    torch.set_num_threads(threads)
-    load = os.getloadavg()[0]
-    if threads > 1 and load + threads > cores + 0.5:
-        log(f"warning: {threads} threads on {cores} cores with a load average of {load:.1f}; "
-            f"if steps/s collapse, use --set train.threads=1")
-
-
-def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTracks, ObjectTracks | None]:
-    """Feature spec, train tracks and (if validating and present) valid tracks of a dataset."""
-    dataset = Dataset(data_dir, stride=cfg.features.frame_stride)
-    limit = cfg.train.scenes or None
-    scenes = dataset.load("train", limit)
-    if limit is not None and len(scenes) < limit:
-        raise ConfigError(f"train.scenes={limit}, but {data_dir} holds {len(scenes)} train scenes")
-    k = cfg.features.frame_stride
-    if k > 1 and cfg.train.all_phases:
-        # read at stride k from frame 0 only, a scene gives 1/k of its windows; starting at each
-        # of frames 0 .. k-1 gives them all (as many windows as at stride 1)
-        full = Dataset(data_dir).load("train", limit)
-        scenes = [sc.every(k, phase) for sc in full for phase in range(k) if sc.num_frames > phase]
-    try:
-        library = MeshLibrary(dataset.meshes, **graph_settings(cfg.features))
-    except ValueError as e:
-        raise DataError(f"{data_dir}: {e}") from None
-    tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)
-    if cfg.train.contact_fraction > 0:
-        tracks.mark_contacts(torch.as_tensor(dataset.gravity, dtype=torch.float64) / dataset.frame_rate ** 2,
-                             cfg.train.contact_threshold)
-    valid = None
-    if cfg.valid.every > 0 and "valid" in dataset.splits:
-        valid = ObjectTracks(dataset.load("valid"), library, "valid split")
-    # the meshes travel with the model: gns.load rolls out without the dataset
-    spec = replace(feature_spec(dataset, scenes),
-                   meshes={name: (torch.as_tensor(np.asarray(v, np.float64)), torch.as_tensor(np.asarray(f, np.int64)))
-                           for name, (v, f) in dataset.meshes.items()})
-    return spec, tracks, valid
 
 
 def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool = False,
@@ -146,7 +64,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     if not world.main:
         log = _quiet
     run = Path(run_dir)
-    stale, device, resumed = _check_start(run, cfg, world, resume, overwrite, log)
+    stale, device, resumed = check_start(run, cfg, world, resume, overwrite, log)
     data_spec, tracks, valid = load_data(data_dir, cfg)
     fingerprint = Dataset(data_dir).fingerprint
     rng = _seed(cfg, log)
@@ -171,32 +89,9 @@ def _quiet(line: str) -> None:
     """The log of processes other than rank 0: one copy of every line is enough."""
 
 
-def _check_start(run: Path, cfg: Config, world: hardware.World, resume: bool, overwrite: bool,
-                 log: Callable[[str], None]) -> tuple[list[Path], torch.device, tuple[Path, dict] | None]:
-    """Everything checked before the data is read: the batch split, the run folder, the device,
-    the checkpoint to resume, the extras asked for. Returns (files of an earlier run to delete,
-    device, (checkpoint path, checkpoint) when resuming)."""
-    if world.size > 1 and cfg.train.batch_size < world.size:
-        raise ConfigError(f"train.batch_size={cfg.train.batch_size} is the global batch, split over "
-                          f"{world.size} processes: it must be at least {world.size}")
-    stale = check_run(run, resume, overwrite)
-    device = _device(cfg.train.device, world)
-    resumed = None
-    if resume:
-        path, ckpt, note = resume_point(run)
-        if note:
-            log(note)
-        resumed = (path, ckpt)
-    if world.main:
-        check_writable(run, "run folder")
-    if cfg.train.tensorboard:
-        check_tensorboard()
-    return stale, device, resumed
-
-
 def _seed(cfg: Config, log: Callable[[str], None]) -> np.random.Generator:
     """Threads and random state; returns the generator that draws the batches."""
-    _set_threads(cfg.train.threads, log)
+    set_threads(cfg.train.threads, log)
     # the same seed in every process: all draw the same global batches and keep their share
     torch.manual_seed(cfg.train.seed)
     random.seed(cfg.train.seed)
@@ -278,7 +173,7 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
     metrics = open(run / METRICS, "a") if world.main else None
     writer = (tensorboard_writer(run, step + 1 if resumed_from else None)
               if cfg.train.tensorboard and world.main else None)
-    stop = _StopRequest() if world.size == 1 else contextlib.nullcontext()
+    stop = StopRequest() if world.size == 1 else contextlib.nullcontext()
     try:
         with stop:
             step, last_good = _steps(run, cfg, sim, optimizer, tracks, valid, step, rng, device, world, state,
@@ -380,3 +275,101 @@ def _stopped(what: str, step: int, last_good: Path | None) -> str:
     kept = f"the last good checkpoint is {last_good}" if last_good else "no checkpoint was written yet"
     return f"{what} at step {step}; training stopped, {kept}"
 
+
+# One optimiser step of the training and its validation: the learning rate as a function of the
+# step, the per-node MSE averaged over pushforward steps, one Adam step, and the validation loss and
+# short rollouts.
+
+
+def learning_rate(cfg: Config, step: int) -> float:
+    """lr_final + (lr_init - lr_final) * 0.1^(step / lr_decay_steps), as learning_to_simulate."""
+    t = cfg.train
+    return t.lr_final + (t.lr_init - t.lr_final) * 0.1 ** (step / t.lr_decay_steps)
+
+
+def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: Batch, lr: float,
+               grad_clip: float, fraction: float = 1.0, processes: int = 1, rigid_loss: float = 0.0) -> float:
+    """One Adam step on the per-node MSE of a batch; returns the loss.
+
+    On several processes `batch` is this process's share of the global batch, holding
+    `fraction` of its nodes. Each process weights its mean by fraction x processes, so the
+    average of the gradients (DistributedDataParallel) is the gradient of the global batch's
+    per-node mean, as one process training on the whole batch; the returned loss is that mean.
+    Raises FloatingPointError, before the weights change, if the loss or the gradient is not finite.
+    """
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    loss = unrolled_loss(sim, batch, rigid_loss)
+    if processes > 1:
+        # every process sees the same global loss, so all stop together on a NaN
+        total = hardware.sum_over_processes(loss.detach() * fraction)
+        loss = loss * (fraction * processes)
+    else:
+        total = loss
+    if not torch.isfinite(total):
+        raise FloatingPointError(f"the loss is {total.item()}")
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    norm = torch.nn.utils.clip_grad_norm_(sim.parameters(), grad_clip or math.inf)
+    if not torch.isfinite(norm):
+        raise FloatingPointError(f"the gradient norm is {norm.item()}")
+    optimizer.step()
+    return total.item()
+
+
+def unrolled_loss(sim: LearnedSimulator, batch: Batch, rigid_loss: float = 0.0) -> torch.Tensor:
+    """The one-step loss, averaged over the batch's target frames (pushforward training).
+
+    Step k > 1 starts from the model's own earlier predictions, shape-matched as in rollouts and
+    detached: the model learns to correct the errors it makes itself (after a bounce, say),
+    without backpropagating through time. Each step's target is the true frame, so the
+    acceleration asked for pulls a drifted prediction back toward the truth."""
+    targets = batch.targets
+    frames = list(batch.history.unbind(1))
+    total = 0.0
+    for k in range(targets.shape[1]):
+        history = torch.stack(frames[-HISTORY:], dim=1)
+        total = total + sim.loss(history, targets[:, k], batch.graph, rigid_loss)
+        if k + 1 < targets.shape[1]:
+            with torch.no_grad():
+                x = sim.predict_next(*frames[-HISTORY:], batch.graph)
+                x = shape_match_packed(x, batch.graph.rest, batch.graph.node_graph, batch.graph.num_graphs)[2]
+            frames.append(x)
+    return total / targets.shape[1]
+
+
+@torch.no_grad()
+def validate(sim: LearnedSimulator, valid: ObjectTracks, cfg: Config, device: torch.device) -> dict:
+    """One-step loss on evenly spaced valid windows; centre error of short shape-matched rollouts."""
+    sim.eval()
+    try:
+        n = min(cfg.valid.windows, valid.num_windows)
+        windows = torch.linspace(0, valid.num_windows - 1, n).round().long().unique()
+        total, nodes = 0.0, 0
+        for chunk in windows.split(cfg.train.batch_size):
+            batch = valid.batch(chunk).to(device)
+            total += float(sim.loss(batch.history, batch.target, batch.graph)) * batch.graph.num_nodes
+            nodes += batch.graph.num_nodes
+        out = {"valid_loss": total / nodes}
+        tracks = torch.nonzero(valid.track_scene < cfg.valid.rollout_scenes)[:, 0]
+        if len(tracks):
+            out.update(_rollout_error(sim, valid, tracks, cfg.valid.rollout_steps, device))
+        return out
+    finally:
+        sim.train()
+
+
+def _rollout_error(sim: LearnedSimulator, valid: ObjectTracks, tracks: torch.Tensor, max_steps: int,
+                   device: torch.device) -> dict:
+    """Mean distance (scene units) between predicted and true centres over a rollout from 3 true frames."""
+    steps = min(max_steps, int(valid.length[tracks].min()) - HISTORY)
+    graph, verts, centres = valid.track_vertices(tracks, HISTORY + steps)
+    graph = graph.to(device)
+    pred = sim.rollout(verts[:, :HISTORY].to(device), graph, steps)
+    pred_centres = torch.stack([shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)[1]
+                                for x in pred], dim=1).cpu()
+    error = (pred_centres - centres[:, HISTORY:]).norm(dim=-1).mean(dim=1)       # (B,)
+    finite = torch.isfinite(error)
+    # A diverged track is counted, not averaged in, so the log stays valid JSON and comparable.
+    return {"valid_rollout_position_error": float(error[finite].mean()) if finite.any() else None,
+            "valid_rollout_diverged": int((~finite).sum()), "valid_rollout_steps": steps}

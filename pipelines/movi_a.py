@@ -54,7 +54,7 @@ SHAPES = "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"
 PHYSICS_RATES = (60, 120, 240)
 METRICS = tuple(PAPER)
 
-# small: 12000 steps instead of the 20000 it trained before issue 56, so that the whole job
+# small: 12000 steps instead of the 20000 of the earlier small preset, so that the whole job
 # keeps to ~15 minutes beside another job on a 2-core machine (~15-20 steps/s measured); the
 # learning rate decays as fast per step (lr_decay_steps 15000 -> 9000), ending where 20000 did.
 PRESETS = {

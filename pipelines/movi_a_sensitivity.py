@@ -49,7 +49,7 @@ import numpy as np
 from plumbing import atomic_file, DataError
 from datagen.shards import Dataset
 from gns.evaluate import evaluate_run, score_predictions
-from gns.features import HISTORY
+from gns.network import HISTORY
 from pipelines.common import guarded, say
 
 KINDS = ("exact", "turn", "shift", "velocity", "spin", "friction", "restitution", "contact_turn", "contact_shift")

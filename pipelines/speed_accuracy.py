@@ -148,7 +148,7 @@ def sweep_runs(p: dict, out: Path) -> list[tuple[str, Path]]:
     return [(knob, run) for knob, run, _ in runs]
 
 
-# the rollout options of issue 12: gns eval --free-flight --autocast auto --compile (and --symmetrize);
+# the fast rollout options: gns eval --free-flight --autocast auto --compile (and --symmetrize);
 # auto: bf16 where it measures faster on this machine (gns.hardware), else float32; each row says which
 FAST = "free flight + auto precision + compile"
 FAST_SYM = FAST + " + symmetrized"

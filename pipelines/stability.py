@@ -1,4 +1,4 @@
-"""Stability of a trained GNS at the extremes (issue 6): a report of gns.stability's checks.
+"""Stability of a trained GNS at the extremes: a report of gns.stability's checks.
 
     python -m pipelines.stability --run runs/movi_a_small/run --data runs/movi_a_small/data
 

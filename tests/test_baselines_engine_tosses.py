@@ -8,7 +8,7 @@ import torch
 from baselines.identify import lowest_corner_height
 from baselines.pybullet import PUBLISHED
 from baselines.toss import FRAME_RATE, GRAVITY, initial_state
-from gns.features import HISTORY
+from gns.network import HISTORY
 from datagen.contactnets import read_experiment, read_toss, toss_to_scene
 from baselines.engine_tosses import engine_tosses
 

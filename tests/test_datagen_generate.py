@@ -165,9 +165,10 @@ def test_inspect_names_shards_changed_since_the_fingerprint(tmp_path, capsys):
 
 def test_no_commit_outside_a_checkout(tmp_path):
     """An installed copy (no git checkout around it) records code: null instead of failing."""
-    src = Path(gen_mod.__file__).with_name("provenance.py")
-    (tmp_path / "provenance.py").write_text(src.read_text())
-    spec = importlib.util.spec_from_file_location("copied_provenance", tmp_path / "provenance.py")
+    import plumbing
+    src = Path(plumbing.__file__)
+    (tmp_path / "plumbing.py").write_text(src.read_text())
+    spec = importlib.util.spec_from_file_location("copied_plumbing", tmp_path / "plumbing.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     assert mod.code_version() is None

@@ -9,7 +9,7 @@ from datagen.shards import Dataset
 from plumbing import DataError
 from gns.config import FeatureConfig
 from gns.data import ObjectTracks, feature_spec, rotation_z, vertices_from_poses
-from gns.features import make_layout
+from gns.network import make_layout
 from gns.geometry import pose_to_vertices, quat_from_axis_angle, quat_to_matrix
 from gns.graph import MeshLibrary, mesh_edges
 from gns.geometry import acceleration_of, shape_match_packed

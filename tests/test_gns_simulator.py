@@ -6,7 +6,7 @@ from gns_fixtures import cube_meshes
 
 from gns.config import FeatureConfig, ModelConfig
 from gns.data import vertices_from_poses
-from gns.features import Normalizer, raw_node_features
+from gns.network import Normalizer, raw_node_features
 from gns.geometry import quat_to_matrix
 from gns.graph import MeshLibrary
 from gns.geometry import acceleration_of, integrate, shape_match, shape_match_packed

@@ -1,4 +1,4 @@
-"""Free flight in rollouts (issue 12): objects out of reach of the floor and of other objects
+"""Free flight in rollouts: objects out of reach of the floor and of other objects
 follow the exact inertial update, and the network runs only on the others.
 
 The bypass must (1) move a free object exactly (a parabola and a constant spin, whatever the
@@ -289,7 +289,7 @@ def test_train_with_compile_and_bf16_writes_a_checkpoint_that_loads_uncompiled(t
 
 
 def test_signed_floor_distance_shows_how_deep_a_vertex_is_below_the_floor():
-    from gns.features import raw_node_features
+    from gns.network import raw_node_features
     lib = MeshLibrary(meshes("cube"))
     graph = lib.pack(lib.shape_ids(["cube"]), torch.ones(1, dtype=torch.float64), torch.ones(1), torch.ones(1))
     x = graph.rest + torch.tensor([0.0, 0.0, 0.2], dtype=torch.float64)  # bottom face 0.3 below the floor

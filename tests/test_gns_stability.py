@@ -1,7 +1,7 @@
-"""Stability at the extremes (issue 6), on the shipped trained model and on constructed ones.
+"""Stability at the extremes, on the shipped trained model and on constructed ones.
 
 tests/data/gns_movi_a_small.pt is `gns export` of the model that
-`python -m pipelines.movi_a --preset small` trained before issue 56 (cpu preset, 20k steps, 1000 MOVi-A-style
+`python -m pipelines.movi_a --preset small` trained with the earlier small preset (cpu preset, 20k steps, 1000 MOVi-A-style
 single-object tosses); a constructed model is a simulator whose decoder is set by hand, so its
 exact trajectory is known and only the integrator, shape matching and features are on trial.
 """

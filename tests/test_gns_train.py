@@ -11,7 +11,7 @@ from gns.config import build_config
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
 from gns.checkpoint import load_model, read_checkpoint
-from gns.optimise import learning_rate
+from gns.train import learning_rate
 from gns.train import train
 
 TINY = Path(__file__).resolve().parents[1] / "configs" / "gns_tiny.toml"

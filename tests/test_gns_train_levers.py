@@ -13,7 +13,7 @@ from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
 from gns.geometry import shape_match_packed
 from gns.checkpoint import build_simulator, read_checkpoint
-from gns.optimise import unrolled_loss
+from gns.train import unrolled_loss
 from gns.train import train
 from test_gns_train import TINY, metrics, quiet, tiny
 
@@ -301,7 +301,7 @@ def test_upsampling_a_strided_rollout_recovers_a_smooth_trajectory_at_every_fram
 
 
 def test_all_phases_gives_a_strided_model_every_window_of_the_data(tmp_path):
-    from gns.train import load_data
+    from gns.data import load_data
     data = write_toss_dataset(tmp_path, train=3, valid=1, frames=12)
     _, plain, _ = load_data(data, tiny("features.frame_stride=2"))
     _, phased, valid = load_data(data, tiny("features.frame_stride=2", "train.all_phases=true"))
@@ -316,7 +316,7 @@ def test_all_phases_gives_a_strided_model_every_window_of_the_data(tmp_path):
 
 
 def test_train_scenes_trains_on_the_first_scenes_exactly_as_a_dataset_of_that_many(tmp_path):
-    from gns.train import load_data
+    from gns.data import load_data
     large = write_toss_dataset(tmp_path / "large", train=6, valid=1, frames=10)
     small = write_toss_dataset(tmp_path / "small", train=3, valid=1, frames=10)
     spec_part, part, _ = load_data(large, tiny("train.scenes=3"))

@@ -20,7 +20,7 @@ def test_tiny_sweep_writes_table_plot_and_a_point_per_setting(tmp_path):
     rates = sorted(r["frame_rate"] for r in trained if r["knob"] == "frame stride")
     assert rates == sorted(12.0 * p["fine"] / s for s in t["strides"])
     assert all(r["steps"] == t["steps"] and r["position_error_pct"] >= 0 for r in trained)
-    # each trained run again with free flight and bf16 (issue 12), scored and with its network share
+    # each trained run again with free flight and bf16, scored and with its network share
     for family in ("gns fast", "gns fast sym"):
         fast = [r for r in rows if r["family"] == family]
         assert sorted(r["run"] for r in fast) == sorted(r["run"] for r in trained)
