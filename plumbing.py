@@ -269,7 +269,7 @@ def code_version() -> dict | None:
     that repository's commit would describe other code."""
     here = Path(__file__).resolve().parent
     top = _git(["rev-parse", "--show-toplevel"], here)
-    if not top or not _git(["ls-files", "--error-unmatch", "__init__.py"], here):
+    if not top or not _git(["ls-files", "--error-unmatch", Path(__file__).name], here):
         return None
     commit = _git(["rev-parse", "HEAD"], here)
     if not commit:

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from datagen import provenance as version_module
+import plumbing as version_module
 from datagen.cli import main as datagen_main
 from gns.cli import main as gns_main
 
