@@ -29,13 +29,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 
 from plumbing import DataError
 from gns.config import Config, ConfigError, build_config
 from gns.network import HISTORY
 from gns.graph import GraphBatch, with_symmetries
 from gns.spec import outside_training
+from gns import api_inputs as inputs
 from gns.geometry import posed, shape_match_packed
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
@@ -125,16 +125,6 @@ class Trajectory:
         return torch.arange(self.positions.shape[0], dtype=torch.float64) * self.dt
 
 
-def _as_tensor(value, name: str, shape: tuple, device: torch.device) -> torch.Tensor:
-    """float64 on `device`, keeping an autograd graph, broadcast to `shape`; one-line error otherwise."""
-    t = value.to(device=device, dtype=torch.float64) if isinstance(value, torch.Tensor) else \
-        torch.as_tensor(np.asarray(value, dtype=np.float64), device=device)
-    try:
-        return t.expand(shape) if t.shape != shape else t
-    except RuntimeError:
-        raise DataError(f"{name} has shape {tuple(t.shape)}, expected {shape} (one row per object)") from None
-
-
 class Model:
     """A trained simulator with what using it needs: meshes, time step, gravity, training ranges."""
 
@@ -186,40 +176,37 @@ class Model:
         when model.uses_materials); scene: (B,) ints, objects with the same number interact
         (default: all one scene). history: instead of velocities, the true poses at t - 2 dt and
         t - dt as (positions (2, B, 3), quaternions (2, B, 4)). Tensors that require grad keep
-        their graph (rollout(differentiable=True))."""
+        their graph (rollout(differentiable=True)). Bad input is one DataError naming it
+        (gns.api_inputs): None, text or ragged rows, one row for several objects, a value that
+        is not finite, a size <= 0, friction < 0, restitution outside [0, 1], a zero quaternion,
+        an object starting below the floor, a spin of pi / dt or more; objects starting inside
+        each other are warned about."""
         dev = self.device
-        if isinstance(shapes, str):
-            shapes = [shapes]
+        # every input checked (finite, one row per object, physical) before any is used: gns.api_inputs
+        shapes = inputs.shape_names(shapes, self.meshes)
         b = len(shapes)
-        if b == 0:
-            raise DataError("no objects given: shapes is empty")
-        unknown = sorted(set(shapes) - set(self.meshes))
-        if unknown:
-            raise DataError(f"shape {unknown[0]!r} has no mesh in this model; it has {', '.join(sorted(self.meshes))}")
-        pos = _as_tensor(positions, "positions", (b, 3), dev)
-        quat = self._quat_in(_as_tensor(quaternions, "quaternions", (b, 4), dev))
-        if not bool(torch.isfinite(quat).all()) or bool((quat.detach().norm(dim=-1) == 0).any()):
-            raise DataError("quaternions must be finite and non-zero")
-        scale = _as_tensor(scales, "scales", (b,), dev)
+        pos = inputs.rows(positions, "positions", b, 3, dev)
+        quat = self._quat_in(inputs.quaternions(quaternions, "quaternions", b, dev))
+        scale = inputs.per_object(scales, "scales", b, dev, inputs.positive)
         mat = self._materials(friction, restitution, b)
-        group = torch.zeros(b, dtype=torch.int64, device=dev) if scene is None else \
-            torch.as_tensor(np.asarray(scene if not isinstance(scene, torch.Tensor) else scene.cpu(), np.int64), device=dev)
-        if group.shape != (b,):
-            raise DataError(f"scene has shape {tuple(group.shape)}, expected ({b},): one scene number per object")
+        group = inputs.scene_numbers(scene, b, dev)
         rot = quat_to_matrix(quat)
         if history is None:
-            vel = _as_tensor(0.0 if velocities is None else velocities, "velocities", (b, 3), dev)
-            ang = _as_tensor(0.0 if angular_velocities is None else angular_velocities, "angular_velocities", (b, 3), dev)
+            zero = torch.zeros(b, 3, dtype=torch.float64, device=dev)
+            vel = zero if velocities is None else inputs.rows(velocities, "velocities", b, 3, dev)
+            ang = zero if angular_velocities is None else inputs.rows(angular_velocities, "angular_velocities", b, 3, dev)
+            inputs.check_spin(ang, self.dt)
             g = torch.as_tensor(self.gravity, dtype=torch.float64, device=dev)
             past_pos, past_rot = history_poses(pos, rot, vel, ang, self.dt, g)
+            spin, given = ang.detach().norm(dim=-1), [HISTORY - 1]   # the true speed (the frames show it up to pi / dt)
         else:
             if velocities is not None or angular_velocities is not None:
                 raise DataError("give either velocities or history, not both")
-            hp = _as_tensor(history[0], "history positions", (HISTORY - 1, b, 3), dev)
-            hq = self._quat_in(_as_tensor(history[1], "history quaternions", (HISTORY - 1, b, 4), dev))
+            hp, hq = inputs.history_pair(history, b)
+            hp = inputs.rows(hp, "history positions", b, 3, dev, frames=HISTORY - 1)
+            hq = self._quat_in(inputs.quaternions(hq, "history quaternions", b, dev, frames=HISTORY - 1))
             past_pos, past_rot = torch.cat([hp, pos[None]]), torch.cat([quat_to_matrix(hq), rot[None]])
-        if warn:
-            self._warn_outside(shapes, past_pos, past_rot, scale, mat, group, 3 + _caller_depth)
+            spin, given = None, list(range(HISTORY))
         cpu = lambda t: t.detach().cpu()  # noqa: E731  packing indexes the library on the CPU
         ones = torch.ones(b, dtype=torch.float64, device="cpu")
         graph = self._library.pack(self._library.shape_ids(shapes), ones, cpu(mat[0]), cpu(mat[1]), cpu(group)).to(dev)
@@ -230,6 +217,12 @@ class Model:
             # the rotations mapping each mesh onto itself, which every step averages over
             graph = with_symmetries(graph)
         frames = tuple(posed(past_rot[k], past_pos[k], graph.node_graph, graph.rest) for k in range(HISTORY))
+        inputs.check_floor(frames, graph.node_graph, scale, shapes, self.spec.floor_z, given)
+        if warn:
+            self._warn_outside(shapes, past_pos, past_rot, scale, mat, group, 3 + _caller_depth, spin)
+            overlap = inputs.overlap_warning(shapes, self.meshes, pos, scale, group, self.collisions)
+            if overlap:
+                warnings.warn(overlap, stacklevel=2 + _caller_depth)
         return State(pos, self._quat_out(quat / quat.norm(dim=-1, keepdim=True)), frames[-1], 0.0, frames, graph)
 
     def _materials(self, friction, restitution, b: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -239,16 +232,24 @@ class Model:
             raise DataError(f"this model takes each object's material: give friction= and restitution= "
                             f"(trained on {lo_f:g} to {hi_f:g} and {lo_r:g} to {hi_r:g})")
         # a model without material inputs never reads them; the training value is kept for the record
-        f = _as_tensor(self.ranges["friction"][0] if friction is None else friction, "friction", (b,), self.device)
-        r = _as_tensor(self.ranges["restitution"][0] if restitution is None else restitution, "restitution", (b,), self.device)
+        f = inputs.per_object(self.ranges["friction"][0] if friction is None else friction, "friction", b,
+                              self.device, inputs.non_negative)
+        r = inputs.per_object(self.ranges["restitution"][0] if restitution is None else restitution, "restitution", b,
+                              self.device, inputs.unit_interval)
         return f, r
 
-    def _warn_outside(self, shapes, past_pos, past_rot, scale, mat, group, stacklevel: int) -> None:
-        """One UserWarning per input outside the training ranges, attributed to the user's line."""
+    def _warn_outside(self, shapes, past_pos, past_rot, scale, mat, group, stacklevel: int, spin=None) -> None:
+        """One UserWarning per input outside the training ranges, attributed to the user's line.
+        spin: the true angular speeds (B,) where known (given velocities), else the rotation
+        between the last two frames gives them."""
         p = past_pos.detach().cpu().numpy()
         speed = np.linalg.norm(p[-1] - p[-2], axis=-1) * self.frame_rate
-        rel = (past_rot[-1] @ past_rot[-2].transpose(-1, -2)).detach().cpu().numpy()
-        angle = Rotation.from_matrix(rel).magnitude() * self.frame_rate
+        if spin is not None:
+            angle = spin.cpu().numpy()
+        else:   # the angle of the relative rotation, from its trace and skew part (no SVD to fail)
+            rel = (past_rot[-1] @ past_rot[-2].transpose(-1, -2)).detach().cpu().numpy()
+            skew = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
+            angle = np.arctan2(np.linalg.norm(skew, axis=-1), np.trace(rel, axis1=-2, axis2=-1) - 1) * self.frame_rate
         span = lambda a: (float(np.min(a)), float(np.max(a)))  # noqa: E731
         ranges = {"speed": span(speed), "angular_speed": span(angle), "height": span(p[..., 2]),
                   "scale": span(scale.detach().cpu().numpy())}
@@ -267,6 +268,8 @@ class Model:
         gns.load: e.g. free_flight, objects out of reach of the floor and of each other following
         the exact inertial update, not the network). Keeps the autograd graph when grad is enabled
         (wrap a loop in torch.no_grad() otherwise)."""
+        if not isinstance(state, State):
+            raise TypeError(f"step() takes the State of model.state(...) or of an earlier step, got {type(state).__name__}")
         sim, graph = self.simulator, state.graph
         if sim.options.free_flight and sim.gravity_per_frame is None:
             raise DataError("free_flight needs a model that knows gravity and its frame rate")
