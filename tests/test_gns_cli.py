@@ -174,3 +174,27 @@ def test_a_reader_that_leaves_ends_the_command_quietly(monkeypatch, capfd):
         cli.main(["eval", "--run", "x", "--data", "y"])
     assert stop.value.code == cli.EXIT_FAILED
     assert "error" not in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("flags, line", [
+    (["--batch", "0"], "error: --batch must be a whole number >= 1, got 0"),
+    (["--batch", "-5"], "error: --batch must be a whole number >= 1, got -5"),
+    (["--sleep", "--sleep-fraction", "-1"], "error: --sleep-fraction must be a finite number > 0, got -1"),
+    (["--sleep", "--sleep-fraction", "0"], "error: --sleep-fraction must be a finite number > 0, got 0"),
+    (["--sleep", "--sleep-fraction", "inf"], "error: --sleep-fraction must be a finite number > 0, got inf"),
+    (["--sleep-fraction", "0.2"], "error: --sleep-fraction sets when an object is at rest: it needs --sleep"),
+    (["--free-flight", "--free-clearance", "-1"], "error: --free-clearance must be a finite height >= 0 above the "
+                                                  "floor, got -1"),
+    (["--free-flight", "--free-clearance", "nan"], "error: --free-clearance must be a finite height >= 0 above the "
+                                                   "floor, got nan"),
+    (["--limit", "0"], "error: --limit must be >= 1 scene, got 0"),
+])
+@pytest.mark.parametrize("command", ["rollout", "eval"])
+def test_out_of_range_rollout_flags_are_one_line_naming_the_flag(tmp_path, capsys, command, flags, line):
+    out = ["--out", str(tmp_path / "roll")] if command == "rollout" else []
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--run", "movi_a", "--data", str(tmp_path / "no_data"), *out, *flags])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines() == [line]    # before the data is even looked at
+    assert not (tmp_path / "roll").exists()

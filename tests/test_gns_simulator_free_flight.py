@@ -253,8 +253,8 @@ def test_free_clearance_needs_free_flight_and_a_height(tmp_path, capsys):
     data = str(write_toss_dataset(tmp_path / "d", train=2, valid=1, frames=8))
     for extra, message in ((["--free-clearance", "0.2"], "--free-clearance sets free flight's height: it needs "
                                                          "--free-flight"),
-                           (["--free-flight", "--free-clearance", "-1"], "free flight clearance must be a height "
-                                                                           ">= 0 above the floor, not -1.0")):
+                           (["--free-flight", "--free-clearance", "-1"], "--free-clearance must be a finite height "
+                                                                           ">= 0 above the floor, got -1")):
         with pytest.raises(SystemExit):
             main(["eval", "--run", str(MODEL), "--data", data, "--split", "valid", *extra])
         assert message in capsys.readouterr().err
