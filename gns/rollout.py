@@ -209,6 +209,9 @@ def check_output(out: str | Path, overwrite: bool, data: str | Path | None = Non
     if data is not None and overlapping(out, data):
         raise DataError(f"--out {out} and --data {data} overlap (the same folder or one inside the other); "
                         "write the rollouts to a folder of their own")
+    if not overwrite and _unfinished_rollout(out):
+        raise DataError(f"--out {out} holds an unfinished gns rollout (shards without metadata.json: it was stopped "
+                        "before the end); use --overwrite to replace it")
     if check_output_folder(out, overwrite, "use --overwrite to replace it"):
         _rollout_files(out)
     return check_writable(out)
@@ -216,7 +219,11 @@ def check_output(out: str | Path, overwrite: bool, data: str | Path | None = Non
 
 def _rollout_files(out: Path) -> list[Path]:
     """The files an earlier `gns rollout` wrote into `out` (its metadata.json and the shards it
-    lists); DataError if `out` holds anything else, so --overwrite deletes nothing else."""
+    lists, or the shards of one stopped before its metadata.json); DataError if `out` holds
+    anything else, so --overwrite deletes nothing else."""
+    unfinished = _unfinished_rollout(out)
+    if unfinished:
+        return unfinished
     try:
         meta = json.loads((out / "metadata.json").read_text())
         listed = [out / name for split in meta["splits"].values() for name in split["shards"]]
@@ -232,6 +239,31 @@ def _rollout_files(out: Path) -> list[Path]:
         raise DataError(f"--overwrite refuses {out}: besides an earlier rollout it holds {', '.join(others[:4])}"
                         f"{' ...' if len(others) > 4 else ''}; choose another --out")
     return [p for p in listed if p.exists()] + [out / "metadata.json"]
+
+
+def _unfinished_rollout(out: Path) -> list[Path]:
+    """The files of a `gns rollout` stopped before writing metadata.json (its last file): every
+    file in `out` is a shard gns rollout wrote (a shard name, `rollout` set in the file's
+    attributes) or a temporary file of the atomic writer under one of the format's names; [] if
+    `out` is anything else."""
+    import h5py
+    from datagen.shards import dataset_files
+    if not out.is_dir() or (out / "metadata.json").exists():
+        return []
+    entries = list(out.iterdir())
+    ours = {p.name for p in dataset_files(out)}
+    if not entries or any(p.name not in ours for p in entries):
+        return []
+    for p in entries:
+        if p.name.startswith("."):   # a temporary file: torn by construction, nothing to read
+            continue
+        try:
+            with h5py.File(p, "r") as f:
+                if not f.attrs.get("rollout"):
+                    return []
+        except OSError:
+            return []
+    return entries
 
 
 def write_rollouts(out: str | Path, scenes: list[Scene], source: Dataset, split: str, info: dict,

@@ -311,3 +311,27 @@ def test_single_object_model_on_multi_object_scenes_warns(made, tmp_path, capsys
     assert "no collision edges" in err[0] and "pass through each other" in err[0]
     gns_main(["rollout", "--run", str(run), "--data", str(multi), "--out", str(tmp_path / "r")])
     assert "no collision edges" in capsys.readouterr().err
+
+
+def test_a_killed_rollouts_leftover_is_replaced_by_overwrite(made, tmp_path, capsys):
+    """A gns rollout killed after writing shards but before metadata.json (the last file written)."""
+    data, run = made
+    out = tmp_path / "roll"
+    args = ["rollout", "--run", str(run), "--data", str(data), "--split", "valid", "--out", str(out)]
+    gns_main(args)
+    (out / "metadata.json").unlink()
+    (out / ".valid-00001.h5.k1ll3d.tmp").write_bytes(b"\x89HDF torn")    # atomic_file's temporary, torn
+    line = one_error(capsys, args)
+    assert "holds an unfinished gns rollout" in line and "use --overwrite" in line
+    gns_main(args + ["--overwrite"])
+    assert Dataset(out).num_scenes("valid") == 4 and sorted(p.name for p in out.iterdir()) == ["metadata.json",
+                                                                                               "valid-00000.h5"]
+    # a leftover holding anything else, or shards that gns rollout did not write, is still refused
+    (out / "metadata.json").unlink()
+    (out / "notes.txt").write_text("mine")
+    assert "not one" in one_error(capsys, args + ["--overwrite"]) and (out / "notes.txt").read_text() == "mine"
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    shutil.copy(Path(data) / "valid-00000.h5", theirs / "valid-00000.h5")   # a dataset's shard, no metadata
+    line = one_error(capsys, [*args[:-1], str(theirs), "--overwrite"])
+    assert "not one" in line and (theirs / "valid-00000.h5").exists()
