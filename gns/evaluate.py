@@ -142,10 +142,12 @@ def evaluate_baseline(data: str | Path, split: str = "test", params=None, limit:
 def load_split(data: str | Path, split: str, limit: int | None,
                frame_rate: float | None = None) -> tuple[Dataset, list]:
     """Scenes of a split. Given a model's `frame_rate`, data recorded at a whole multiple of it
-    are read at that rate (every k-th frame); any other rate is left for check_ranges to flag."""
+    are read at that rate (every k-th frame); any other rate is left for check_ranges to flag.
+    Refuses shards changed since they were written (verify_shards)."""
     if limit is not None and limit < 1:
         raise DataError(f"--limit must be >= 1 scene, got {limit}")
     ds = Dataset(data)
+    verify_shards(ds)
     if frame_rate:
         ratio = ds.frame_rate / frame_rate
         if round(ratio) > 1 and abs(ratio - round(ratio)) < 1e-6:
@@ -153,6 +155,25 @@ def load_split(data: str | Path, split: str, limit: int | None,
     if split not in ds.splits:
         raise DataError(f"{data}: no scenes in split {split!r}; it has {', '.join(ds.splits) or 'none'}")
     return ds, ds.load(split, limit)
+
+
+def verify_shards(ds: Dataset) -> None:
+    """Refuse a dataset whose shards changed since they were written: every shard metadata.json
+    records a checksum of is hashed again (sha256, ~1 GB/s: a small cost beside reading and
+    rolling out the same bytes), so that no result records a fingerprint that does not describe
+    the data it scored (datagen inspect reports the same, exit 3). Listed shards that are missing
+    are left to the reader (a split not read may be absent); a dataset written before checksums
+    were recorded has nothing to compare against (its fingerprint is computed from the shards)."""
+    from plumbing import file_sha256
+    recorded = ds.meta.get("checksums")
+    if not isinstance(recorded, dict):
+        return
+    for name, digest in sorted(recorded.items()):
+        path = ds.root / name
+        if path.is_file() and file_sha256(path) != digest:
+            raise DataError(f"{path} changed since it was written (its sha256 is not the checksum metadata.json "
+                            f"records), so the dataset's fingerprint no longer describes it; run `datagen inspect "
+                            f"{ds.root}`")
 
 
 def score_predictions(pred: list, scenes: list, ds: Dataset, seconds: float,

@@ -335,3 +335,25 @@ def test_a_killed_rollouts_leftover_is_replaced_by_overwrite(made, tmp_path, cap
     shutil.copy(Path(data) / "valid-00000.h5", theirs / "valid-00000.h5")   # a dataset's shard, no metadata
     line = one_error(capsys, [*args[:-1], str(theirs), "--overwrite"])
     assert "not one" in line and (theirs / "valid-00000.h5").exists()
+
+
+def test_eval_and_rollout_refuse_a_shard_changed_since_it_was_written(made, tmp_path, capsys):
+    """The fingerprint they would record describes the data as written, not as it is now."""
+    from datagen.inspect import inspect
+    from datagen.shards import read_shard
+    data, run = made
+    copy = Path(shutil.copytree(data, tmp_path / "data"))
+    scenes, meshes = read_shard(copy / "train-00000.h5")
+    scenes[0].positions[3:] += 0.01                                 # valid data, not the data that was written
+    write_shard(copy / "train-00000.h5", scenes, meshes)
+    assert inspect(copy)[1]["changed_shards"] == ["train-00000.h5"]   # what datagen inspect reports (exit 3)
+    for command in (["eval"], ["rollout", "--out", str(tmp_path / "roll")]):
+        line = one_error(capsys, [*command, "--run", run, "--data", copy, "--split", "valid"])
+        assert "train-00000.h5" in line and "changed since it was written" in line and "datagen inspect" in line
+    assert not (tmp_path / "roll").exists()
+    # a dataset written before checksums were recorded has nothing to compare: its fingerprint is computed
+    meta = json.loads((copy / "metadata.json").read_text())
+    del meta["checksums"], meta["fingerprint"]
+    (copy / "metadata.json").write_text(json.dumps(meta))
+    results, *_ = evaluate_run(run, copy, "valid", progress=False)
+    assert results["data_fingerprint"] == Dataset(copy).fingerprint
