@@ -166,7 +166,8 @@ def _rollout_options(args: argparse.Namespace):
     """The model's default options (a zoo model's scored ones, gns.checkpoint.default_options) with the
     flags given on top."""
     from gns.checkpoint import default_options
-    _check_rollout_flags(args)
+    from gns.rollout import check_flags
+    check_flags(**{k: getattr(args, k) for k in ("batch", "limit", "sleep_fraction", "free_clearance")})
     given = {k: getattr(args, k) for k in OPTION_FLAGS}
     if given["ensemble"] is not None:
         given["ensemble"] = tuple(given["ensemble"])
@@ -176,19 +177,6 @@ def _rollout_options(args: argparse.Namespace):
     if args.sleep_fraction is not None and not options.sleep:
         raise ConfigError("--sleep-fraction sets when an object is at rest: it needs --sleep")
     return options
-
-
-def _check_rollout_flags(args: argparse.Namespace) -> None:
-    """Numeric rollout flags out of range: one line naming the flag, before anything is read."""
-    import math
-    if args.batch is not None and args.batch < 1:
-        raise ConfigError(f"--batch must be a whole number >= 1, got {args.batch}")
-    if args.limit is not None and args.limit < 1:
-        raise ConfigError(f"--limit must be >= 1 scene, got {args.limit}")
-    if args.sleep_fraction is not None and not (math.isfinite(args.sleep_fraction) and args.sleep_fraction > 0):
-        raise ConfigError(f"--sleep-fraction must be a finite number > 0, got {args.sleep_fraction:g}")
-    if args.free_clearance is not None and not (math.isfinite(args.free_clearance) and args.free_clearance >= 0):
-        raise ConfigError(f"--free-clearance must be a finite height >= 0 above the floor, got {args.free_clearance:g}")
 
 
 def _add_rollout_args(p) -> None:

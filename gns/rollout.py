@@ -200,6 +200,18 @@ def diverged_line(diverged: list, total: int, what: str) -> str:
     return f"warning: {len(diverged)} of {total} rollouts diverged (inf or NaN positions), {what}: {shown}"
 
 
+def check_flags(**flags) -> None:
+    """Numeric rollout flags (`gns rollout`, `gns eval`) out of range ({dest: value}, None when
+    unset): one line naming the flag, before the model or the data are read."""
+    rules = {"batch": (lambda v: v >= 1, "a whole number >= 1"), "limit": (lambda v: v >= 1, ">= 1 scene"),
+             "sleep_fraction": (lambda v: math.isfinite(v) and v > 0, "a finite number > 0"),
+             "free_clearance": (lambda v: math.isfinite(v) and v >= 0, "a finite height >= 0 above the floor")}
+    for dest, value in flags.items():
+        ok, want = rules[dest]
+        if value is not None and not ok(value):
+            raise DataError(f"--{dest.replace('_', '-')} must be {want}, got {value:g}")
+
+
 def check_output(out: str | Path, overwrite: bool, data: str | Path | None = None) -> Path:
     """Refuse, before any work is done: an output folder that is, holds or lies in the input
     dataset `data`; an existing non-empty folder without `overwrite`; with `overwrite`, a
