@@ -1,14 +1,20 @@
 """What a trained checkpoint may carry on as: the start of a fine-tuning run (train.init_from),
 or a resumed run, on data whose feature spec may differ in what fine-tuning allows.
 
-A fine-tune may change FINE_TUNE_FREE (the weights keep their shapes) and untie a repeated processor (model.message_passing_steps a
-multiple of the checkpoint's: block i starts as the trained block i mod L, so with L x K kept
-the start computes exactly what the checkpoint did); everything else of the architecture must
-match.
+A fine-tune may change FINE_TUNE_FREE (the weights keep their shapes), untie a repeated processor
+(model.message_passing_steps a multiple of the checkpoint's: block i starts as the trained block
+i mod L, so with L x K kept the start computes exactly what the checkpoint did), and grow
+collision edges onto a model trained on single objects (`_grown`: the new edge set's encoder and
+functions start fresh and its messages enter each node update through weights that start at
+zero, so the start computes exactly what the single-object model did, collisions or not, and
+training adds only what contacts between objects need); everything else of the architecture
+must match.
 """
 from __future__ import annotations
 
 from dataclasses import replace
+
+import torch
 
 from gns.checkpoint import CheckpointError, checkpoint_of, read_checkpoint
 from gns.config import ARCHITECTURE_SECTIONS, Config, ConfigError, ModelConfig, config_differences, without_removed
@@ -46,8 +52,31 @@ def init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec) 
     problem = "; ".join(p for p in problems if p)
     if problem:
         raise CheckpointError(f"cannot start from {path} (train.init_from): {problem}")
-    sim.load_state_dict(_untied(init["model"], sim))
+    state = _untied(init["model"], sim)
+    if spec.collision_edges and not trained.collision_edges:
+        state = _grown(state, sim)
+    sim.load_state_dict(state)
     return merge_ranges(trained, spec)
+
+
+def _grown(state: dict, sim: LearnedSimulator) -> dict:
+    """A single-object model's `state` for `sim`, which has collision edges: the collision edge
+    set's encoder, edge functions and normalisers as `sim` initialised them, and each node
+    update's first layer widened with zero columns for the summed collision messages (its input
+    is [node, mesh messages, collision messages], so the trained columns come first)."""
+    out = dict(state)
+    for key, fresh in sim.state_dict().items():
+        old = state.get(key)
+        if old is None:
+            out[key] = fresh                       # a collision part: as initialised
+        elif old.shape != fresh.shape:
+            if not (".node_mlp.0.weight" in key and old.shape[0] == fresh.shape[0] and old.shape[1] < fresh.shape[1]):
+                raise CheckpointError(f"cannot grow collision edges onto the checkpoint: {key} is "
+                                      f"{tuple(old.shape)} there, {tuple(fresh.shape)} here")
+            widened = torch.zeros_like(fresh)
+            widened[:, :old.shape[1]] = old
+            out[key] = widened
+    return out
 
 
 def _untied(state: dict, sim: LearnedSimulator) -> dict:
@@ -69,7 +98,8 @@ def _untied(state: dict, sim: LearnedSimulator) -> dict:
 
 # keys a fine-tuning run (train.init_from) may change: the weights keep their shapes
 FINE_TUNE_FREE = ("features.centre_node", "model.processor_repeats", "features.canonical_heading",
-                  "features.surface_edges", "features.lowest_vertices", "features.highest_vertices")
+                  "features.surface_edges", "features.lowest_vertices", "features.highest_vertices",
+                  "features.collision_radius", "features.collision_mode")
 
 
 def incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec,
@@ -83,7 +113,10 @@ def incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSp
         if cfg.model.message_passing_steps % steps:
             diffs.append(f"model.message_passing_steps is {steps} in the checkpoint, {cfg.model.message_passing_steps} "
                          f"now: a fine-tune may only untie its blocks into a multiple of them")
+    grows = fine_tune and spec.collision_edges and not trained.collision_edges
     for key in ("node_features", "edge_features", "collision_features"):
+        if key == "collision_features" and grows:
+            continue                               # collision edges grown onto a single-object model
         theirs, mine = tuple(getattr(trained, key) or ()), tuple(getattr(spec, key))
         if theirs != mine:
             diffs.append(f"{key} are {list(getattr(trained, key) or ())} in the checkpoint, "

@@ -58,7 +58,12 @@ def long_rollouts(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, floo
     rest_len = (graph.rest[s] - graph.rest[r]).norm(dim=-1)
     distortion = ((pred[:, s] - pred[:, r]).norm(dim=-1) - rest_len).abs()
     distortion_pct = float((_per_graph(distortion, graph, "amax", graph.node_graph[s]) / size * 100).max())
-    out = {"steps": steps, "objects": graph.num_graphs, "finite": bool(torch.isfinite(pred).all()),
+    # a scene is finite when every coordinate of every object stays finite at every step
+    bad_nodes = (~torch.isfinite(pred).all(-1).all(0)).double()                        # (N,)
+    bad = torch.zeros(len(scenes), dtype=torch.float64).index_add_(0, graph.graph_scene[graph.node_graph], bad_nodes)
+    scenes_finite = bad == 0
+    out = {"steps": steps, "objects": graph.num_graphs, "scenes": len(scenes),
+           "finite_scenes_pct": float(scenes_finite.double().mean() * 100), "finite": bool(torch.isfinite(pred).all()),
            "distortion_pct": distortion_pct, "rigid": distortion_pct < RIGID_PCT}
     if floor_z is not None:
         depth = _per_graph(floor_z - pred[..., 2], graph, "amax").clamp(min=0) / size * 100

@@ -23,7 +23,7 @@ from gns.stepping import Sleep
 from gns.evaluate import checkpoint_of, load_split, write_json
 from gns.stability import REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene
 from gns.spec import ModelSpec
-from gns.checkpoint import load_model, read_checkpoint
+from gns.checkpoint import default_options, load_model, read_checkpoint
 from pipelines.common import guarded, say
 
 
@@ -36,7 +36,8 @@ def run(run_dir: Path, data: Path, out: Path, limit: int, factor: int, rest_step
     check_writable(out)
     ckpt = checkpoint_of(run_dir)
     saved = read_checkpoint(ckpt)
-    sim, _ = load_model(saved)
+    options = default_options(run_dir)       # a zoo model's scored options, else the defaults
+    sim, _ = load_model(saved, options=options)
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(data, "test", limit, spec.frame_rate)
     floor_z = float(ds.floor["z"]) if ds.floor else None
@@ -50,7 +51,7 @@ def run(run_dir: Path, data: Path, out: Path, limit: int, factor: int, rest_step
     say("extreme inputs")
     extreme = extremes(sim, spec, scenes, ds)
     results = {"run": str(run_dir), "checkpoint": str(ckpt), "checkpoint_step": int(saved["step"]),
-               "data": str(data), "long_rollouts": long, "at_rest": rest,
+               "rollout_options": options.to_dict(), "data": str(data), "limit": limit, "factor": factor, "rest_steps": rest_steps, "long_rollouts": long, "at_rest": rest,
                "at_rest_sleeping": {"sleep": dataclasses.asdict(Sleep(sim.options.sleep_fraction)), "rows": rest_sleeping}, "extremes": extreme}
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "results.json", results)
@@ -61,10 +62,12 @@ def run(run_dir: Path, data: Path, out: Path, limit: int, factor: int, rest_step
 def report(r: dict, factor: int) -> str:
     long = r["long_rollouts"]
     lines = [f"# Stability at the extremes: `{r['run']}` (step {r['checkpoint_step']})", "",
-             f"Made by `python -m pipelines.stability --run {r['run']} --data {r['data']}`.", "",
+             f"Made by `python -m pipelines.stability --run {r['run']} --data {r['data']} --limit {r['limit']} "
+             f"--factor {r['factor']} --rest-steps {r['rest_steps']}`.", "",
              f"## Long rollouts ({factor}x the test scenes' length, {long['steps']} steps, {long['objects']} objects)", "",
              "| check | measured | verdict |", "|---|---|---|",
-             f"| finite | {long['finite']} | {_verdict(long['finite'])} |",
+             f"| finite | {long['finite']} ({long['finite_scenes_pct']:.0f}% of {long['scenes']} scenes) | "
+             f"{_verdict(long['finite'])} |",
              f"| rigid (largest edge-length change, % of size) | {long['distortion_pct']:.2g} | {_verdict(long['rigid'])} |"]
     if "above_floor" in long:
         lines += [f"| centres above the floor (lowest centre height) | {long['min_centre_height']:.3g} | "
