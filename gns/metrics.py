@@ -7,6 +7,9 @@ For a predicted and a true trajectory of object poses:
 - spin: the angle an object turns between successive frames, degrees, predicted and true (both
   from the orientations alike); the ratio of their means shows a model that turns objects too
   little or too much, which a rotation error alone does not tell apart;
+- translation and rotation RMSE (the metrics of FIGNet, Allen et al. 2023, and of later work on
+  Kubric's MOVi-A): the root of the mean over frames and objects of |p_pred - p_true|^2 in
+  scene units (metres in MOVi-A) and of the rotation error^2 in degrees;
 - interpenetration (scenes of several objects): for each pair of objects, the deepest vertex of
   either inside the other's convex hull (depth = min over the hull's faces of offset - n.x),
   % of the smaller object's width. A proxy of the convex-convex penetration depth: vertex-face
@@ -38,7 +41,9 @@ from gns.geometry import pose_to_vertices, quat_to_matrix, rotation_angle
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 DEFAULT_HORIZONS = (1, 5, 10, 20, 50, 100, 200)
 # per frame besides METRICS: the truth's penetration, and the turn between frames of both
-EXTRA = ("true_penetration_pct", "spin_deg", "true_spin_deg")
+# the squares of the centre's distance (scene units) and of the rotation error behind the RMSEs
+# FIGNet and later MOVi-A work report (translation_rmse, rotation_rmse_deg)
+EXTRA = ("true_penetration_pct", "spin_deg", "true_spin_deg", "translation_sq", "rotation_sq_deg")
 
 
 def object_width(scale, rest_vertices: np.ndarray) -> np.ndarray:
@@ -137,6 +142,8 @@ def per_frame_errors(pred, true, meshes: Mapping[str, tuple], floor_z: float = 0
         width = object_width(scale[n], rest)
         out["position_error_pct"][:, n] = position_error_pct(pred.positions[:, n], true.positions[:, n], width)
         out["rotation_error_deg"][:, n] = rotation_error_deg(pred.quaternions[:, n], true.quaternions[:, n])
+        out["translation_sq"][:, n] = ((pred.positions[:, n] - true.positions[:, n]) ** 2).sum(-1)
+        out["rotation_sq_deg"][:, n] = out["rotation_error_deg"][:, n] ** 2
         out["penetration_pct"][:, n] = penetration_pct(pred.positions[:, n], pred.quaternions[:, n], scale[n],
                                                        rest, floor_z, width)
         out["true_penetration_pct"][:, n] = penetration_pct(true.positions[:, n], true.quaternions[:, n],
@@ -218,6 +225,9 @@ def _summary(rows: list[dict]) -> dict:
     # predicted over true spin, summed over the group's objects (one object's ratio is noise when
     # it hardly turns); None when nothing turns
     out["spin_ratio"] = out["spin_deg"] / out["true_spin_deg"] if rows and out["true_spin_deg"] > 0 else None
+    if rows:
+        out["translation_rmse"] = float(np.sqrt(out["translation_sq"]))
+        out["rotation_rmse_deg"] = float(np.sqrt(out["rotation_sq_deg"]))
     out["num_objects"] = len(rows)
     return out
 
@@ -236,8 +246,9 @@ def evaluate_scenes(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mappin
       horizons: {"h": {metrics..., num_objects}} at frame index num_given - 1 + h (h steps after
         the last given frame), over the objects whose trajectory is long enough; a horizon no
         trajectory reaches is left out;
-      by_shape, by_size, by_material: {value: {metrics..., num_objects}} (size is the scale,
-        written with %g).
+      by_shape, by_size, by_material, by_objects: {value: {metrics..., num_objects}} (size is the
+        scale, written with %g; objects the number of objects in the scene);
+      translation_rmse, rotation_rmse_deg (also in each group).
     `errors`: the scenes' scene_errors, if already computed.
     """
     if errors is None:
@@ -250,7 +261,8 @@ def evaluate_scenes(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mappin
             raise ValueError(f"scene {i}: start={start} but the scene has only {T} frames")
         for n in range(true.num_objects):
             row = {k: float(v[start:, n].mean()) for k, v in f.items()}
-            row.update(shape=true.shape[n], material=true.material[n], size=f"{float(true.scale[n]):g}")
+            row.update(shape=true.shape[n], material=true.material[n], size=f"{float(true.scale[n]):g}",
+                       objects=true.num_objects)
             rows.append(row)
             for h in horizons:
                 t = num_given - 1 + int(h)
@@ -276,11 +288,11 @@ def evaluate_scenes(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mappin
             deep = [x > PASS_THROUGH_PCT for x in pairs[f"{prefix}interpenetration_max_pct"]]
             results[f"{prefix}pairs_passing_through_pct"] = 100.0 * sum(deep) / max(len(deep), 1)
     results["horizons"] = {str(h): _summary(horizon_rows[h]) for h in sorted(horizon_rows)}
-    for key in ("shape", "size", "material"):
+    for key in ("shape", "size", "material", "objects"):
         groups = defaultdict(list)
         for r in rows:
             groups[r[key]].append(r)
-        results[f"by_{key}"] = {g: _summary(groups[g]) for g in sorted(groups)}
+        results[f"by_{key}"] = {str(g): _summary(groups[g]) for g in sorted(groups)}
     return results
 
 
@@ -304,6 +316,8 @@ def format_table(results: dict) -> str:
     add("shape", results.get("by_shape", {}))
     add("size", results.get("by_size", {}))
     add("material", results.get("by_material", {}))
+    if len(results.get("by_objects", {})) > 1:
+        add("objects", results["by_objects"])
     table = [("", *heads)] + lines
     widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
     text = []
@@ -311,6 +325,9 @@ def format_table(results: dict) -> str:
         text.append("  ".join([row[0].ljust(widths[0])] + [c.rjust(w) for c, w in zip(row[1:], widths[1:])]))
         if j == 0:
             text.append("-" * len(text[0]))
+    if results.get("translation_rmse") is not None:
+        text.append(f"RMSE over frames and objects: translation {_fmt(results['translation_rmse'])} scene units, "
+                    f"rotation {_fmt(results['rotation_rmse_deg'])} deg")
     if "interpenetration_pct" in results:
         text.append(f"between objects ({results['num_object_pairs']} object pairs): "
                     f"interpenetration {_fmt(results['interpenetration_pct'])} % of size "

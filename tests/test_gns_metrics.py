@@ -168,3 +168,25 @@ def test_spin_ratio_tells_a_model_that_turns_too_little():
     # a prediction that turns exactly as the truth scores 1; nothing turning anywhere scores None
     assert evaluate_scenes([true], [true], MESHES)["spin_ratio"] == pytest.approx(1.0)
     assert evaluate_scenes([make_scene(resting(4))], [make_scene(resting(4))], MESHES)["spin_ratio"] is None
+
+
+def test_rmse_of_a_known_offset_and_turn_and_groups_by_object_count():
+    """FIGNet's metrics: a centre off by 0.3 at every frame and a turn of 10 degrees give RMSEs
+    0.3 and 10; a scene whose offset grows linearly (0 .. 0.6 over 7 frames) gives the RMS of it,
+    not its mean. Scenes of one and of three objects are reported apart."""
+    T = 7
+    true1 = make_scene(resting(T, 1))
+    off = resting(T, 1) + np.array([0.3, 0.0, 0.0])
+    turn = np.broadcast_to(quat_from_axis_angle(np.array([0.0, 0.0, 1.0]), np.radians(10.0)), (T, 1, 4)).copy()
+    pred1 = make_scene(off, turn)
+    r = evaluate_scenes([pred1], [true1], MESHES)
+    assert r["translation_rmse"] == pytest.approx(0.3) and r["rotation_rmse_deg"] == pytest.approx(10.0)
+    true3 = make_scene(resting(T, 3))
+    ramp = resting(T, 3).copy()
+    ramp[:, :, 0] += np.linspace(0.0, 0.6, T)[:, None]
+    r = evaluate_scenes([pred1, make_scene(ramp)], [true1, true3], MESHES)
+    rms = np.sqrt(np.mean(np.linspace(0.0, 0.6, T) ** 2))
+    assert r["by_objects"]["3"]["translation_rmse"] == pytest.approx(rms)
+    assert r["by_objects"]["3"]["translation_rmse"] > r["by_objects"]["3"]["position_error_pct"] / 100  # RMS > mean
+    assert r["by_objects"]["1"]["num_objects"] == 1 and r["by_objects"]["3"]["num_objects"] == 3
+    assert "objects 3" in format_table(r) and "RMSE over frames and objects" in format_table(r)
