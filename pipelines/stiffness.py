@@ -331,6 +331,9 @@ def plot(path: Path, results: dict) -> Path:
                 ax.plot(sizes, [lv["sizes"][str(n)][model][key] for n in sizes], style,
                         color=COLOURS.get(level), label=f"{model.upper()} {level}")
         ax.set_xscale("log")
+        ticks = sorted({int(n) for lv in results["levels"].values() for n in lv["sizes"]})
+        ax.set_xticks(ticks, [str(n) for n in ticks])
+        ax.minorticks_off()
         ax.set_xlabel("training tosses")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
@@ -366,16 +369,25 @@ def report(out: Path, results: dict) -> Path:
               f"## GNS and GRU by training size ({p['steps']} optimiser steps each, batch "
               f"{results['gru_config']['batch_size']})", "",
               "| level | training tosses | GNS position % | GRU position % | GNS rotation deg | GRU rotation deg | "
-              "GNS penetration % | GRU penetration % | GNS / GRU train s |", "|---|---|---|---|---|---|---|---|---|"]
+              "GNS penetration % | GRU penetration % | truth's penetration % | GNS / GRU train s |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for level, lv in levels.items():
         for n, r in sorted(lv["sizes"].items(), key=lambda kv: int(kv[0])):
             g, u = r["gns"], r["gru"]
             lines.append(f"| {level} | {n} | {_f(g['position_error_pct'])} | {_f(u['position_error_pct'])} | "
                          f"{_f(g['rotation_error_deg'])} | {_f(u['rotation_error_deg'])} | {_f(g['penetration_pct'], 2)} | "
-                         f"{_f(u['penetration_pct'], 2)} | {_f(r['gns_train_seconds'], 0)} / "
+                         f"{_f(u['penetration_pct'], 2)} | {_f(g['true_penetration_pct'], 2)} | {_f(r['gns_train_seconds'], 0)} / "
                          f"{_f(r['gru_train_seconds'], 0)} |")
     f = results["finding"]
     lines += ["", "![error against training size](plots/error_vs_size.png)", "", "## Soft to hard", ""]
+    largest = {k: rows[-1] for k, rows in f["soft_to_hard"].items() if rows}
+    if len(largest) == 4:
+        n = largest["gns position_error_pct"]["size"]
+        lines += [f"Hard over soft at {n} training tosses: the GNS's position error "
+                  f"x{largest['gns position_error_pct']['hard_over_soft']:.2f}, rotation "
+                  f"x{largest['gns rotation_error_deg']['hard_over_soft']:.2f}; the GRU's "
+                  f"x{largest['gru position_error_pct']['hard_over_soft']:.2f} and "
+                  f"x{largest['gru rotation_error_deg']['hard_over_soft']:.2f}. Every size:", ""]
     for key, unit in (("position_error_pct", "%"), ("rotation_error_deg", " deg")):
         for model in ("gns", "gru"):
             rows = f["soft_to_hard"][f"{model} {key}"]
