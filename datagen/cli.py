@@ -13,6 +13,7 @@ EPILOG = """examples:
   datagen toss --objects 3-10 --scenes 50 --valid 10 --test 10 --workers 2 --seed 1 --out data/multi
   datagen inspect data/toy
   datagen toss --scenes 1000 --backend ray --workers 8 --out data/big
+  datagen toss --engine mujoco --stiffness soft --scenes 1000 --test 100 --out data/cubes_soft
   datagen toss --scenes 1000 --shard-index $SLURM_ARRAY_TASK_ID --num-shards 10 --out data/big   # one of 10 runs
 """
 
@@ -22,7 +23,29 @@ def _fail(msg: str) -> int:
     return 2
 
 
+def cmd_toss_mujoco(a) -> int:
+    """--engine mujoco: one real-cube-like cube a toss (datagen/mujoco_tosses.py, configs/mujoco_cubes.toml)."""
+    from .mujoco_tosses import generate_tosses, load_config as load_mujoco_config
+    movi_only = [f"--{k.replace('_', '-')}" for k in ("shapes", "sizes", "materials", "objects", "physics_rate", "backend",
+                                                      "shard_index", "num_shards", "ray_address", "resume")
+                 if getattr(a, k) not in (None, False, "process")]
+    if movi_only:
+        raise ConfigError(f"{', '.join(movi_only)}: MOVi-A options, not for --engine mujoco")
+    sets = list(a.set or []) + [f"scene.{k}={v}" for k, v in (("frames", a.frames), ("frame_rate", a.frame_rate))
+                                if v is not None]
+    cfg = load_mujoco_config(a.config, sets, a.stiffness)
+    meta = generate_tosses(cfg, a.seed, {"train": a.scenes, "valid": a.valid, "test": a.test}, a.out,
+                           overwrite=a.overwrite, progress=not a.quiet)
+    print(f"wrote {sum(v['num_scenes'] for v in meta['splits'].values())} MuJoCo tosses ({cfg['contact']['stiffness']}: "
+          f"solref timeconst {cfg['contact']['timeconst']:g} s) to {a.out}, fingerprint {meta['fingerprint'][:16]}")
+    return 0
+
+
 def cmd_toss(a) -> int:
+    if a.engine == "mujoco":
+        return cmd_toss_mujoco(a)
+    if a.stiffness is not None:
+        raise ConfigError("--stiffness is MuJoCo's contact stiffness: give --engine mujoco")
     from .generate import generate
     sets = list(a.set or [])
     for flag, key in (("shapes", "scene.shapes"), ("sizes", "scene.sizes"), ("materials", "scene.materials")):
@@ -89,10 +112,16 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=version_line())
     sub = p.add_subparsers(dest="cmd", required=True)
-    t = sub.add_parser("toss", help="simulate tossed objects in PyBullet and write HDF5 shards",
-                       description="Simulate MOVi-A-style tosses (configs/movi_a.toml) and write a dataset "
+    t = sub.add_parser("toss", help="simulate tossed objects in PyBullet (or a cube in MuJoCo) and write HDF5 shards",
+                       description="Simulate MOVi-A-style tosses (configs/movi_a.toml), or with --engine mujoco "
+                                   "real-cube-like tosses (configs/mujoco_cubes.toml), and write a dataset "
                                    "folder: shards per split plus metadata.json (docs/data_format.md).")
     t.add_argument("--out", required=True, help="output dataset folder")
+    t.add_argument("--engine", choices=("pybullet", "mujoco"), default="pybullet",
+                   help="pybullet: MOVi-A scenes (default); mujoco: one cube tossed like the real ContactNets cube, "
+                        "configs/mujoco_cubes.toml (the `mujoco` extra)")
+    t.add_argument("--stiffness", help="--engine mujoco: contact stiffness hard, medium or soft (solref time "
+                                       "constants 0.02, 0.0577, 0.1 s; default hard)")
     t.add_argument("--scenes", type=int, default=100, help="training scenes (default 100)")
     t.add_argument("--valid", type=int, default=0, help="validation scenes (default 0)")
     t.add_argument("--test", type=int, default=0, help="test scenes (default 0)")
@@ -105,7 +134,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--frames", type=int, help="frames recorded per scene (default 24)")
     t.add_argument("--frame-rate", type=float, help="recorded frames per second (default 12)")
     t.add_argument("--physics-rate", type=float, help="physics steps per second (default 240)")
-    t.add_argument("--config", help="a TOML file overriding the movi_a preset (configs/movi_a.toml)")
+    t.add_argument("--config", help="a TOML file overriding the movi_a preset (configs/movi_a.toml; with --engine "
+                                    "mujoco configs/mujoco_cubes.toml)")
     t.add_argument("--set", action="extend", nargs="+", metavar="KEY=VALUE",
                    help="override config keys, typed as in the preset, e.g. --set floor.friction=0.5 physics.ccd=true")
     t.add_argument("--scenes-per-shard", type=int, default=50, help="scenes per HDF5 shard (default 50)")

@@ -80,6 +80,7 @@ def inspect(root: str | Path) -> tuple[list[str], dict]:
     shapes, materials, sizes, frames, objects = Counter(), Counter(), Counter(), Counter(), Counter()
     physics_dt = 1.0 / float(ds.meta["physics_rate"]) if ds.meta.get("physics_rate") else 0.0
     measured = ds.meta.get("source") is not None       # imported measurements, not a simulation
+    soft = bool(ds.meta.get("soft_contact"))           # a soft-contact engine (MuJoCo) sinks in by design
     sinks: list[float] = []
     listed = set()
     for split, info in ds.meta["splits"].items():
@@ -95,9 +96,10 @@ def inspect(root: str | Path) -> tuple[list[str], dict]:
                 if f.max(initial=-1) >= len(v) or f.min(initial=0) < 0:
                     problems.append(f"{path.name}: mesh {m} has faces indexing missing vertices")
             for i, sc in enumerate(scenes):
-                scene_problems = check_scene(sc, meshes, ds.floor, f"{path.name} scene {i}", physics_dt, measured)
+                scene_problems = check_scene(sc, meshes, ds.floor, f"{path.name} scene {i}", physics_dt,
+                                             measured or soft)
                 problems += scene_problems
-                if measured and ds.floor is not None and not scene_problems:
+                if (measured or soft) and ds.floor is not None and not scene_problems:
                     sinks.append(floor_penetration(sc, meshes, float(ds.floor["z"])))
                 shapes.update(sc.shape)
                 materials.update(sc.material)
@@ -114,7 +116,8 @@ def inspect(root: str | Path) -> tuple[list[str], dict]:
     summary.update(shapes=dict(shapes), materials=dict(materials), sizes=dict(sizes),
                    frames_per_scene=dict(frames), objects_per_scene=dict(objects))
     if sinks:
-        summary["measured_floor_penetration"] = {"median": float(np.median(sinks)), "max": float(np.max(sinks))}
+        summary["measured_floor_penetration"] = {"median": float(np.median(sinks)), "max": float(np.max(sinks)),
+                                                 "why": "soft contact" if soft and not measured else "tracking"}
     summary["fingerprint"] = ds.meta.get("fingerprint")
     recorded = ds.meta.get("checksums")
     if isinstance(recorded, dict):
@@ -132,8 +135,9 @@ def format_summary(s: dict) -> str:
         lines.append(f"{key.replace('_', ' ')}: " + json.dumps(s[key], sort_keys=True).strip("{}").replace('"', ""))
     if "measured_floor_penetration" in s:
         m = s["measured_floor_penetration"]
-        lines.append(f"measured data: deepest point below the floor per scene, median {m['median']:.1%}, "
-                     f"max {m['max']:.1%} of the object's scale (tracking, not a problem)")
+        lines.append(f"{'soft-contact' if m.get('why') == 'soft contact' else 'measured'} data: deepest point below "
+                     f"the floor per scene, median {m['median']:.1%}, max {m['max']:.1%} of the object's scale "
+                     f"({m.get('why', 'tracking')}, not a problem)")
     if s.get("fingerprint"):
         changed = s.get("changed_shards") or []
         lines.append(f"fingerprint: {s['fingerprint']}" + (

@@ -1,0 +1,437 @@
+"""The paper's Fig. 6: the GNS and a GRU on MuJoCo cube tosses with hard, medium and soft contact.
+
+    python -m pipelines.stiffness --preset quick|full [--out runs/stiffness_<preset>] [--starts-from DATA]
+
+Data: `datagen toss --engine mujoco --stiffness LEVEL` (configs/mujoco_cubes.toml): one cube of the
+real ContactNets set-up tossed onto a table from starts drawn from a distribution fitted to the
+456 shared ContactNets tosses, simulated by MuJoCo with solref time constants 0.02 s (hard),
+0.0577 s (medium) and 0.1 s (soft), Parmar et al.'s stiffnesses 2500, 300 and 100. Every level
+uses the same seed, so the three levels toss the same starts; the training sets of one level are
+nested (the first n tosses of the largest), the test tosses held out (another split's draws).
+--starts-from DATA refits the start distribution to the ContactNets tosses in DATA (its
+tosses_processed/N.pt) instead of the shipped fit.
+
+Models, per level and training size: the GNS with the real-cube zoo model's settings
+(configs/recipes/real_cubes.toml: gns_cpu with L=10, a time step of 8 frames), and the GRU of
+baselines/gru.py on the same tosses with the same optimiser steps and batch size (so the same
+number of training windows; their wall times are reported). Both are scored on the level's test
+tosses from their first 3 states (frames 0, 8, 16) at every recorded frame with the ContactNets
+metrics: the GNS by `gns eval --at-data-rate --symmetrize d2` (as the zoo card scores it), the GRU
+by baselines.gru (the same formulas). The penetration each level's own data show is measured on
+its test tosses.
+
+The command lines run in-process (datagen.cli.main, gns.cli.main). Output in --out: report.md,
+results.json, plots/error_vs_size.png, costs.json, and the data/, runs/, eval/ folders of the
+stages. Rerunning skips finished stages and resumes an interrupted training. Presets:
+  tiny   the test suite's smoke run: 2 levels, sizes 2 and 4, a tiny GNS and GRU, 4 steps
+  quick  sizes 30, 100, 300; 3000 steps each; 100 test tosses a level (~1 h on one core)
+  full   sizes 100, 1000, 10000 (Allen et al.'s); the recipe's 40,000 steps; 200 test tosses (~10 h)
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from baselines import gru
+from datagen.shards import Dataset
+from plumbing import DataError, check_writable
+from pipelines.common import Costs, guarded, remove_output, say, trained_step
+
+LEVELS = ("soft", "medium", "hard")     # soft to hard: the order of every table and plot
+OUTPUTS = {"costs.json", "data", "runs", "eval", "plots", "results.json", "report.md", "starts.toml"}
+EVAL_FLAGS = ("--at-data-rate", "--symmetrize", "d2")
+
+
+@dataclass(frozen=True)
+class Preset:
+    levels: tuple[str, ...]
+    sizes: tuple[int, ...]           # training tosses per level
+    test: int                        # held-out test tosses per level
+    valid: int                       # validation tosses (the GNS trainer's curves)
+    model: str                       # gns preset
+    steps: int                       # optimiser steps of every GNS and GRU run
+    lr_decay_steps: int
+    train: tuple[str, ...] = ()      # GNS overrides on top of the real_cubes recipe's
+    gru: dict = field(default_factory=dict)   # GRUConfig fields
+    seed: int = 0
+
+
+PRESETS = {
+    "tiny": Preset(levels=("soft", "hard"), sizes=(2, 4), test=2, valid=0, model="gns_tiny", steps=4, lr_decay_steps=4,
+                   train=("model.message_passing_steps=1", "train.batch_size=2", "valid.every=0",
+                          "train.checkpoint_every=4", "features.normalizer_steps=4", "train.log_every=2"),
+                   gru={"hidden": 8, "layers": 1, "log_every": 2}),
+    "quick": Preset(levels=LEVELS, sizes=(30, 100, 300), test=100, valid=16, model="gns_cpu", steps=3000,
+                    lr_decay_steps=3000, train=("valid.every=1000", "train.checkpoint_every=1000")),
+    "full": Preset(levels=LEVELS, sizes=(100, 1000, 10000), test=200, valid=32, model="gns_cpu", steps=40000,
+                   lr_decay_steps=13333),
+}
+
+
+def gns_overrides(p: Preset) -> list[str]:
+    """The real-cube zoo model's settings (its recipe), the preset's steps and schedule on top."""
+    from pipelines.recipe import load_recipe
+    recipe = load_recipe("real_cubes").runs[0]
+    return [*recipe.overrides, f"train.steps={p.steps}", f"train.seed={p.seed}",
+            f"train.lr_decay_steps={p.lr_decay_steps}", *p.train]
+
+
+def gru_config(p: Preset) -> gru.GRUConfig:
+    """The GRU's budget: the GNS's optimiser steps, batch size (tosses a step, as the GNS's windows)
+    and learning-rate schedule."""
+    batch = [int(o.split("=", 1)[1]) for o in gns_overrides(p) if o.startswith("train.batch_size=")][-1]
+    return gru.GRUConfig(steps=p.steps, batch_size=batch, lr_decay_steps=p.lr_decay_steps, seed=p.seed, **p.gru)
+
+
+# ---- running the command lines in-process ------------------------------------------------------
+
+def command(main, argv: list[str], what: str) -> None:
+    """A command line's main() in this process; a failure (its one error line already printed)
+    becomes a DataError naming the command."""
+    argv = [str(a) for a in argv]
+    try:
+        code = main(argv)
+    except SystemExit as e:
+        code = e.code
+    if code not in (None, 0):
+        raise DataError(f"{what} failed (exit status {code}): {' '.join(argv)}")
+
+
+def datagen(argv: list[str]) -> None:
+    from datagen.cli import main
+    command(main, argv, "datagen")
+
+
+def gns(argv: list[str]) -> None:
+    from gns.cli import main
+    command(main, argv, "gns")
+
+
+# ---- stages ------------------------------------------------------------------------------------
+
+def data_stage(out: Path, level: str, counts: dict[str, int], seed: int, config: Path | None) -> bool:
+    """A level's tosses (counts per split) in `out`, made unless it already holds exactly them.
+    Returns whether it made them."""
+    from datagen.mujoco_tosses import load_config
+    want = load_config(config, stiffness=level)
+    try:
+        ds = Dataset(out)
+        if ds.meta.get("config") == want and ds.meta.get("seed") == seed and \
+                all(ds.num_scenes(s) == n for s, n in counts.items()):
+            return False
+    except DataError:
+        pass
+    say(f"data: {sum(counts.values())} {level} tosses into {out}")
+    datagen(["toss", "--engine", "mujoco", "--stiffness", level, "--scenes", counts.get("train", 0),
+             "--valid", counts.get("valid", 0), "--test", counts.get("test", 0), "--seed", seed, "--out", out,
+             "--quiet", "--overwrite", *(["--config", config] if config else [])])
+    return True
+
+
+def _settings_guard(run: Path, settings: dict) -> None:
+    """A run folder records what it was trained with; other settings are refused, not mixed."""
+    path = run / "pipeline_settings.json"
+    if path.exists() and json.loads(path.read_text()) != settings:
+        raise DataError(f"{run} was trained with other settings: delete it (or the output with --fresh) to train again")
+    run.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(settings, indent=1) + "\n")
+
+
+def gns_train_stage(run: Path, data: Path, p: Preset, costs: Costs) -> None:
+    overrides = gns_overrides(p)
+    _settings_guard(run, {"data": str(data), "config": p.model, "set": overrides})
+    step = trained_step(run)
+    if step >= p.steps:
+        return
+    say(f"gns train: {run} ({p.steps} steps{f', resuming at {step}' if step > 0 else ''})")
+    t0 = time.perf_counter()
+    gns(["train", "--data", data, "--out", run, "--config", p.model,
+         *(["--resume"] if step >= 0 else ["--overwrite"]), "--set", *overrides])
+    costs.add(f"train gns {run.name}", costs.data.get(f"train gns {run.name}", 0.0) * (step > 0)
+              + time.perf_counter() - t0)
+
+
+def _current(path: Path, step: int, test: Path) -> dict | None:
+    """Saved scores if made from this checkpoint step on this very test set."""
+    if not path.exists():
+        return None
+    try:
+        r = json.loads(path.read_text())
+    except ValueError:
+        return None
+    return r if r.get("checkpoint_step") == step and r.get("test_fingerprint") == Dataset(test).fingerprint else None
+
+
+def _write_json(path: Path, obj) -> None:
+    from plumbing import atomic_file
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
+
+
+def gns_eval_stage(path: Path, run: Path, test: Path, costs: Costs) -> dict:
+    step = trained_step(run)
+    saved = _current(path, step, test)
+    if saved is not None:
+        return saved
+    t0 = time.perf_counter()
+    raw = path.with_suffix(".gns.json")
+    gns(["eval", "--run", run, "--data", test, *EVAL_FLAGS, "--json", raw])
+    r = json.loads(raw.read_text())
+    r.update(checkpoint_step=step, test_fingerprint=Dataset(test).fingerprint)
+    _write_json(path, r)
+    raw.unlink()
+    costs.add(f"eval {path.stem}", time.perf_counter() - t0)
+    return r
+
+
+def gru_stage(run: Path, data: Path, test: Path, path: Path, p: Preset, costs: Costs) -> dict:
+    cfg = gru_config(p)
+    if not gru.trained(run, cfg):
+        say(f"gru train: {run} ({cfg.steps} steps)")
+        t0 = time.perf_counter()
+        gru.train(data, run, cfg, log=say)
+        costs.add(f"train gru {run.name}", time.perf_counter() - t0)
+    saved = _current(path, cfg.steps, test)
+    if saved is not None and saved.get("train_seconds") == gru.load(run)[1]["train_seconds"]:
+        return saved
+    r = gru.evaluate(run, test)
+    r["test_fingerprint"] = Dataset(test).fingerprint
+    _write_json(path, r)
+    return r
+
+
+def penetration_stage(test: Path) -> dict:
+    from datagen.mujoco_tosses import dataset_penetration
+    ds = Dataset(test)
+    return {**dataset_penetration(ds.load("test")), "timeconst": ds.meta["config"]["contact"]["timeconst"],
+            "dampratio": ds.meta["config"]["contact"]["dampratio"]}
+
+
+def starts_stage(src: Path | None, out: Path) -> Path | None:
+    """--starts-from: the start distribution refitted to the ContactNets tosses of src, as a
+    config file (OUT/starts.toml) that datagen toss reads; None: the shipped fit."""
+    if src is None:
+        return None
+    from datagen.contactnets import list_toss_ids, read_experiment, read_toss, toss_to_scene
+    from datagen.mujoco_tosses import fit_starts
+    root = src / "tosses_processed" if (src / "tosses_processed").is_dir() else src
+    ids = list_toss_ids(src)
+    if not ids:
+        raise DataError(f"--starts-from {src}: no N.pt toss files")
+    consts = read_experiment(src)
+    fit = fit_starts([toss_to_scene(read_toss(root / f"{i}.pt"), i, f"{i}.pt", consts) for i in ids],
+                     1.0 / float(consts["dt"]), float(consts["g"]))
+    n = fit.pop("num_tosses")
+    lines = [f"# the start distribution fitted to the {n} ContactNets tosses in {src}", "[start]"]
+    lines += [f"{k} = {json.dumps(v)}" for k, v in fit.items()]
+    path = out / "starts.toml"
+    out.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+# ---- the experiment ----------------------------------------------------------------------------
+
+SUMMARY = ("position_error_pct", "rotation_error_deg", "penetration_pct", "true_penetration_pct")
+
+
+def _summary(r: dict) -> dict:
+    return {k: r.get(k) for k in SUMMARY}
+
+
+def run(preset: str, out: Path, starts_from: Path | None = None) -> dict:
+    p = PRESETS[preset]
+    check_writable(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    costs = Costs(out / "costs.json")
+    config = starts_stage(Path(starts_from) if starts_from else None, out)
+    results = {"preset": preset, "settings": asdict(p), "gns_overrides": gns_overrides(p),
+               "gru_config": asdict(gru_config(p)), "eval_flags": list(EVAL_FLAGS),
+               "starts": str(starts_from) if starts_from else "configs/mujoco_cubes.toml (fitted to the 456 shared "
+                                                            "ContactNets tosses)",
+               "levels": {}}
+    for level in p.levels:
+        t0 = time.perf_counter()
+        test = out / "data" / level / "test"
+        sets = {n: out / "data" / level / f"train_n{n}" for n in p.sizes}
+        made = data_stage(test, level, {"test": p.test}, p.seed, config)
+        for n, data in sets.items():
+            made |= data_stage(data, level, {"train": n, "valid": p.valid}, p.seed, config)
+        if made:
+            costs.add(f"data {level}", time.perf_counter() - t0)
+        lv = {"penetration": penetration_stage(test), "sizes": {}}
+        for n, data in sets.items():
+            name = f"{level}_n{n}"
+            gns_train_stage(out / "runs" / f"gns_{name}", data, p, costs)
+            g = gns_eval_stage(out / "eval" / f"gns_{name}.json", out / "runs" / f"gns_{name}", test, costs)
+            r = gru_stage(out / "runs" / f"gru_{name}", data, test, out / "eval" / f"gru_{name}.json", p, costs)
+            lv["sizes"][str(n)] = {"gns": _summary(g), "gru": _summary(r),
+                                   "gns_train_seconds": costs.data.get(f"train gns gns_{name}"),
+                                   "gru_train_seconds": r.get("train_seconds")}
+            say(f"{name}: GNS {g['position_error_pct']:.1f}% / {g['rotation_error_deg']:.1f} deg, "
+                f"GRU {r['position_error_pct']:.1f}% / {r['rotation_error_deg']:.1f} deg")
+        results["levels"][level] = lv
+    results["finding"] = finding(results)
+    results["costs_seconds"] = costs.data
+    results["pipeline_seconds_this_call"] = round(time.perf_counter() - t_start, 1)
+    _write_json(out / "results.json", results)
+    plot(out / "plots" / "error_vs_size.png", results)
+    path = report(out, results)
+    say(f"report: {path}")
+    return results
+
+
+def finding(results: dict) -> dict:
+    """Soft -> hard: each model's error at hard contact against soft, per size (ratio and
+    difference), and where the GNS does not beat the GRU."""
+    levels = results["levels"]
+    out = {"soft_to_hard": {}, "gns_not_better": []}
+    sizes = sorted({int(n) for lv in levels.values() for n in lv["sizes"]})
+    for model in ("gns", "gru"):
+        for key in ("position_error_pct", "rotation_error_deg"):
+            rows = []
+            for n in sizes:
+                s, h = (levels.get(lv, {}).get("sizes", {}).get(str(n), {}).get(model, {}).get(key)
+                        for lv in ("soft", "hard"))
+                if s is not None and h is not None:
+                    rows.append({"size": n, "soft": s, "hard": h, "hard_minus_soft": h - s, "hard_over_soft": h / s})
+            out["soft_to_hard"][f"{model} {key}"] = rows
+    for level, lv in levels.items():
+        for n, r in lv["sizes"].items():
+            for key in ("position_error_pct", "rotation_error_deg"):
+                if r["gns"][key] >= r["gru"][key]:
+                    out["gns_not_better"].append({"level": level, "size": int(n), "metric": key,
+                                                  "gns": r["gns"][key], "gru": r["gru"][key]})
+    return out
+
+
+COLOURS = {"soft": "tab:green", "medium": "tab:orange", "hard": "tab:red"}
+
+
+def plot(path: Path, results: dict) -> Path:
+    """Error against training tosses per level, GNS solid and GRU dashed (the paper's Fig. 6b, c)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, key, label in zip(axes, ("position_error_pct", "rotation_error_deg"),
+                              ("position error (% of the cube's width)", "rotation error (degrees)")):
+        for level, lv in results["levels"].items():
+            sizes = sorted(int(n) for n in lv["sizes"])
+            for model, style in (("gns", "o-"), ("gru", "s--")):
+                ax.plot(sizes, [lv["sizes"][str(n)][model][key] for n in sizes], style,
+                        color=COLOURS.get(level), label=f"{model.upper()} {level}")
+        ax.set_xscale("log")
+        ticks = sorted({int(n) for lv in results["levels"].values() for n in lv["sizes"]})
+        ax.set_xticks(ticks, [str(n) for n in ticks])
+        ax.minorticks_off()
+        ax.set_xlabel("training tosses")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"MuJoCo cube tosses by contact stiffness ({results['preset']} preset): GNS vs GRU")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def _f(x, digits=1) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+def report(out: Path, results: dict) -> Path:
+    p, levels = results["settings"], results["levels"]
+    lines = [f"# Contact stiffness: the GNS against a GRU (preset `{results['preset']}`)", "",
+             "The paper's Fig. 6 on the project's own data: MuJoCo cube tosses (`datagen toss --engine mujoco`, "
+             "configs/mujoco_cubes.toml), the cube and table of the real ContactNets set-up, starts drawn from "
+             f"{results['starts']}; every level tosses the same starts (seed {p['seed']}). Both models are given the "
+             "first 3 states (frames 0, 8, 16) of each held-out test toss and scored at every recorded frame with "
+             "the ContactNets metrics, averaged over the frames of a toss, then over tosses.", "",
+             "## The data: penetration of each level", "",
+             f"| level | solref timeconst (s), dampratio | mean penetration % | deepest frame % | at rest (last 10 frames) % |",
+             "|---|---|---|---|---|"]
+    for level, lv in levels.items():
+        pen = lv["penetration"]
+        lines.append(f"| {level} | {pen['timeconst']:g}, {pen['dampratio']:g} | {_f(pen['mean_pct'], 2)} | "
+                     f"{_f(pen['max_pct'], 1)} | {_f(pen['rest_pct'], 2)} |")
+    lines += ["", f"Over the {levels[next(iter(levels))]['penetration']['num_tosses']} test tosses of each level, "
+              "% of the cube's width (the deepest frame averaged over tosses).", "",
+              f"## GNS and GRU by training size ({p['steps']} optimiser steps each, batch "
+              f"{results['gru_config']['batch_size']})", "",
+              "| level | training tosses | GNS position % | GRU position % | GNS rotation deg | GRU rotation deg | "
+              "GNS penetration % | GRU penetration % | truth's penetration % | GNS / GRU train s |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    for level, lv in levels.items():
+        for n, r in sorted(lv["sizes"].items(), key=lambda kv: int(kv[0])):
+            g, u = r["gns"], r["gru"]
+            lines.append(f"| {level} | {n} | {_f(g['position_error_pct'])} | {_f(u['position_error_pct'])} | "
+                         f"{_f(g['rotation_error_deg'])} | {_f(u['rotation_error_deg'])} | {_f(g['penetration_pct'], 2)} | "
+                         f"{_f(u['penetration_pct'], 2)} | {_f(g['true_penetration_pct'], 2)} | {_f(r['gns_train_seconds'], 0)} / "
+                         f"{_f(r['gru_train_seconds'], 0)} |")
+    f = results["finding"]
+    lines += ["", "![error against training size](plots/error_vs_size.png)", "", "## Soft to hard", ""]
+    largest = {k: rows[-1] for k, rows in f["soft_to_hard"].items() if rows}
+    if len(largest) == 4:
+        n = largest["gns position_error_pct"]["size"]
+        lines += [f"Hard over soft at {n} training tosses: the GNS's position error "
+                  f"x{largest['gns position_error_pct']['hard_over_soft']:.2f}, rotation "
+                  f"x{largest['gns rotation_error_deg']['hard_over_soft']:.2f}; the GRU's "
+                  f"x{largest['gru position_error_pct']['hard_over_soft']:.2f} and "
+                  f"x{largest['gru rotation_error_deg']['hard_over_soft']:.2f}. Every size:", ""]
+    for key, unit in (("position_error_pct", "%"), ("rotation_error_deg", " deg")):
+        for model in ("gns", "gru"):
+            rows = f["soft_to_hard"][f"{model} {key}"]
+            if rows:
+                lines.append(f"- {model.upper()} {key.split('_')[0]}: " + "; ".join(
+                    f"{r['size']} tosses {r['soft']:.1f} -> {r['hard']:.1f}{unit} (x{r['hard_over_soft']:.2f})"
+                    for r in rows))
+    lines.append("")
+    if f["gns_not_better"]:
+        lines.append("Where the GNS does not beat the GRU: " + "; ".join(
+            f"{r['level']} {r['size']} tosses {r['metric'].split('_')[0]} (GNS {r['gns']:.1f}, GRU {r['gru']:.1f})"
+            for r in f["gns_not_better"]) + ".")
+    else:
+        lines.append("The GNS beats the GRU at every level and size, in position and in rotation.")
+    lines += ["", "## How", "",
+              f"- GNS: `{p['model']}` with the real-cube zoo model's recipe settings (configs/recipes/real_cubes.toml), "
+              f"`gns train --set {' '.join(results['gns_overrides'])}`; scored by `gns eval {' '.join(results['eval_flags'])}`.",
+              f"- GRU (baselines/gru.py): {json.dumps(results['gru_config'])}; the same optimiser steps and batch size "
+              "as the GNS (so the same number of training windows), its own wall time above.",
+              "- Costs (s): " + ", ".join(f"{k} {v:.0f}" for k, v in results["costs_seconds"].items()), ""]
+    path = out / "report.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m pipelines.stiffness", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--preset", choices=sorted(PRESETS), default="quick")
+    ap.add_argument("--out", type=Path, help="output folder (default runs/stiffness_<preset>)")
+    ap.add_argument("--starts-from", type=Path, metavar="DATA",
+                    help="refit the start distribution to the ContactNets tosses in DATA (tosses_processed/N.pt)")
+    ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
+    a = ap.parse_args(argv)
+    out = a.out or Path("runs") / f"stiffness_{a.preset}"
+    import torch
+    torch.set_num_threads(1)
+
+    def stages():
+        if a.fresh:
+            remove_output(out, OUTPUTS)
+        run(a.preset, out, a.starts_from)
+    return guarded(stages)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,42 @@
+"""pipelines.stiffness: the tiny preset end to end, a rerun that skips every stage, bad input."""
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco")  # the [mujoco] extra; the dev extra installs it
+
+from pipelines import stiffness  # noqa: E402
+
+
+def test_tiny_preset_end_to_end_then_a_rerun_skips_every_stage(tmp_path, capsys):
+    out = tmp_path / "st"
+    assert stiffness.main(["--preset", "tiny", "--out", str(out)]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["levels"]) == {"soft", "hard"}
+    for lv in results["levels"].values():
+        assert set(lv["sizes"]) == {"2", "4"} and lv["penetration"]["num_tosses"] == 2
+        for r in lv["sizes"].values():
+            for model in ("gns", "gru"):
+                assert all(np.isfinite(r[model][k]) for k in ("position_error_pct", "rotation_error_deg"))
+    pen = {k: v["penetration"]["mean_pct"] for k, v in results["levels"].items()}
+    assert pen["soft"] > pen["hard"]
+    assert results["gru_config"]["steps"] == results["settings"]["steps"]           # the same budget
+    assert {r["size"] for r in results["finding"]["soft_to_hard"]["gns position_error_pct"]} == {2, 4}
+    report = (out / "report.md").read_text()
+    assert "Soft to hard" in report and (out / "plots" / "error_vs_size.png").stat().st_size > 1000
+    costs = (out / "costs.json").read_text()
+    capsys.readouterr()
+    assert stiffness.main(["--preset", "tiny", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "train:" not in err and "data:" not in err and (out / "costs.json").read_text() == costs
+
+
+def test_bad_input_is_one_error_line(tmp_path, capsys):
+    assert stiffness.main(["--preset", "tiny", "--out", str(tmp_path / "o"), "--starts-from", str(tmp_path)]) == 2
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    assert stiffness.main(["--preset", "tiny", "--out", str(tmp_path / "mine"), "--fresh"]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error: ")]
+    assert len(err) == 2 and "no N.pt" in err[0] and "notes.txt" in err[1]
+    assert (tmp_path / "mine" / "notes.txt").exists()
