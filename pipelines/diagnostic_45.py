@@ -71,8 +71,10 @@ PRESETS = {
 }
 
 
-def scene_config(shape: str) -> dict:
-    return load_config(sets=[f"scene.frames={FRAMES}", f"scene.shapes=['{shape}']"])
+def scene_config(shapes) -> dict:
+    """datagen's MOVi-A config with these shapes (a name or a list) and FRAMES frames a scene."""
+    names = [shapes] if isinstance(shapes, str) else list(shapes)
+    return load_config(sets=[f"scene.frames={FRAMES}", f"scene.shapes={json.dumps(names)}"])
 
 
 def write_dataset(out: Path, cfg: dict, seed: int, specs: dict[str, list], extra: dict) -> Dataset:
@@ -106,11 +108,20 @@ def drops_stage(out: Path, shape: str, angles=ANGLES) -> Dataset:
     return dataset_stage(out, "drops", extra, lambda: write_dataset(out, cfg, 0, {"test": specs}, extra))
 
 
-def training_data_stage(out: Path, counts: dict, seed: int) -> Dataset:
-    cfg = scene_config("cube")
+def training_data_stage(out: Path, counts: dict, seed: int, shapes=("cube",), max_heights=(0.05,)) -> Dataset:
+    """Training scenes (datagen.tilted.training_scene) of these shapes, each drop's lowest vertex
+    up to one of `max_heights` x its size above the floor."""
+    shapes, max_heights = tuple(shapes), tuple(float(h) for h in max_heights)
+    cfg = scene_config(shapes)
     extra = {"kind": "training", "counts": counts, "seed": seed, "drop_fraction": 0.5}
+    # recorded only where they are not the first recipe's, whose data keeps its metadata (and fingerprint)
+    if shapes != ("cube",):
+        extra["shapes"] = list(shapes)
+    if max_heights != (0.05,):
+        extra["max_heights"] = list(max_heights)
     return dataset_stage(out, "data", extra, lambda: write_dataset(
-        out, cfg, seed, {s: [training_scene(cfg, seed, s, i) for i in range(n)] for s, n in counts.items()}, extra))
+        out, cfg, seed, {s: [training_scene(cfg, seed, s, i, max_heights=max_heights) for i in range(n)]
+                         for s, n in counts.items()}, extra))
 
 
 def sides(pred: list, true: list, angles) -> dict:

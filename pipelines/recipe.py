@@ -132,7 +132,8 @@ def data_stage_of(recipe: Recipe, out: Path, data: Path | None, src: Path | None
         return ds, ds.root
     if kind == "tilted_drops":
         from pipelines.diagnostic_45 import training_data_stage
-        ds = training_data_stage(out / "data", {"train": int(d["train"]), "valid": int(d["valid"])}, int(d["seed"]))
+        ds = training_data_stage(out / "data", {"train": int(d["train"]), "valid": int(d["valid"])}, int(d["seed"]),
+                                 shapes=d.get("shapes", ("cube",)), max_heights=d.get("max_heights", (0.05,)))
         return ds, None
     if kind in ("contactnets", "contactnets_mujoco"):
         if src is None:
