@@ -65,9 +65,12 @@ def random_tilt(rng: np.random.Generator) -> float:
     return float(rng.uniform(0.0, 90.0))
 
 
-def training_scene(cfg: dict, seed: int, split: str, index: int, drop_fraction: float = 0.5) -> SceneSpec:
-    """A training scene: a tilted drop (random tilt, edge direction, place, small height, the
-    config's sizes and materials) with probability `drop_fraction`, else a MOVi-A toss."""
+def training_scene(cfg: dict, seed: int, split: str, index: int, drop_fraction: float = 0.5,
+                   max_heights: tuple[float, ...] = (0.05,)) -> SceneSpec:
+    """A training scene: a tilted drop (random tilt, edge direction, place, the config's shapes,
+    sizes and materials, the lowest vertex uniform in [0, h] x the size above the floor, h one of
+    `max_heights` at random) with probability `drop_fraction`, else a MOVi-A toss. With one
+    height (the default) no draw picks it: the scenes stay those of before the parameter."""
     rng = scene_rng(seed, split, index)
     if rng.random() >= drop_fraction:
         return sample_scene(cfg, seed, split, index)
@@ -75,8 +78,9 @@ def training_scene(cfg: dict, seed: int, split: str, index: int, drop_fraction: 
     angle = random_tilt(rng)
     size, material = str(rng.choice(sc["sizes"])), str(rng.choice(sc["materials"]))
     shape = str(rng.choice(sc["shapes"]))
+    top = float(max_heights[0]) if len(max_heights) == 1 else float(rng.choice(max_heights))
     obj = tilted_object(cfg, angle, shape=shape, size=size, material=material,
-                        height=float(rng.uniform(0.0, 0.05)) * float(cfg["sizes"][size]))
+                        height=float(rng.uniform(0.0, top)) * float(cfg["sizes"][size]))
     # A random heading of the edge (turned about the vertical through the edge, at the origin)
     # and a random place on the floor.
     yaw = rng.uniform(0, 2 * np.pi)

@@ -37,6 +37,11 @@ class FeatureConfig:
     material: bool = True              # friction, restitution; used only when materials vary
     rest_position: bool = True         # body-frame rest position of each vertex (node feature)
     rest_edges: bool = True            # d^U and |d^U| on edges (relative encoding only)
+    # no input depends on the body frame: the rest position and the rest edge vector (body-frame
+    # vectors) give way to their lengths, |x^U| on nodes and |d^U| on edges. With spokes only
+    # (centre_node, surface_edges=false) the network is then exactly invariant to which of a
+    # mesh's equivalent body frames describes an object (a cube's 24), for any weights
+    body_frame_free: bool = False
     normalizer_steps: int = 1000       # training steps during which normalisers accumulate
     collision_radius: float = 0.15     # collision edges between objects closer than this, scene units
     collision_mode: str = "vertex"     # collision edges vertex-vertex, or vertex-to-surface (gns.contacts)

@@ -186,9 +186,11 @@ class EncodeProcessDecode(nn.Module):
 #                                floor_signed); only if the data has a floor
 #         material       (N, 2)  friction, restitution; only if the data's materials vary
 #         rest_position  (N, 3)  scaled rest vertex in the body frame
+#         rest_norm      (N, 1)  |rest vertex| instead, with features.body_frame_free
 #         position       (N, 3)  x_t; absolute encoding only
 #   edge  relative       (E, 3)  d = x_r - x_s (receiver minus sender), and |d| (E, 1)
-#         rest_relative  (E, 3)  d^U = rest_r - rest_s, and |d^U| (E, 1)
+#         rest_relative  (E, 3)  d^U = rest_r - rest_s, and |d^U| (E, 1); only |d^U| with
+#                                features.body_frame_free (no body-frame vector anywhere)
 #   With the absolute encoding edges get one constant zero input (E, 1), unnormalised.
 #   collision  collision_relative (C, 3)  d = x_r - x_s across two objects, and |d| (C, 1);
 #         only when the dataset has multi-object scenes (ModelSpec.collision_edges); no rest-shape
@@ -294,16 +296,18 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, colli
     if f.material and materials_vary:
         node.append(("material", 2))
     absolute = f.encoding == "absolute"
-    # The absolute encoding gives nodes x and x^U (paper, GNS [abs]) whatever rest_position says.
+    # The absolute encoding gives nodes x and x^U (paper, GNS [abs]) whatever rest_position says;
+    # body_frame_free gives |x^U| for x^U and |d^U| alone for d^U, 1 wide each
+    free = bool(getattr(f, "body_frame_free", False))
     if f.rest_position or absolute:
-        node.append(("rest_position", 3))
+        node.append(("rest_norm", 1) if free else ("rest_position", 3))
     edge = []
     if absolute:
         node.append(("position", 3))
     else:
         edge += [("relative", 3), ("relative_norm", 1)]
         if f.rest_edges:
-            edge += [("rest_relative", 3), ("rest_relative_norm", 1)]
+            edge += [("rest_relative_norm", 1)] if free else [("rest_relative", 3), ("rest_relative_norm", 1)]
     if not node:
         raise ConfigError("no node features are on: switch on features.velocity or features.rest_position")
     collision = (("collision_relative", 3), ("collision_relative_norm", 1)) if collisions else ()
@@ -326,6 +330,8 @@ def raw_node_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
             out[name] = graph.material
         elif name == "rest_position":
             out[name] = graph.rest
+        elif name == "rest_norm":
+            out[name] = graph.rest.norm(dim=-1, keepdim=True)
         elif name == "position":
             out[name] = x_t
     return {k: v.to(torch.float32) for k, v in out.items()}
@@ -340,9 +346,11 @@ def raw_edge_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
         x_t = history[:, -1]
         d = x_t[r] - x_t[s]
         out["relative"], out["relative_norm"] = d, d.norm(dim=-1, keepdim=True)
-    if "rest_relative" in names:
+    if "rest_relative_norm" in names:
         d = graph.rest[r] - graph.rest[s]
-        out["rest_relative"], out["rest_relative_norm"] = d, d.norm(dim=-1, keepdim=True)
+        out["rest_relative_norm"] = d.norm(dim=-1, keepdim=True)
+        if "rest_relative" in names:
+            out["rest_relative"] = d
     return {k: v.to(torch.float32) for k, v in out.items()}
 
 

@@ -132,7 +132,8 @@ def data_stage_of(recipe: Recipe, out: Path, data: Path | None, src: Path | None
         return ds, ds.root
     if kind == "tilted_drops":
         from pipelines.diagnostic_45 import training_data_stage
-        ds = training_data_stage(out / "data", {"train": int(d["train"]), "valid": int(d["valid"])}, int(d["seed"]))
+        ds = training_data_stage(out / "data", {"train": int(d["train"]), "valid": int(d["valid"])}, int(d["seed"]),
+                                 shapes=d.get("shapes", ("cube",)), max_heights=d.get("max_heights", (0.05,)))
         return ds, None
     if kind in ("contactnets", "contactnets_mujoco"):
         if src is None:
@@ -189,8 +190,8 @@ def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None) -> dict:
         options = card.options if card else RolloutOptions()
         if recipe.data.get("kind") == "tilted_drops":
             from pipelines.diagnostic_45 import run as diagnostic
-            r = diagnostic("quick", out / "diagnostic", model, 0, "cube", f"python -m pipelines.recipe {recipe.name}")
-            scores = {v: f"{r[v]['agree']}/{r[v]['total']}" for v in r if isinstance(r[v], dict) and "agree" in r[v]}
+            r = diagnostic("quick", out / "diagnostic", model, 0, "all", f"python -m pipelines.recipe {recipe.name}")
+            scores = {f"{path} {v}": f"{a}/{b}" for path, row in r["totals"].items() for v, (a, b) in row.items()}
         else:
             from gns.evaluate import evaluate_run
             at_data_rate = bool(card and card.data.get("eval", {}).get("at_data_rate"))

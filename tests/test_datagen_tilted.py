@@ -1,5 +1,7 @@
 """datagen.tilted: the 45-degree drop scene, PyBullet's side, the side classifier, the training scenes."""
 
+import hashlib
+
 import numpy as np
 import pytest
 
@@ -67,3 +69,21 @@ def test_training_scenes_mix_drops_and_tosses_and_repeat_with_the_seed(cfg):
         assert world_vertices(o)[:, 2].min() >= -1e-12
     again = training_scene(cfg, 3, "train", 7).objects[0]
     assert np.array_equal(again.position, specs[7].objects[0].position)
+
+
+def test_drop_heights_up_to_one_size_and_the_default_unchanged(cfg):
+    two = load_config(sets=["scene.frames=36", "scene.shapes=['cube', 'beveled_cube']"])
+    high = [training_scene(two, 0, "train", i, max_heights=(0.05, 1.0)) for i in range(80)]
+    drops = [s.objects[0] for s in high if not s.objects[0].velocity.any()]
+    lows = [world_vertices(o)[:, 2].min() / o.scale for o in drops]
+    assert min(lows) >= -1e-12 and max(lows) <= 1.0 and max(lows) > 0.5     # up to one size up
+    assert sum(h < 0.05 for h in lows) >= len(lows) // 4                      # and half near the floor
+    assert {o.shape for o in drops} == {"cube", "beveled_cube"}
+    # one height draws nothing more: the scenes of before the parameter, bit for bit (the hash of
+    # their poses as the code without max_heights made them)
+    h = hashlib.sha256()
+    for i in range(20):
+        o = training_scene(cfg, 3, "train", i).objects[0]
+        h.update(np.ascontiguousarray(o.position).tobytes())
+        h.update(np.ascontiguousarray(o.quaternion).tobytes())
+    assert h.hexdigest() == "90308ce2596a68ec106a4324215d50d9d032f4de7bf8f09765314fc6eb4dd857"
