@@ -42,7 +42,7 @@ from gns.checkpoint import read_checkpoint
 from gns.evaluate import evaluate_run, score_predictions, write_json
 from gns.metrics import format_table, per_frame_curves
 from gns.spec import RolloutOptions
-from pipelines.common import data_stage, done, guarded, remove_output, say, train_stage, trained_step
+from pipelines.common import data_stage, done, guarded, remove_output, say, train_stage
 
 # The zoo's MOVi-A model and the rollout options it was scored with (its card's).
 ZOO_MODEL = "movi_a"
