@@ -53,10 +53,15 @@ def init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec) 
     if problem:
         raise CheckpointError(f"cannot start from {path} (train.init_from): {problem}")
     state = _untied(init["model"], sim)
-    if spec.collision_edges and not trained.collision_edges:
+    if _grows(trained, spec):
         state = _grown(state, sim)
     sim.load_state_dict(state)
     return merge_ranges(trained, spec)
+
+
+def _grows(trained: ModelSpec, spec: ModelSpec) -> bool:
+    """Whether a fine-tune grows collision edges: data of several objects a scene, a checkpoint without them."""
+    return spec.collision_edges and not trained.collision_edges
 
 
 def _grown(state: dict, sim: LearnedSimulator) -> dict:
@@ -113,7 +118,7 @@ def incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSp
         if cfg.model.message_passing_steps % steps:
             diffs.append(f"model.message_passing_steps is {steps} in the checkpoint, {cfg.model.message_passing_steps} "
                          f"now: a fine-tune may only untie its blocks into a multiple of them")
-    grows = fine_tune and spec.collision_edges and not trained.collision_edges
+    grows = fine_tune and _grows(trained, spec)
     for key in ("node_features", "edge_features", "collision_features"):
         if key == "collision_features" and grows:
             continue                               # collision edges grown onto a single-object model
