@@ -31,8 +31,10 @@ grep -q "| default options |" recipe_tiny/report.md
 "$work/venv/bin/python" -m pipelines.error_breakdown --run recipe_tiny/runs/b_2 --data recipe_tiny/data --json bd.json
 test -s bd.json
 # the zoo ships with its cards; a wrong name lists it
-"$work/venv/bin/gns" models | grep -q "^real_cubes_16$"
-"$work/venv/bin/gns" models movi_a | grep -q "pipelines.recipe movi_a"
+# written to a file first: `grep -q` stops reading at its match, and under pipefail the writer's
+# broken pipe would fail the step whenever the listing is longer than the pipe takes at once
+"$work/venv/bin/gns" models > models.txt && grep -q "^real_cubes_16$" models.txt
+"$work/venv/bin/gns" models movi_a > card.txt && grep -q "pipelines.recipe movi_a" card.txt
 if "$work/venv/bin/gns" models nope 2> err.txt; then exit 1; fi
 grep -q "movi_a_fast" err.txt && test "$(wc -l < err.txt)" -eq 1
 # the installed datagen re-simulates its own data exactly: the unperturbed row scores 0
