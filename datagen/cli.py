@@ -130,7 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--shapes", help="comma list of cube, beveled_cube, cylinder, sphere")
     t.add_argument("--sizes", help="comma list of size names from the config (small, large)")
     t.add_argument("--materials", help="comma list of material names from the config (metal, rubber)")
-    t.add_argument("--objects", help="objects per scene: N or a range like 3-10 (default 1)")
+    t.add_argument("--objects", help="objects per scene: N, a range like 3-10, or a comma list of them (1,3-10: half the scenes one object, half 3-10; default 1)")
     t.add_argument("--frames", type=int, help="frames recorded per scene (default 24)")
     t.add_argument("--frame-rate", type=float, help="recorded frames per second (default 12)")
     t.add_argument("--physics-rate", type=float, help="physics steps per second (default 240)")

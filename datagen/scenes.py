@@ -179,17 +179,22 @@ def load_config(path: str | Path | None = None, sets: list[str] | None = None) -
     return cfg
 
 
-def parse_objects(spec) -> tuple[int, int]:
-    """'1' -> (1, 1); '3-10' -> (3, 10)."""
-    text = str(spec).strip()
-    try:
-        lo, hi = (text.split("-", 1) if "-" in text else (text, text))
-        lo, hi = int(lo), int(hi)
-    except ValueError:
-        raise ConfigError(f"objects must be a count or a range like 3-10, got {spec!r}") from None
-    if lo < 1 or hi < lo:
-        raise ConfigError(f"objects range must satisfy 1 <= low <= high, got {spec!r}")
-    return lo, hi
+def parse_objects(spec) -> list[tuple[int, int]]:
+    """'1' -> [(1, 1)]; '3-10' -> [(3, 10)]; '1,3-10' -> [(1, 1), (3, 10)]: a scene takes one of
+    the comma-separated choices at random (each as likely), then a count uniform within it."""
+    choices = []
+    for part in str(spec).split(","):
+        text = part.strip()
+        try:
+            lo, hi = (text.split("-", 1) if "-" in text else (text, text))
+            lo, hi = int(lo), int(hi)
+        except ValueError:
+            raise ConfigError(f"objects must be a count, a range like 3-10 or a comma list of them like 1,3-10, "
+                              f"got {spec!r}") from None
+        if lo < 1 or hi < lo:
+            raise ConfigError(f"objects range must satisfy 1 <= low <= high, got {spec!r}")
+        choices.append((lo, hi))
+    return choices
 
 
 def _finite(key: str, value, low: float | None = None, high: float | None = None, strict_low: bool = False) -> None:
@@ -313,7 +318,9 @@ def random_quaternion(rng: np.random.Generator) -> np.ndarray:
 def sample_scene(cfg: dict, seed: int, split: str, index: int) -> SceneSpec:
     rng = scene_rng(seed, split, index)
     sc, sp = cfg["scene"], cfg["spawn"]
-    lo, hi = parse_objects(sc["objects"])
+    choices = parse_objects(sc["objects"])
+    # a single choice draws nothing for it: scenes of a count or a range stay what they always were
+    lo, hi = choices[int(rng.integers(len(choices)))] if len(choices) > 1 else choices[0]
     n = int(rng.integers(lo, hi + 1))
     low, high = np.array(sp["low"], float), np.array(sp["high"], float)
     vlow, vhigh = np.array(sp["velocity_low"], float), np.array(sp["velocity_high"], float)

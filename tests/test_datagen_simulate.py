@@ -106,3 +106,23 @@ def test_very_small_time_step_still_free_falls():
     sc = simulate(one_object(cfg, position=(0, 0, 5), velocity=(0.3, 0, 0)), cfg)
     acc = (sc.positions[2:, 0] - 2 * sc.positions[1:-1, 0] + sc.positions[:-2, 0]) * 1000**2
     np.testing.assert_allclose(acc[:, 2], -G, rtol=1e-3)
+
+
+def test_object_count_choices_mix_single_and_crowded_scenes():
+    from datagen.scenes import scene_rng
+    cfg = load_config(sets=['scene.objects="1,3-10"'])
+    counts = np.array([len(sample_scene(cfg, 5, "train", i).objects) for i in range(400)])
+    assert set(counts) <= {1, *range(3, 11)} and 2 not in counts
+    assert 0.4 < (counts == 1).mean() < 0.6          # each choice as likely
+    assert len(set(counts[counts > 1])) == 8           # the range fully used
+    # a plain range draws no choice: its scenes are those it always gave
+    ranged = load_config(sets=['scene.objects="3-10"'])
+    for i in range(20):
+        assert len(sample_scene(ranged, 5, "train", i).objects) == int(scene_rng(5, "train", i).integers(3, 11))
+
+
+@pytest.mark.parametrize("spec", ["1,", "1,x", "3-10,0", "a-b"])
+def test_bad_object_counts_are_refused(spec):
+    from plumbing import ConfigError
+    with pytest.raises(ConfigError, match="objects"):
+        load_config(sets=[f'scene.objects="{spec}"'])
