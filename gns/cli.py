@@ -159,7 +159,7 @@ def _at_data_rate(args: argparse.Namespace) -> bool:
 
 # the RolloutOptions fields the rollout flags set (dest = field name); an unset flag is None
 OPTION_FLAGS = ("shape_matching", "symmetrize", "body_frames", "free_flight", "free_clearance", "sleep",
-                "sleep_fraction", "autocast", "compile", "batch", "ensemble")
+                "sleep_fraction", "keep_apart", "autocast", "compile", "batch", "ensemble")
 
 
 def _rollout_options(args: argparse.Namespace):
@@ -211,6 +211,10 @@ def _add_rollout_args(p) -> None:
                         "c2 (the half turn) at 2x, c4 (the quarter turns) at 4x; none: one network call (default). "
                         "For a model trained with features.canonical_heading (every recent MOVi-A model) d1 "
                         "measured nearly d2's accuracy at half its cost (experiments/log.md)")
+    o.add_argument("--keep-apart", action=argparse.BooleanOptionalAction,
+                   help="after each step, translate the objects of a scene out of each other where a vertex of "
+                        "one entered another (a projection, as shape matching is; exact for convex meshes); "
+                        "off by default, no effect on scenes of one object")
     o.add_argument("--body-frames", action=argparse.BooleanOptionalAction,
                    help="also average over each object's equivalent body frames (a cube's 24 rotations onto "
                         "itself): exactly invariant to which one describes it, at that many times the cost")

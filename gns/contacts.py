@@ -195,3 +195,99 @@ def collision_edges(x: torch.Tensor, graph: GraphBatch, radius: float) -> EdgeSe
 def with_collision_edges(graph: GraphBatch, x: torch.Tensor, radius: float) -> GraphBatch:
     """A copy of graph with its collision edges built from positions x (N, 3)."""
     return replace(graph, collision_edges=collision_edges(x, graph, radius))
+
+
+
+def _pushes(x: torch.Tensor, graph: GraphBatch, centre: torch.Tensor, reach: torch.Tensor):
+    """Every vertex inside another object of its scene: (own, other, push) with push (M, 3) the
+    shortest move of the vertex out of the other's convex hull, through the face whose plane it
+    is least deep behind. Broad phase as collision_edges, then only the vertices within the
+    other's bounding sphere (centre (G, 3), reach (G,)), each against the other's face planes:
+    a dot product a face, no closest point (inside a convex mesh the nearest exit is a plane's)."""
+    near = near_pairs(x, graph, 0.0)
+    if near is None:
+        return None
+    a, b, low, high = near
+    own, other = torch.cat([a, b]), torch.cat([b, a])
+    pair, node = vertices_near(x, graph, own, other, low, high, 0.0)
+    close = (x[node] - centre[other[pair]]).norm(dim=-1) < reach[other[pair]]
+    pair, node = pair[close], node[close]
+    if len(node) == 0:
+        return None
+    tri = graph.faces
+    v0 = x[tri[:, 0]]
+    normal = torch.linalg.cross(x[tri[:, 1]] - v0, x[tri[:, 2]] - v0)
+    normal = normal / normal.norm(dim=-1, keepdim=True).clamp(min=torch.finfo(x.dtype).tiny)
+    face_graph = graph.node_graph[tri[:, 0]]
+    # outward from the object's centre: the meshes are convex
+    normal = normal * torch.where(((v0 - centre[face_graph]) * normal).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(x.dtype)
+    offset = (normal * v0).sum(-1)
+    face_counts = torch.bincount(face_graph, minlength=graph.num_graphs)
+    face_start = torch.cumsum(face_counts, 0) - face_counts
+    query, k = ragged_arange(face_counts[other[pair]])
+    face = face_start[other[pair[query]]] + k
+    height = (normal[face] * x[node[query]]).sum(-1) - offset[face]   # < 0 behind the face's plane
+    top = torch.full((len(node),), -torch.inf, dtype=x.dtype, device=x.device).scatter_reduce(0, query, height, "amax")
+    inside = top < 0
+    if not inside.any():
+        return None
+    # the face of the largest height (the least deep plane) of each inside vertex
+    hit = (height == top[query]) & inside[query]
+    q, f = query[hit], face[hit]
+    keep = torch.ones(len(q), dtype=torch.bool, device=x.device)
+    keep[1:] = q[1:] != q[:-1]
+    q, f = q[keep], f[keep]
+    return own[pair[q]], other[pair[q]], normal[f] * (-top[q])[:, None]
+
+
+@torch.no_grad()
+def separation(x: torch.Tensor, graph: GraphBatch, floor_z: float | None = None, iterations: int = 8) -> torch.Tensor:
+    """The translation (G, 3) of each object that takes the objects of a scene out of each other:
+    the rollout option keep_apart, a projection after each step as shape matching is one.
+
+    Per pair of objects, the deepest vertex of either inside the other is pushed out through the
+    plane of the other's face it is least deep behind (`_pushes`: exact for convex meshes); the
+    two objects share the push in inverse proportion to their bounding volume (heavier moves
+    less: the graph holds no masses) and an object in several pairs averages its pushes (Jacobi,
+    as position-based dynamics), a few iterations. No push takes an object below the floor.
+    Objects that do not overlap are not moved at all."""
+    shift = torch.zeros(graph.num_graphs, 3, dtype=x.dtype, device=x.device)
+    if graph.graph_scene is None or graph.num_graphs < 2 or graph.faces is None:
+        return shift
+    centre = graph_centres(x, graph)
+    reach = per_graph((x - centre[graph.node_graph]).norm(dim=-1), graph, "amax")
+    volume = reach ** 3
+    for _ in range(iterations):
+        y = x + shift[graph.node_graph]
+        found = _pushes(y, graph, centre + shift, reach)
+        if found is None:
+            break
+        own, other, push = found
+        # one push per pair, its deepest vertex either way: the two ways can cancel (a cube's corner
+        # at the other's centre sees three faces as near). As a push of the pair's first object:
+        push = torch.where((own < other)[:, None], push, -push)
+        own, other = torch.minimum(own, other), torch.maximum(own, other)
+        key = own * graph.num_graphs + other
+        order = torch.argsort(push.norm(dim=-1), descending=True)
+        order = order[torch.argsort(key[order], stable=True)]
+        first = torch.ones(len(order), dtype=torch.bool, device=x.device)
+        first[1:] = key[order][1:] != key[order][:-1]
+        best = order[first]
+        own, other, push = own[best], other[best], push[best] * (1 + 1e-6)
+        w_own = (volume[other] / (volume[own] + volume[other]))[:, None]
+        if floor_z is not None:
+            # an object on the floor cannot go down: the other takes that push whole
+            low = per_graph(y[:, 2], graph, "amin") - floor_z < 1e-9
+            w_own = torch.where((low[own] & (push[:, 2] < 0))[:, None], 0.0, w_own)
+            w_own = torch.where((low[other] & (push[:, 2] > 0))[:, None], 1.0, w_own)
+        moved = torch.cat([own, other])
+        step = torch.cat([w_own * push, -(1 - w_own) * push])
+        total = torch.zeros_like(shift).index_add_(0, moved, step)
+        count = torch.zeros(graph.num_graphs, dtype=x.dtype, device=x.device).index_add_(
+            0, moved, torch.ones(len(moved), dtype=x.dtype, device=x.device))
+        shift = shift + total / count.clamp(min=1)[:, None]
+        if floor_z is not None:
+            # the floor does not give way: a push downwards stops where the lowest vertex meets it
+            room = (per_graph(x[:, 2], graph, "amin") - floor_z).clamp(min=0)
+            shift[:, 2] = torch.maximum(shift[:, 2], -room)
+    return shift

@@ -258,6 +258,8 @@ class RolloutOptions:
     # keep objects lying still on the floor asleep (Bullet-style deactivation)
     sleep: bool = False
     sleep_fraction: float = 0.1
+    # after each step, translate objects of a scene out of each other (gns.contacts.separation)
+    keep_apart: bool = False
     # the network under bfloat16 autocast; "auto" only where the CPU measures it faster
     autocast: str = "none"
     # torch.compile with inductor's freezing

@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from gns.network import HISTORY
-from gns.contacts import candidate_pairs
+from gns.contacts import candidate_pairs, separation
 from gns.geometry import posed, shape_match_packed
 from gns.graph import EdgeSet, GraphBatch, mapped_symmetries, per_graph, select_graphs, stack_graphs, with_symmetries
 
@@ -213,11 +213,14 @@ class Stepping:
         their pose until the model predicts a real acceleration (see Sleep). With `free_flight`,
         objects out of reach of the floor and of every other object (`in_free_flight`) follow the
         exact inertial update (`inertial_pose`) instead of the network, and only the others enter
-        the network call; sleeping objects do not enter it either. `self.rollout_counts` then says
+        the network call; sleeping objects do not enter it either. With `keep_apart`, objects of a
+        scene that overlap after the step are translated apart (gns.contacts.separation) before the
+        step enters the history. `self.rollout_counts` then says
         how many object-steps did. With `poses`, also returns every predicted frame's pose from
         shape matching, rotations (steps, G, 3, 3) and translations (steps, G, 3).
         """
         shape_matching, sleep, free_flight = self.options.shape_matching, self.sleep, self.options.free_flight
+        keep_apart = self.options.keep_apart and graph.graph_scene is not None and graph.num_graphs > 1
         if sleep is not None and not self.gravity_step:
             raise ValueError("sleeping needs the model's gravity and frame rate (spec)")
         if free_flight and self.gravity_per_frame is None:
@@ -242,11 +245,16 @@ class Stepping:
             if shape_matching or poses or free_flight:
                 if shape_matching:
                     x = matched
+                if keep_apart:
+                    shift = separation(x, graph, self.layout.floor_z)
+                    x, t = x + shift[graph.node_graph], t + shift
                 if poses:
                     rots.append(rot)
                     trans.append(t)
                 if free_flight:
                     pose = [pose[1], (rot, t)]
+            elif keep_apart:
+                x = x + separation(x, graph, self.layout.floor_z)[graph.node_graph]
             frames.append(x)
             out.append(x)
         self.rollout_counts = counts
