@@ -261,7 +261,8 @@ class Model:
             warnings.warn(f"outside training: {problem}", stacklevel=stacklevel)
         if not self.collisions and len(torch.unique(group)) < len(shapes):
             warnings.warn("the model was trained on single-object scenes and has no collision edges: "
-                          "objects of one scene will pass through each other", stacklevel=stacklevel)
+                          "objects of one scene will pass through each other unless keep_apart=True translates them apart "
+                          "(a projection, not learned contact)", stacklevel=stacklevel)
 
     def step(self, state: State) -> State:
         """The state one model step (dt) later, as the model's options ask (`options`, set by

@@ -114,7 +114,8 @@ def check_ranges(trained_spec: ModelSpec, ds: Dataset, scenes: list, warn=None) 
     if crowded and not trained_spec.collision_edges:
         # not an "outside training" range: the model cannot represent contact between objects at all
         (warn or _warn)(f"warning: {crowded} of {len(scenes)} scenes hold several objects, but the model was trained "
-                        "on single-object scenes and has no collision edges: objects will pass through each other")
+                        "on single-object scenes and has no collision edges: objects will pass through each other "
+                        "(--keep-apart translates them apart: a projection, not learned contact)")
     return problems
 
 
