@@ -48,6 +48,16 @@ def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
     return torch.where(((d1 <= 0) & (d2 <= 0))[:, None], a, out)
 
 
+def smallest_per_group(group: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+    """Index of the smallest value in each group (groups in ascending order): sort by value,
+    then stably by group, and take each group's first."""
+    order = torch.argsort(value)
+    order = order[torch.argsort(group[order], stable=True)]
+    first = torch.ones(len(order), dtype=torch.bool, device=group.device)
+    first[1:] = group[order][1:] != group[order][:-1]
+    return order[first]
+
+
 @torch.no_grad()
 def _surface_edges(x: torch.Tensor, graph: GraphBatch, radius: float) -> tuple[EdgeSet, torch.Tensor, torch.Tensor]:
     """surface_edges, with the triangle (E, 3) and the sign (E, 1) of each edge."""
@@ -77,12 +87,7 @@ def _surface_edges(x: torch.Tensor, graph: GraphBatch, radius: float) -> tuple[E
     v0, v1, v2 = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
     closest = closest_point_on_triangle(q, v0, v1, v2)
     dist = (q - closest).norm(dim=-1)
-    # the nearest face of each query vertex: sort by distance, then stably by query
-    order = torch.argsort(dist)
-    order = order[torch.argsort(query[order], stable=True)]
-    first = torch.ones(len(order), dtype=torch.bool, device=x.device)
-    first[1:] = query[order][1:] != query[order][:-1]
-    best = order[first]
+    best = smallest_per_group(query, dist)   # the nearest face of each query vertex
     normal = torch.linalg.cross(v1[best] - v0[best], v2[best] - v0[best])
     outward = ((v0[best] - centre[other[pair[query[best]]]]) * normal).sum(-1, keepdim=True)
     normal = normal * torch.where(outward < 0, -1.0, 1.0).to(x.dtype)
@@ -267,12 +272,7 @@ def separation(x: torch.Tensor, graph: GraphBatch, floor_z: float | None = None,
         # at the other's centre sees three faces as near). As a push of the pair's first object:
         push = torch.where((own < other)[:, None], push, -push)
         own, other = torch.minimum(own, other), torch.maximum(own, other)
-        key = own * graph.num_graphs + other
-        order = torch.argsort(push.norm(dim=-1), descending=True)
-        order = order[torch.argsort(key[order], stable=True)]
-        first = torch.ones(len(order), dtype=torch.bool, device=x.device)
-        first[1:] = key[order][1:] != key[order][:-1]
-        best = order[first]
+        best = smallest_per_group(own * graph.num_graphs + other, -push.norm(dim=-1))
         own, other, push = own[best], other[best], push[best] * (1 + 1e-6)
         w_own = (volume[other] / (volume[own] + volume[other]))[:, None]
         if floor_z is not None:
