@@ -202,7 +202,6 @@ def with_collision_edges(graph: GraphBatch, x: torch.Tensor, radius: float) -> G
     return replace(graph, collision_edges=collision_edges(x, graph, radius))
 
 
-
 def _pushes(x: torch.Tensor, graph: GraphBatch, centre: torch.Tensor, reach: torch.Tensor):
     """Every vertex inside another object of its scene: (own, other, push) with push (M, 3) the
     shortest move of the vertex out of the other's convex hull, through the face whose plane it
@@ -232,17 +231,13 @@ def _pushes(x: torch.Tensor, graph: GraphBatch, centre: torch.Tensor, reach: tor
     query, k = ragged_arange(face_counts[other[pair]])
     face = face_start[other[pair[query]]] + k
     height = (normal[face] * x[node[query]]).sum(-1) - offset[face]   # < 0 behind the face's plane
-    top = torch.full((len(node),), -torch.inf, dtype=x.dtype, device=x.device).scatter_reduce(0, query, height, "amax")
-    inside = top < 0
-    if not inside.any():
+    # the face of the largest height (the least deep plane) of each vertex: inside if below zero
+    best = smallest_per_group(query, -height)
+    best = best[height[best] < 0]
+    if len(best) == 0:
         return None
-    # the face of the largest height (the least deep plane) of each inside vertex
-    hit = (height == top[query]) & inside[query]
-    q, f = query[hit], face[hit]
-    keep = torch.ones(len(q), dtype=torch.bool, device=x.device)
-    keep[1:] = q[1:] != q[:-1]
-    q, f = q[keep], f[keep]
-    return own[pair[q]], other[pair[q]], normal[f] * (-top[q])[:, None]
+    q, f = query[best], face[best]
+    return own[pair[q]], other[pair[q]], normal[f] * (-height[best])[:, None]
 
 
 @torch.no_grad()
@@ -257,7 +252,7 @@ def separation(x: torch.Tensor, graph: GraphBatch, floor_z: float | None = None,
     as position-based dynamics), a few iterations. No push takes an object below the floor.
     Objects that do not overlap are not moved at all."""
     shift = torch.zeros(graph.num_graphs, 3, dtype=x.dtype, device=x.device)
-    if graph.graph_scene is None or graph.num_graphs < 2 or graph.faces is None:
+    if graph.faces is None:   # lone objects and graphs without scenes: near_pairs finds no pair
         return shift
     centre = graph_centres(x, graph)
     reach = per_graph((x - centre[graph.node_graph]).norm(dim=-1), graph, "amax")
