@@ -107,6 +107,14 @@ def cmd_import(a) -> int:
     return 0
 
 
+def cmd_import_kubric(a) -> int:
+    from .kubric import import_kubric
+    meta = import_kubric(a.src, a.out, split=a.split, frame_rate=a.frame_rate, cube_as=a.cube_as,
+                         overwrite=a.overwrite, progress=not a.quiet)
+    print(f"imported {meta['splits'][a.split]['num_scenes']} Kubric scenes into {a.out} ({a.split} split)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="datagen", description=__doc__, epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -169,6 +177,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="read toss files holding more than tensors (runs their pickle code: trusted files only)")
     c.add_argument("--quiet", action="store_true")
     c.set_defaults(func=cmd_import)
+    k = msub.add_parser("kubric", help="MOVi-A records: Kubric scene folders (metadata.json) or TFDS examples as .npz",
+                        description="Import Kubric's MOVi-A records (datagen/kubric.py says which layouts and keys) "
+                                    "into one split, to score a model on them with gns eval.")
+    k.add_argument("src", help="folder of Kubric scene folders (each with metadata.json) and/or .npz TFDS examples")
+    k.add_argument("--out", required=True)
+    k.add_argument("--split", choices=("train", "valid", "test"), default="test", help="the split they go to (default test)")
+    k.add_argument("--frame-rate", type=float, help="frames a second, for .npz examples (TFDS holds none; default 12)")
+    k.add_argument("--cube-as", default="beveled_cube", help="our shape for Kubric's cube: beveled_cube (default) or cube")
+    k.add_argument("--overwrite", action="store_true", help="replace a dataset in --out")
+    k.add_argument("--quiet", action="store_true")
+    k.set_defaults(func=cmd_import_kubric)
     return p
 
 

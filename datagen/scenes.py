@@ -241,6 +241,8 @@ def validate(cfg: dict) -> None:
         raise ConfigError("physics.gravity must have 3 components")
     if int(ph["solver_iterations"]) < 1:
         raise ConfigError("physics.solver_iterations must be >= 1")
+    if cfg["floor"].get("body", "box") not in ("box", "plane"):
+        raise ConfigError(f"floor.body must be box or plane, got {cfg['floor']['body']!r}")
     parse_objects(sc["objects"])
     try:
         parse_shapes(sc["shapes"])

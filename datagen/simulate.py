@@ -103,24 +103,31 @@ def keep_freed_memory() -> None:
         pass
 
 
-def new_world(gravity, time_step: float, solver_iterations: int) -> int:
-    """A new DIRECT client with the engine settings above; returns its id."""
+def new_world(gravity, time_step: float, solver_iterations: int, split_impulse_all: bool = True) -> int:
+    """A new DIRECT client with the engine settings above; returns its id. split_impulse_all=False
+    leaves Bullet's own split-impulse penetration threshold, as Kubric does (physics.split_impulse_all)."""
     keep_freed_memory()
     c = pb.connect(pb.DIRECT)
     pb.setGravity(*[float(g) for g in gravity], physicsClientId=c)
+    ours = {"splitImpulsePenetrationThreshold": 0} if split_impulse_all else {}
     pb.setPhysicsEngineParameter(
         fixedTimeStep=time_step, numSolverIterations=int(solver_iterations),
         numSubSteps=0, restitutionVelocityThreshold=0, warmStartingFactor=0, useSplitImpulse=True,
-        contactSlop=0, splitImpulsePenetrationThreshold=0, enableConeFriction=False, deterministicOverlappingPairs=True, physicsClientId=c)
+        contactSlop=0, enableConeFriction=False, deterministicOverlappingPairs=True, physicsClientId=c, **ours)
     return c
 
 
-def add_floor(c: int, z: float, friction: float, restitution: float) -> int:
-    """A static floor with its top face at height z; returns its body id."""
+def add_floor(c: int, z: float, friction: float, restitution: float, body: str = "box") -> int:
+    """A static floor with its top face at height z; returns its body id. body "plane": Bullet's
+    infinite plane, the flat floor of Kubric's set-up (floor.body)."""
     # A thick box with its top face at z rather than GEOM_PLANE: creating a plane body costs
     # ~15 ms a scene (more than simulating it), the box 0.3 ms, and the contacts agree.
-    box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[FLOOR_HALF_WIDTH, FLOOR_HALF_WIDTH, 1.0], physicsClientId=c)
-    floor = pb.createMultiBody(0, box, basePosition=[0, 0, z - 1.0], useMaximalCoordinates=True, physicsClientId=c)
+    if body == "plane":
+        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
+        floor = pb.createMultiBody(0, plane, basePosition=[0, 0, z], useMaximalCoordinates=True, physicsClientId=c)
+    else:
+        box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[FLOOR_HALF_WIDTH, FLOOR_HALF_WIDTH, 1.0], physicsClientId=c)
+        floor = pb.createMultiBody(0, box, basePosition=[0, 0, z - 1.0], useMaximalCoordinates=True, physicsClientId=c)
     pb.changeDynamics(floor, -1, lateralFriction=float(friction), restitution=float(restitution),
                       contactProcessingThreshold=0, physicsClientId=c)
     return floor
@@ -129,9 +136,9 @@ def add_floor(c: int, z: float, friction: float, restitution: float) -> int:
 def build_world(spec: SceneSpec, cfg: dict) -> tuple[int, list[int]]:
     """A new DIRECT client holding the floor and the scene's objects. Returns (client, body ids)."""
     ph, fl = cfg["physics"], cfg["floor"]
-    c = new_world(ph["gravity"], 1.0 / float(ph["rate"]), ph["solver_iterations"])
+    c = new_world(ph["gravity"], 1.0 / float(ph["rate"]), ph["solver_iterations"], ph.get("split_impulse_all", True))
     if fl["enabled"]:
-        add_floor(c, 0.0, fl["friction"], fl["restitution"])
+        add_floor(c, 0.0, fl["friction"], fl["restitution"], fl.get("body", "box"))
     bodies = []
     for o in spec.objects:
         shape = get_shape(o.shape)

@@ -22,17 +22,9 @@ def cmd_train(args: argparse.Namespace) -> None:
     from gns.run_folder import resolve_config
     from gns.train import train
 
-    overrides = list(args.set or [])
-    if args.steps is not None:
-        overrides.append(f"train.steps={args.steps}")
-    if args.tensorboard:
-        overrides.append("train.tensorboard=true")
-    if args.device is not None:
-        overrides.append(f"train.device={args.device}")
-    if args.autocast is not None:
-        overrides.append(f"train.autocast={args.autocast}")
-    if args.compile:
-        overrides.append("train.compile=true")
+    flags = {"steps": args.steps, "device": args.device, "autocast": args.autocast,
+             "tensorboard": "true" if args.tensorboard else None, "compile": "true" if args.compile else None}
+    overrides = list(args.set or []) + [f"train.{k}={v}" for k, v in flags.items() if v is not None]
     cfg = resolve_config(args.out, args.resume, args.config, overrides)
     step = train(args.data, args.out, cfg, resume=args.resume, overwrite=args.overwrite)
     if world_from_env().main:
@@ -119,7 +111,8 @@ def cmd_eval(args: argparse.Namespace) -> None:
     if args.json:
         check_json_output(args.json, "position_error_pct", "gns eval")
     results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit, _rollout_options(args),
-                               plots_dir=args.plots, at_data_rate=_at_data_rate(args), device=args.device)
+                               plots_dir=args.plots, at_data_rate=_at_data_rate(args), device=args.device,
+                               protocol=args.protocol)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched"
@@ -265,6 +258,9 @@ def add_eval_parsers(sub) -> None:
                    help="a model trained at every k-th frame is scored at every frame of the data (its poses "
                         "interpolated), the instants any other simulator is scored at; default: a zoo model as "
                         "its card's [eval] at_data_rate says, any other at its own frames")
+    e.add_argument("--protocol", choices=["240hz"],
+                   help="240hz: later MOVi-A work's protocol on scenes recorded at 240 Hz (translation and rotation "
+                        "RMSE at 50, 75 and 100 frames after the last given one; implies --at-data-rate)")
     e.add_argument("--plots", metavar="DIR", help="write trajectory plots, error against time and a GIF here")
     e.set_defaults(run=cmd_eval)
 

@@ -103,6 +103,9 @@ class TrainConfig:
     # windows, contact ones included; 0 samples all windows alike.
     contact_fraction: float = 0.0
     contact_threshold: float = 0.5
+    # "objects": the windows drawn by contact_fraction are instead those in which two objects of a
+    # scene come near each other (their bounding spheres touch), whatever the floor does
+    contact_kind: str = "any"
     # Steps of pushforward training: the model predicts unroll_steps frames from 3 true ones, each
     # step on its own (shape-matched) earlier predictions, detached; the loss averages all steps.
     unroll_steps: int = 1
@@ -124,6 +127,11 @@ class TrainConfig:
     # Start a new run from another run's weights and normalisers (a run folder or .pt): fine-tuning,
     # e.g. on real tosses after training on an engine's. Same architecture, features, frame rate.
     init_from: str = ""
+    # With init_from growing collision edges onto a single-object model: only the collision parts
+    # train (their encoder, edge functions, normalisers and the columns through which their messages
+    # enter each node update); the rest stays the checkpoint's, so every object that has no collision
+    # edge (all of a single-object scene) rolls out exactly as the single-object model did
+    collisions_only: bool = False
     # In (0, 1): the run saves an exponential moving average of its weights with this decay (about
     # the last 1 / (1 - decay) steps) as the model to use, and trains on from its own (gns.weight_average)
     ema_decay: float = 0.0
@@ -275,10 +283,13 @@ def validate(cfg: Config) -> None:
         (cfg.train.lr_decay_steps > 0, "train.lr_decay_steps must be > 0"),
         (0 <= cfg.train.contact_fraction <= 1, "train.contact_fraction must be in [0, 1]"),
         (cfg.train.contact_threshold > 0, "train.contact_threshold must be > 0"),
+        (cfg.train.contact_kind in ("any", "objects"), "train.contact_kind must be 'any' or 'objects'"),
         (cfg.train.unroll_steps >= 1, "train.unroll_steps must be >= 1"),
         (cfg.train.scenes >= 0, "train.scenes must be >= 0 (0: all train scenes)"),
         (cfg.train.rigid_loss >= 0, "train.rigid_loss must be >= 0"),
         (0 <= cfg.train.ema_decay < 1, "train.ema_decay must be in [0, 1) (0: off)"),
+        (not cfg.train.collisions_only or cfg.train.init_from,
+         "train.collisions_only needs train.init_from (the single-object model the collision edges grow onto)"),
         (cfg.train.log_every >= 1 and cfg.train.checkpoint_every >= 1,
          "train.log_every and train.checkpoint_every must be >= 1"),
         (cfg.valid.every >= 0 and cfg.valid.rollout_steps >= 1, "valid.every must be >= 0, valid.rollout_steps >= 1"),

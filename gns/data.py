@@ -244,6 +244,25 @@ class ObjectTracks:
         threshold ~0.5 still separates the two.
         """
         hit = in_contact(self.positions, gravity_step, threshold)  # (F,) all frames of all tracks; valid inside tracks only
+        return self._flag_windows(hit)
+
+    def mark_objects_near(self) -> float:
+        """Flag the windows in which two objects of a scene are near each other: at one of the
+        frames mark_contacts looks at, their bounding spheres (radius: the farthest vertex of the
+        scaled mesh) touch. Returns the flagged share (0 in scenes of one object)."""
+        radius = self.library.radius[self.shape_ids] * self.scale
+        hit = torch.zeros(len(self.positions), dtype=torch.bool)
+        for scene in torch.nonzero(self.scene_num_tracks > 1)[:, 0].tolist():
+            first, n = int(self.scene_first_track[scene]), int(self.scene_num_tracks[scene])
+            start, length = int(self.start[first]), int(self.length[first])
+            x = self.positions[start:start + n * length].view(n, length, 3)
+            gap = (x[:, None] - x[None]).norm(dim=-1) - (radius[first:first + n, None] + radius[None, first:first + n])[..., None]
+            gap[torch.arange(n), torch.arange(n)] = float("inf")
+            hit[start:start + n * length] = (gap < 0).any(dim=1).reshape(-1)
+        return self._flag_windows(hit)
+
+    def _flag_windows(self, hit: torch.Tensor) -> float:
+        """Windows flagged where some track's frame is flagged in hit (F,); returns the flagged share."""
         # a window of scene s, first frame f: its targets are frames f+HISTORY .. f+window-1;
         # the second difference at frame k needs k-1 .. k+1, so look at k = f+HISTORY-1 .. f+window-2
         tracks, window_of = self.window_tracks(torch.arange(self.num_windows))
@@ -340,7 +359,9 @@ def load_data(data_dir: str | Path, cfg: Config) -> tuple[ModelSpec, ObjectTrack
     except ValueError as e:
         raise DataError(f"{data_dir}: {e}") from None
     tracks = ObjectTracks(scenes, library, "train split", unroll=cfg.train.unroll_steps)
-    if cfg.train.contact_fraction > 0:
+    if cfg.train.contact_fraction > 0 and cfg.train.contact_kind == "objects":
+        tracks.mark_objects_near()
+    elif cfg.train.contact_fraction > 0:
         tracks.mark_contacts(torch.as_tensor(dataset.gravity, dtype=torch.float64) / dataset.frame_rate ** 2,
                              cfg.train.contact_threshold)
     valid = None

@@ -11,7 +11,7 @@ import numpy as np
 
 from plumbing import atomic_file, check_writable, DataError
 from datagen.shards import Dataset
-from gns.metrics import evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
+from gns.metrics import DEFAULT_HORIZONS, PROTOCOLS, evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, split_diverged, timed_rollout, upsample_scene
 from gns.data import feature_spec
 from gns.hardware import parse_device
@@ -48,7 +48,8 @@ def options_record(sim: LearnedSimulator) -> dict:
 
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
                  options: RolloutOptions | None = None, plots_dir: str | Path | None = None, progress: bool = True,
-                 at_data_rate: bool = False, device: str = "cpu", **changes) -> tuple[dict, list, list, Dataset]:
+                 at_data_rate: bool = False, device: str = "cpu", protocol: str | None = None,
+                 **changes) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it, rolled out with
     `options` (default: gns.checkpoint.default_options(run), a zoo model's scored ones), with `changes`
     (RolloutOptions fields, e.g. symmetrize="d1") on top.
@@ -57,11 +58,18 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     scored at those frames, or with `at_data_rate` at every frame of the data (its poses
     interpolated, gns.rollout.upsample_scene), i.e. at the same instants as any other simulator.
 
+    protocol="240hz": the protocol of later MOVi-A work (scenes recorded at 240 Hz, errors at 50,
+    75 and 100 frames of 240 Hz after the last given frame, RMSE in metres and degrees): the data
+    must be recorded at 240 frames a second; the model is scored at every frame (at_data_rate).
+
     Returns (results, predicted scenes, true scenes, dataset). Results hold the metrics of
     gns.metrics.evaluate_scenes plus where they came from, how they were rolled out
     (options_record) and what the rollouts cost.
     """
     options = (default_options(run) if options is None else options).replace(**changes)
+    if protocol is not None:
+        check_protocol(protocol, data)
+        at_data_rate = True
     device = parse_device(device, "--device")
     ckpt = checkpoint_of(run)
     sim, saved = load_simulator(ckpt, device, options)
@@ -82,8 +90,10 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
         truth = full.load(split, limit)
         pairs = [upsample_scene(p, ds.stride, truth[i], full.frame_rate) for p, i in zip(pred, kept, strict=True)]
         pred, scenes, ds = [p for p, _ in pairs], [t for _, t in pairs], full
-    results = score_predictions(pred, scenes, ds, seconds, plots_dir)
-    results.update(run=str(run), checkpoint=str(ckpt), data=str(data), split=split, outside_training=warnings,
+    given = (HISTORY - 1) * model_stride + 1 if at_data_rate else HISTORY   # frames up to the last given one
+    horizons = PROTOCOLS[protocol] if protocol else DEFAULT_HORIZONS
+    results = score_predictions(pred, scenes, ds, seconds, plots_dir, horizons=horizons, num_given=given)
+    results.update(run=str(run), protocol=protocol, checkpoint=str(ckpt), data=str(data), split=split, outside_training=warnings,
                    diverged_scenes=diverged, num_diverged=len(diverged), at_data_rate=at_data_rate,
                    model_stride=model_stride, object_steps=counts, warmup_seconds=warmup, device=str(device),
                    **options_record(sim), **provenance_of(saved, ds))
@@ -177,13 +187,25 @@ def verify_shards(ds: Dataset) -> None:
                             f"{ds.root}`")
 
 
+def check_protocol(protocol: str, data: str | Path) -> None:
+    """Refuse, in one line, a protocol this code does not know or data it cannot be scored on."""
+    if protocol not in PROTOCOLS:
+        raise DataError(f"unknown protocol {protocol!r}; known: {', '.join(PROTOCOLS)}")
+    rate = Dataset(data).frame_rate
+    if abs(rate - 240) > 1e-9:
+        raise DataError(f"{data}: the 240hz protocol needs scenes recorded at 240 frames a second, these are at "
+                        f"{rate:g} (datagen toss --set scene.frame_rate=240 scene.frames=461 records MOVi-A's 2 s)")
+
+
 def score_predictions(pred: list, scenes: list, ds: Dataset, seconds: float,
-                      plots_dir: str | Path | None = None) -> dict:
+                      plots_dir: str | Path | None = None, horizons=DEFAULT_HORIZONS, num_given: int = HISTORY) -> dict:
     """Metrics (gns.metrics.evaluate_scenes) of predicted scenes against the truth, what the
-    predictions cost, per-scene means (`per_scene`, for paired comparisons), and plots if asked."""
+    predictions cost, per-scene means (`per_scene`, for paired comparisons), and plots if asked.
+    horizons count frames after the num_given-th (the last given) frame."""
     floor_z = float(ds.floor["z"]) if ds.floor else 0.0
     errors = scene_errors(pred, scenes, ds.meshes, floor_z)
-    results = evaluate_scenes(pred, scenes, ds.meshes, floor_z=floor_z, errors=errors)
+    results = evaluate_scenes(pred, scenes, ds.meshes, floor_z=floor_z, errors=errors, horizons=horizons,
+                              num_given=num_given)
     simulated = sum((sc.num_frames - HISTORY) / ds.frame_rate for sc in scenes)
     results.update(rollout_seconds=seconds, simulated_seconds=simulated,
                    wall_seconds_per_simulated_second=seconds / simulated if simulated else None,

@@ -18,6 +18,7 @@ import torch
 
 from gns.checkpoint import CheckpointError, checkpoint_of, read_checkpoint
 from gns.config import ARCHITECTURE_SECTIONS, Config, ConfigError, ModelConfig, config_differences, without_removed
+from gns.network import Normalizer
 from gns.simulator import LearnedSimulator
 from gns.spec import Floor, ModelSpec
 
@@ -82,6 +83,31 @@ def _grown(state: dict, sim: LearnedSimulator) -> dict:
             widened[:, :old.shape[1]] = old
             out[key] = widened
     return out
+
+
+def _is_collision_part(name: str) -> bool:
+    return name.startswith(("network.collision_encoder.", "collision_normalizers.")) or ".collision." in name
+
+
+def train_collisions_only(sim: LearnedSimulator) -> None:
+    """Only the parts `_grown` added train (train.collisions_only): every other weight stops
+    taking gradients, and each node update's first layer keeps the trained columns of [node,
+    mesh messages] by a gradient hook that zeroes them (Adam then never moves them: its moments
+    stay 0); the trained normalisers stop accumulating. Found by name, so a resumed run freezes
+    the same weights."""
+    if not sim.network.collisions:
+        raise CheckpointError("train.collisions_only needs collision edges (data of several objects a scene)")
+    for name, module in sim.named_modules():
+        if isinstance(module, Normalizer) and not _is_collision_part(name + "."):
+            module.max_accumulations = int(module.accumulations)
+    kept = 2 * sim.network.blocks[0].node_mlp[0].weight.shape[1] // 3   # [node, mesh, collision] latents
+    for name, param in sim.named_parameters():
+        if _is_collision_part(name):
+            continue
+        if name.endswith(".node_mlp.0.weight"):
+            param.register_hook(lambda grad, kept=kept: torch.cat([torch.zeros_like(grad[:, :kept]), grad[:, kept:]], 1))
+        else:
+            param.requires_grad_(False)
 
 
 def _untied(state: dict, sim: LearnedSimulator) -> dict:

@@ -201,6 +201,7 @@ class MeshLibrary:
         self._vertex_start = torch.cumsum(self.num_vertices, 0) - self.num_vertices
         self._edge_start = torch.cumsum(self.num_edges, 0) - self.num_edges
         self._vertices = torch.from_numpy(np.concatenate(verts))
+        self.radius = torch.tensor([np.linalg.norm(v, axis=1).max() for v in verts])  # bounding sphere of the unit mesh
         self._edges = torch.from_numpy(np.concatenate(edges))
         faces = [np.asarray(meshes[n][1], np.int64).reshape(-1, 3) for n in self.names]
         self.num_faces = torch.tensor([len(f) for f in faces])

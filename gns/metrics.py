@@ -40,6 +40,9 @@ from gns.geometry import pose_to_vertices, quat_to_matrix, rotation_angle
 
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 DEFAULT_HORIZONS = (1, 5, 10, 20, 50, 100, 200)
+# horizons (frames after the last given one) of named protocols: "240hz", that of later MOVi-A
+# work on scenes recorded at 240 Hz (HOPNet, RigidFormer, RiCo: errors at 50, 75 and 100 frames)
+PROTOCOLS = {"240hz": (50, 75, 100)}
 # per frame besides METRICS: the truth's penetration, and the turn between frames of both
 # the squares of the centre's distance (scene units) and of the rotation error behind the RMSEs
 # FIGNet and later MOVi-A work report (translation_rmse, rotation_rmse_deg)
@@ -328,6 +331,10 @@ def format_table(results: dict) -> str:
     if results.get("translation_rmse") is not None:
         text.append(f"RMSE over frames and objects: translation {_fmt(results['translation_rmse'])} scene units, "
                     f"rotation {_fmt(results['rotation_rmse_deg'])} deg")
+    if results.get("protocol"):
+        at = [f"{h}: {_fmt(r['translation_rmse'])} m / {_fmt(r['rotation_rmse_deg'])} deg"
+              for h, r in results["horizons"].items() if r.get("translation_rmse") is not None]
+        text.append(f"{results['protocol']} protocol, RMSE at frames after the last given one: " + "; ".join(at))
     if "interpenetration_pct" in results:
         text.append(f"between objects ({results['num_object_pairs']} object pairs): "
                     f"interpenetration {_fmt(results['interpenetration_pct'])} % of size "

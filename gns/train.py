@@ -114,10 +114,12 @@ def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] |
         from gns.weight_average import WeightAverage
     if resumed is None:
         if cfg.train.init_from:
-            from gns.fine_tune import init_from
+            from gns.fine_tune import init_from, train_collisions_only
             spec = init_from(sim, cfg.train.init_from, cfg, spec)
+            if cfg.train.collisions_only:
+                train_collisions_only(sim)
         return sim, optimizer, spec, 0, WeightAverage(sim, decay) if decay else None
-    from gns.fine_tune import incompatibility, merge_ranges
+    from gns.fine_tune import incompatibility, merge_ranges, train_collisions_only
     path, ckpt = resumed
     trained = ModelSpec.from_dict(ckpt["spec"])
     problem = incompatibility(ckpt["config"], trained, cfg, spec)
@@ -129,6 +131,8 @@ def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] |
     step = int(ckpt["step"])
     spec = merge_ranges(trained, spec)
     restore_rng(ckpt["rng"], rng)
+    if cfg.train.collisions_only:
+        train_collisions_only(sim)
     average = None
     if decay:
         average = WeightAverage(sim, decay, step, ckpt["model"] if TRAINED in ckpt else None)
@@ -247,12 +251,15 @@ def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: 
     if tracks.contact is not None:
         # the drawn share comes on top of the contact windows among the rest, drawn from all
         natural, f = float(tracks.contact.double().mean()), cfg.train.contact_fraction
-        contact = f" ({natural:.0%} in contact, {f + (1 - f) * natural:.0%} of each batch: {f:.0%} drawn from them)"
+        kind = "with objects near each other" if cfg.train.contact_kind == "objects" else "in contact"
+        contact = f" ({natural:.0%} {kind}, {f + (1 - f) * natural:.0%} of each batch: {f:.0%} drawn from them)"
+    trained = sum(p.numel() for p in sim.parameters() if p.requires_grad)
+    frozen = f" ({trained} taking gradients: train.collisions_only)" if cfg.train.collisions_only else ""
     processes = f" on {world.size} processes" if world.size > 1 else ""
     precision = f", network in {'bf16' if sim.autocast_used == 'bf16' else 'float32'} (autocast auto, measured)" \
         if cfg.train.autocast == "auto" else ""
     return (f"{'resuming' if resumed_from else 'training'} at step {step} of {cfg.train.steps}{processes}: "
-            f"{tracks.num_windows} windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters, "
+            f"{tracks.num_windows} windows{contact} from {tracks.num_scenes} train scenes, {n_params} parameters{frozen}, "
             f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}{precision}")
 
 

@@ -9,7 +9,10 @@ Rolls out a split as `gns eval` does and prints three tables:
 - rotation by position error: object-frames binned by their position error (% of size), the
   mean rotation error of each bin and its share of all rotation error (is the rotation wrong
   on trajectories that are right?);
-- rotation by true spin: the same binned by the true turn per frame.
+- rotation by true spin: the same binned by the true turn per frame;
+- in scenes of several objects, by meeting: object-frames of objects that never come near another
+  (their bounding spheres never touch in the truth), and of the others before and after their
+  first meeting (is the error the contacts between objects', or what follows them?).
 `--split train` on a model's own training scenes against `--split test` tells overfitting
 from underfitting (experiments/log.md).
 """
@@ -50,8 +53,26 @@ def binned(values: np.ndarray, by: np.ndarray, edges) -> list[dict]:
     return rows
 
 
-def breakdown(errors: list[dict]) -> dict:
-    """The three tables from gns.metrics.scene_errors of a split."""
+MEETING = ("never near another object", "before its first meeting", "from its first meeting on")
+
+
+def meeting_labels(true_scenes: list, meshes: dict) -> list[np.ndarray]:
+    """Per scene (T, N): 0 for an object whose bounding sphere never touches another's in the
+    truth, else 1 before the first frame it does and 2 from that frame on."""
+    out = []
+    for sc in true_scenes:
+        r = np.array([np.linalg.norm(meshes[s][0], axis=1).max() for s in sc.shape]) * sc.scale
+        gap = np.linalg.norm(sc.positions[:, :, None] - sc.positions[:, None], axis=-1) - (r[:, None] + r[None])
+        gap[:, np.arange(sc.num_objects), np.arange(sc.num_objects)] = np.inf
+        near = (gap < 0).any(axis=2)                                   # (T, N)
+        first = np.where(near.any(axis=0), near.argmax(axis=0), sc.num_frames)
+        label = np.where(np.arange(sc.num_frames)[:, None] >= first[None], 2, 1)
+        out.append(np.where(near.any(axis=0)[None], label, 0))
+    return out
+
+
+def breakdown(errors: list[dict], labels: list[np.ndarray] | None = None) -> dict:
+    """The tables from gns.metrics.scene_errors of a split (and, given meeting_labels, by meeting)."""
     pos = np.array([e["position_error_pct"].mean() for e in errors])
     rot = np.array([e["rotation_error_deg"].mean() for e in errors])
     p, r, s = (np.concatenate([e[k].ravel() for e in errors])
@@ -62,7 +83,18 @@ def breakdown(errors: list[dict]) -> dict:
                        "rotation_error_deg": {"mean": float(rot.mean()), "median": float(np.median(rot)),
                                               "worst_share": worst_shares(rot)}},
             "rotation_by_position_error": binned(r, p, POSITION_BINS),
-            "rotation_by_true_spin": binned(r, s, SPIN_BINS)}
+            "rotation_by_true_spin": binned(r, s, SPIN_BINS),
+            **({"by_meeting": by_meeting(errors, labels)} if labels and any(x.shape[1] > 1 for x in labels) else {})}
+
+
+def by_meeting(errors: list[dict], labels: list[np.ndarray]) -> list[dict]:
+    p, r = (np.concatenate([e[k].ravel() for e in errors]) for k in ("position_error_pct", "rotation_error_deg"))
+    lab = np.concatenate([x.ravel() for x in labels])
+    return [{"group": name, "share_of_frames": float((lab == k).mean()),
+             "position_error_pct": float(p[lab == k].mean()) if (lab == k).any() else None,
+             "rotation_error_deg": float(r[lab == k].mean()) if (lab == k).any() else None,
+             "share_of_position_error": float(p[lab == k].sum() / p.sum()) if p.sum() > 0 else 0.0}
+            for k, name in enumerate(MEETING)]
 
 
 def format_breakdown(b: dict) -> str:
@@ -80,6 +112,12 @@ def format_breakdown(b: dict) -> str:
             mean = "-" if row["mean"] is None else f"{row['mean']:.1f}"
             edges = f"{row['low']:g}-{hi}{unit}"
             lines.append(f"{edges:<24} {row['share_of_frames']:>13.0%}   {mean:>17}   {row['share_of_error']:>23.0%}")
+    if "by_meeting" in b:
+        lines += ["", f"{'object-frames':<28} share   position %   rotation deg   share of position error"]
+        for row in b["by_meeting"]:
+            pos, rot = (("-" if row[k] is None else f"{row[k]:.1f}") for k in ("position_error_pct", "rotation_error_deg"))
+            lines.append(f"{row['group']:<28} {row['share_of_frames']:>5.0%}   {pos:>10}   {rot:>12}   "
+                         f"{row['share_of_position_error']:>23.0%}")
     return "\n".join(lines)
 
 
@@ -92,14 +130,16 @@ def main(argv=None) -> int:
     ap.add_argument("--limit", type=int, help="only the first N scenes")
     ap.add_argument("--free-flight", action="store_true", help="as gns eval --free-flight")
     ap.add_argument("--symmetrize", action="store_true", help="as gns eval --symmetrize (d2)")
+    ap.add_argument("--keep-apart", action="store_true", help="as gns eval --keep-apart")
     ap.add_argument("--autocast", choices=("none", "bf16", "auto"), default="none")
     ap.add_argument("--json", type=Path, help="also write the tables as JSON")
     a = ap.parse_args(argv)
 
     def stages():
         _, pred, true, ds = evaluate_run(a.run, a.data, a.split, a.limit, progress=False, symmetrize=a.symmetrize,
-                                         free_flight=a.free_flight, autocast=a.autocast)
-        b = breakdown(scene_errors(pred, true, ds.meshes))
+                                         free_flight=a.free_flight, autocast=a.autocast,
+                                         **({"keep_apart": True} if a.keep_apart else {}))
+        b = breakdown(scene_errors(pred, true, ds.meshes), meeting_labels(true, ds.meshes))
         b.update(run=str(a.run), data=str(a.data), split=a.split, free_flight=a.free_flight, symmetrize=a.symmetrize)
         print(format_breakdown(b))
         if a.json:

@@ -126,3 +126,26 @@ def test_bad_object_counts_are_refused(spec):
     from plumbing import ConfigError
     with pytest.raises(ConfigError, match="objects"):
         load_config(sets=[f'scene.objects="{spec}"'])
+
+
+def test_kubric_settings_start_from_our_scenes_and_rest_on_their_plane():
+    """configs/kubric_movi_a.toml (Kubric's own PyBullet settings) samples the same scenes from a
+    seed, simulates them differently, and its plane floor holds a dropped sphere as ours does."""
+    kubric = load_config("kubric_movi_a", ["scene.frames=24"])
+    assert kubric["floor"]["body"] == "plane" and not kubric["physics"]["split_impulse_all"]
+    ours = load_config(None, ["scene.frames=24", 'scene.objects="3-10"',
+                              "scene.shapes=['beveled_cube', 'cylinder', 'sphere']"])
+    a, b = simulate(sample_scene(ours, 11, "test", 0), ours), simulate(sample_scene(kubric, 11, "test", 0), kubric)
+    np.testing.assert_array_equal(a.positions[0], b.positions[0])
+    assert np.abs(a.positions[-1] - b.positions[-1]).max() > 1e-6
+    cfg = config(frame_rate=60, frames=120, floor__body="plane", physics__split_impulse_all="false")
+    sc = simulate(one_object(cfg, position=(0, 0, 2.5)), cfg)
+    first = int(np.argmax(sc.velocities[:, 0, 2] > 0))
+    assert -sc.velocities[first - 1, 0, 2] == pytest.approx(np.sqrt(2 * G * 2.0), rel=0.02)
+    np.testing.assert_allclose(sc.positions[-10:, 0, 2], 0.5, atol=0.005)
+
+
+def test_an_unknown_floor_body_is_refused():
+    from plumbing import ConfigError
+    with pytest.raises(ConfigError, match="floor.body must be box or plane"):
+        config(floor__body="dome")

@@ -67,3 +67,60 @@ def test_a_model_with_another_architecture_is_refused_in_one_line(single):
     cfg = tiny("train.steps=1", "valid.every=0", "model.latent_size=8", f"train.init_from={single / 'run'}")
     with pytest.raises(CheckpointError, match="init_from"):
         train(multi, single / "other", cfg, log=quiet)
+
+
+def test_collisions_only_keeps_every_trained_weight_and_learns_the_collision_parts(single):
+    multi = single / "multi"
+    if not multi.exists():
+        _toss(multi, "3-4", 1)
+    cfg = tiny("train.steps=3", "valid.every=0", "features.centre_node=true", "features.collision_radius=3.0",
+               f"train.init_from={single / 'run'}", "train.collisions_only=true", "train.checkpoint_every=2")
+    train(multi, single / "only", cfg, log=quiet)
+    old = read_checkpoint(single / "run" / "latest.pt")["model"]
+    new = read_checkpoint(single / "only" / "latest.pt")["model"]
+    moved = set()
+    for key, value in new.items():
+        if key not in old:
+            moved.add(key)
+            continue
+        kept = value[:, :old[key].shape[1]] if value.shape != old[key].shape else value
+        torch.testing.assert_close(kept, old[key], rtol=0, atol=0, msg=key)
+        if value.shape != old[key].shape and torch.count_nonzero(value[:, old[key].shape[1]:]) > 0:
+            moved.add(key)
+    assert any(".node_mlp.0.weight" in k for k in moved) and any("collision_encoder" in k for k in moved)
+    # resumed to more steps, the same weights stay frozen
+    more = tiny("train.steps=4", "valid.every=0", "features.centre_node=true", "features.collision_radius=3.0",
+                f"train.init_from={single / 'run'}", "train.collisions_only=true", "train.checkpoint_every=2")
+    train(multi, single / "only", more, log=quiet, resume=True)
+    again = read_checkpoint(single / "only" / "latest.pt")
+    assert again["step"] == 4
+    torch.testing.assert_close(again["model"]["network.decoder.0.weight"], old["network.decoder.0.weight"], rtol=0, atol=0)
+
+
+def test_collisions_only_without_a_start_is_refused():
+    from gns.config import ConfigError
+    with pytest.raises(ConfigError, match="collisions_only needs train.init_from"):
+        tiny("train.collisions_only=true")
+
+
+def test_windows_with_objects_near_each_other_are_those_whose_bounding_spheres_touch(single):
+    import numpy as np
+    from datagen.shards import Dataset
+    from gns.data import HISTORY
+    multi = single / "multi"
+    if not multi.exists():
+        _toss(multi, "3-4", 1)
+    cfg = tiny("features.centre_node=true", "train.contact_fraction=0.5", "train.contact_kind=objects")
+    _, tracks, _ = load_data(multi, cfg)
+    scenes = Dataset(multi).load("train")
+    meshes = Dataset(multi).meshes
+    want = []
+    for sc in scenes:
+        r = np.array([np.linalg.norm(meshes[s][0], axis=1).max() for s in sc.shape]) * sc.scale
+        d = np.linalg.norm(sc.positions[:, :, None] - sc.positions[:, None], axis=-1) - (r[:, None] + r[None])
+        d[:, np.arange(sc.num_objects), np.arange(sc.num_objects)] = np.inf
+        near = (d < 0).any(axis=(1, 2))
+        want += [near[f + HISTORY - 1:f + tracks.window - 1].any() for f in range(sc.num_frames - tracks.window + 1)]
+    assert tracks.contact.tolist() == want and 0 < sum(want) < len(want)
+    _, alone, _ = load_data(single / "single", cfg)
+    assert not alone.contact.any()

@@ -4,6 +4,7 @@ the model, and each model rolls out what it was trained on."""
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from plumbing import config_dir
@@ -126,3 +127,25 @@ def test_the_real_cube_models_roll_out_real_tosses(tmp_path, name):
     assert results["rollout_options"]["symmetrize"] == "d2"
     assert results["position_error_pct"] < 30 and results["rotation_error_deg"] < 30
     assert results["penetration_pct"] < 5
+
+
+def test_the_240hz_protocol_scores_the_same_rollout_at_50_75_100_frames_of_240_hz(tmp_path):
+    from datagen.cli import main as datagen
+    from gns.evaluate import evaluate_run
+    from plumbing import DataError
+    coarse, fine = tmp_path / "at12", tmp_path / "at240"
+    toss = ["toss", "--shapes", "beveled_cube,sphere", "--scenes", "0", "--test", "2", "--seed", "5", "--quiet"]
+    assert datagen([*toss, "--set", "scene.frames=9", "--out", str(coarse)]) in (0, None)
+    assert datagen([*toss, "--set", "scene.frames=161", "scene.frame_rate=240", "--out", str(fine)]) in (0, None)
+    plain, pred12, *_ = evaluate_run("movi_a", coarse, progress=False)
+    results, pred, true, ds = evaluate_run("movi_a", fine, progress=False, protocol="240hz")
+    assert ds.frame_rate == 240 and list(results["horizons"]) == ["50", "75", "100"]
+    # the model steps at its own 12 Hz: the same rollout, interpolated between its frames
+    for a, b in zip(pred12, pred):
+        np.testing.assert_allclose(b.positions[::20], a.positions[:len(b.positions[::20])], atol=1e-5)
+    # frame 40 is the last given one (3 frames of 12 Hz); horizon h is frame 40 + h
+    for h in (50, 75, 100):
+        sq = [np.sum((p.positions[40 + h] - t.positions[40 + h]) ** 2, axis=-1) for p, t in zip(pred, true)]
+        assert results["horizons"][str(h)]["translation_rmse"] == pytest.approx(np.sqrt(np.mean(np.concatenate(sq))))
+    with pytest.raises(DataError, match="240 frames a second"):
+        evaluate_run("movi_a", coarse, progress=False, protocol="240hz")
