@@ -91,9 +91,6 @@ class LearnedSimulator(Stepping, nn.Module):
                                                  collisions=spec.collision_edges)
         if self.lowest_vertices and self.layout.floor_z is None:
             raise ConfigError("features.lowest_vertices needs a floor (\"lowest\" means nearest the floor)")
-        if self.lowest_vertices and self.layout.collisions and self.collision_mode != "vertex":
-            # a vertex-to-surface edge needs the other object's faces, which a cut graph loses
-            raise ConfigError("features.lowest_vertices with collision edges needs features.collision_mode=vertex")
         steps = features_cfg.normalizer_steps
         self.node_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.node_groups})
         self.edge_normalizers = nn.ModuleDict({n: Normalizer(w, steps) for n, w in self.layout.edge_groups})
@@ -323,14 +320,16 @@ class LearnedSimulator(Stepping, nn.Module):
         """With features.lowest_vertices = k: the graph of each object's k vertices nearest the floor
         at x_t (N, 3) (and its features.highest_vertices highest), its centre and, with collision
         edges, every vertex that has one, and those nodes' indices; None where the network sees
-        every node. The cut graph carries the collision edges of the whole one: both ends of each
-        are kept, so the network sees every contact between objects, however high it is."""
+        every node. The cut graph carries the collision edges of the whole one (built there, where
+        every face is: surface edges need the other object's triangles): both ends of each are
+        kept, so the network sees every contact between objects, however high it is."""
         if not self.lowest_vertices:
             return None
         keep = lowest_nodes(x_t[:, 2], graph, self.lowest_vertices, self.highest_vertices)
         if self.layout.collisions:
             contacts = self.collision_edges(x_t, graph)
-            keep = keep.index_fill(0, contacts.senders, True)   # edges come both ways: receivers too
+            # both ends: a surface edge's sender is a vertex of the other object's nearest triangle
+            keep = keep.index_fill(0, contacts.senders, True).index_fill(0, contacts.receivers, True)
             graph = replace(graph, collision_edges=contacts)
         return None if bool(keep.all()) else select_nodes(graph, keep)
 

@@ -312,6 +312,14 @@ def turn_about_z(v: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch
     return torch.stack([c * x - s * y, s * x + c * y, v[..., 2]], -1)
 
 
+def _mapped_edges(edges, g: torch.Tensor):
+    """A graph's collision edges in the image under the orthogonal map g: the same pairs (distances
+    are kept), their vectors mapped, their signed distances kept; None stays None (built there)."""
+    if edges is None or edges.vectors is None:
+        return edges
+    return replace(edges, vectors=edges.vectors @ g.T.to(edges.vectors.dtype))
+
+
 def averaged_over_images(model, history: torch.Tensor, graph: GraphBatch, symmetrize, body_frames: bool) -> torch.Tensor:
     """A model's acceleration (N, 3) float64 for history (N, 3, 3), averaged over images of the
     scene (`model`: a gns.simulator.LearnedSimulator, called for the normalised acceleration).
@@ -347,7 +355,7 @@ def averaged_over_images(model, history: torch.Tensor, graph: GraphBatch, symmet
             # the body frame is mapped too (x = R rest + p -> (g R g^T) (g rest) + g p): the
             # network sees a proper rotation, as in training, and the average is exactly equivariant
             inputs.append(history @ g.T)
-            graphs.append(replace(graph, rest=rest @ g.T, collision_edges=None,
+            graphs.append(replace(graph, rest=rest @ g.T, collision_edges=_mapped_edges(graph.collision_edges, g),
                                   symmetries=mapped_symmetries(graph, g)))
             maps.append((g, weight))
     # images share network calls: per node, a call on 6400 nodes costs ~0.6x one on 1600;

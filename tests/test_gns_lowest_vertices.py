@@ -166,8 +166,6 @@ def test_bad_settings_are_one_clear_error():
         tiny("features.lowest_vertices=8")
     with pytest.raises(ValueError, match="lowest_vertices needs a floor"):
         _simulator(8, floor=False)
-    with pytest.raises(ValueError, match="needs features.collision_mode=vertex"):
-        _simulator(8, collisions=True, mode="surface")
     assert _simulator(8, collisions=True).layout.collisions
 
 
@@ -250,3 +248,29 @@ def test_an_ensemble_must_see_the_same_nodes():
     with pytest.raises(ValueError, match="nodes seen"):
         _simulator(6).set_ensemble([_simulator(8)])
     _simulator(6).set_ensemble([_simulator(6)])
+
+
+def test_surface_edges_on_low_graphs_are_those_of_the_whole_graph_and_mirror_exactly():
+    """Vertex-to-surface edges need the other object's triangles, which a cut graph loses: they are
+    built on the whole graph, and the cut graph carries them (both ends kept, vectors as they were);
+    a mirror-averaged step (symmetrize d1) maps those vectors rather than building edges again."""
+    from gns.contacts import surface_edges
+    sim = _simulator(6, collisions=True, mode="surface").eval()
+    x_t, graph = _stacked_scene()
+    full = surface_edges(x_t, graph, sim.layout.collision_radius)
+    assert len(full.senders) > 0
+    sub, nodes = sim.network_nodes(x_t, graph)
+    got = sorted(zip(nodes[sub.collision_edges.senders].tolist(), nodes[sub.collision_edges.receivers].tolist(),
+                     sub.collision_edges.vectors.tolist()))
+    assert got == sorted(zip(full.senders.tolist(), full.receivers.tolist(), full.vectors.tolist()))
+    frames = [x_t - torch.tensor([0.01 * k, 0.0, 0.02 * k], dtype=torch.float64) for k in (2, 1, 0)]
+    history = torch.stack(frames, dim=1)
+    g = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
+    sim.options = sim.options.replace(symmetrize="d1")
+    with torch.no_grad():
+        a = sim.predict_acceleration(history, graph)
+        m = sim.predict_acceleration(history @ g.T, replace(graph, rest=graph.rest @ g.T))
+        x = sim.predict_next(*frames, graph)
+        xm = sim.predict_next(*(f @ g.T for f in frames), replace(graph, rest=graph.rest @ g.T))
+    assert float((m - a @ g.T).abs().max() / a.abs().max()) < 1e-5
+    torch.testing.assert_close(xm, x @ g.T, rtol=0, atol=1e-6)
