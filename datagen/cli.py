@@ -35,7 +35,7 @@ def cmd_toss_mujoco(a) -> int:
                                 if v is not None]
     cfg = load_mujoco_config(a.config, sets, a.stiffness)
     meta = generate_tosses(cfg, a.seed, {"train": a.scenes, "valid": a.valid, "test": a.test}, a.out,
-                           overwrite=a.overwrite, progress=not a.quiet)
+                           overwrite=a.overwrite, progress=not a.quiet, workers=a.workers)
     print(f"wrote {sum(v['num_scenes'] for v in meta['splits'].values())} MuJoCo tosses ({cfg['contact']['stiffness']}: "
           f"solref timeconst {cfg['contact']['timeconst']:g} s) to {a.out}, fingerprint {meta['fingerprint'][:16]}")
     return 0

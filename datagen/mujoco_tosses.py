@@ -145,10 +145,26 @@ def simulate_toss(cfg: dict, start, model=None) -> Scene:
                  restitution=np.array([0.0]), attrs={})
 
 
+def _shard_tosses(job: tuple) -> list[Scene]:
+    """One shard's tosses (cfg, seed, split index, split, first, end), each from its own RNG key:
+    the same scenes on any worker. A worker process builds its own model (MjModel is not shared)."""
+    cfg, seed, s_index, split, first, end = job
+    model = _mujoco().MjModel.from_xml_string(model_xml(cfg))
+    scenes = []
+    for i in range(first, end):
+        sc = simulate_toss(cfg, sample_start(cfg, np.random.default_rng([seed, s_index, i])), model)
+        sc.attrs = {"scene_id": f"{split}-{i}", "seed": [seed, s_index, i], "index": i}
+        scenes.append(sc)
+    return scenes
+
+
 def generate_tosses(cfg: dict, seed: int, counts: dict[str, int], out: str | Path, overwrite: bool = False,
-                    per_shard: int = 250, progress: bool = False) -> dict:
+                    per_shard: int = 250, progress: bool = False, workers: int = 1) -> dict:
     """Simulate counts[split] tosses per split into the dataset folder `out`; returns its metadata.
-    Shards are written atomically, metadata.json last (a dataset is complete or absent)."""
+    Shards are simulated on `workers` processes (the output does not depend on it), written
+    atomically in order, metadata.json last (a dataset is complete or absent)."""
+    if workers < 1:
+        raise DataError(f"--workers must be >= 1, got {workers}")
     mujoco = _mujoco()
     out = Path(out)
     if sum(counts.values()) < 1:
@@ -159,27 +175,27 @@ def generate_tosses(cfg: dict, seed: int, counts: dict[str, int], out: str | Pat
         clear_dataset(out)
     shape = get_shape("cube")
     meshes = {"cube": (shape.vertices, shape.faces)}
-    model = mujoco.MjModel.from_xml_string(model_xml(cfg))
-    splits = {}
     from tqdm import tqdm
+    jobs = [(cfg, seed, s_index, split, first, min(int(counts[split]), first + per_shard), k)
+            for s_index, split in enumerate(SPLITS) if int(counts.get(split, 0)) > 0
+            for k, first in enumerate(range(0, int(counts[split]), per_shard))]
+    splits = {split: {"num_scenes": int(counts[split]), "shards": []} for _, _, _, split, *_ in jobs}
     bar = tqdm(total=sum(counts.values()), desc="mujoco tosses", unit="toss", disable=not progress)
-    for s_index, split in enumerate(SPLITS):
-        n = int(counts.get(split, 0))
-        if n <= 0:
-            continue
-        names = []
-        for k, first in enumerate(range(0, n, per_shard)):
-            scenes = []
-            for i in range(first, min(n, first + per_shard)):
-                sc = simulate_toss(cfg, sample_start(cfg, np.random.default_rng([seed, s_index, i])), model)
-                sc.attrs = {"scene_id": f"{split}-{i}", "seed": [seed, s_index, i], "index": i}
-                scenes.append(sc)
-                bar.update()
+    pool = None
+    if workers > 1:
+        import multiprocessing
+        pool = multiprocessing.get_context("spawn").Pool(workers)
+    try:
+        done = (pool.imap if pool else map)(_shard_tosses, [j[:6] for j in jobs])
+        for (_, _, _, split, first, _, k), scenes in zip(jobs, done):
             name = shard_name(split, k)
             write_shard(out / name, scenes, meshes, attrs={"split": split, "shard": k, "seed": seed,
                                                            "first_scene": first, "source": "mujoco"})
-            names.append(name)
-        splits[split] = {"num_scenes": n, "shards": names}
+            splits[split]["shards"].append(name)
+            bar.update(len(scenes))
+    finally:
+        if pool:
+            pool.terminate()
     bar.close()
     fr, substeps = float(cfg["scene"]["frame_rate"]), int(cfg["physics"]["substeps"])
     meta = {"complete": True, "generator": "datagen toss --engine mujoco", "generator_version": __version__,

@@ -24,8 +24,13 @@ def toss(tmp_path, level, *extra, name=None):
 
 def test_same_seed_same_tosses_nested_and_the_same_starts_at_every_level(tmp_path):
     a = toss(tmp_path, "hard", "--scenes", "3", "--test", "1", "--frames", "30")
-    b = toss(tmp_path, "hard", "--scenes", "3", "--test", "1", "--frames", "30", name="again")
-    assert a.fingerprint == b.fingerprint
+    b = toss(tmp_path, "hard", "--scenes", "3", "--test", "1", "--frames", "30", "--workers", "2", name="again")
+    assert a.fingerprint == b.fingerprint                                  # any number of workers
+    sharded = mt.generate_tosses(mt.load_config(None, ["scene.frames=30"], "hard"), 3, {"train": 3},
+                                 tmp_path / "sharded", per_shard=1, workers=2)
+    assert len(sharded["splits"]["train"]["shards"]) == 3
+    for x, y in zip(Dataset(tmp_path / "sharded").load("train"), a.load("train")):
+        np.testing.assert_array_equal(x.positions, y.positions)           # shards in order
     small = toss(tmp_path, "hard", "--scenes", "2", "--frames", "30", name="small")
     for x, y in zip(small.load("train"), a.load("train")):
         np.testing.assert_array_equal(x.positions, y.positions)
