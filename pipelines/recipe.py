@@ -202,7 +202,8 @@ def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None) -> dict:
                                            "card": card.data.get("scores", [{}])[0] if card else None}
     results = {"recipe": recipe.name, "model": str(model), "test_data": str(test), "rows": rows}
     write_json(out / "results.json", results)
-    lines = [f"# Recipe {recipe.name}", "", f"Model: `{model}`; scored on `{test}`.", "",
+    where = f"`{test}`" if test is not None else "the 45-degree cases of pipelines.diagnostic_45 (quick)"
+    lines = [f"# Recipe {recipe.name}", "", f"Model: `{model}`; scored on {where}.", "",
              "| rolled out as | scores | the card's |", "|---|---|---|"]
     for name, row in rows.items():
         c = row["card"] or {}
