@@ -149,3 +149,21 @@ def test_the_240hz_protocol_scores_the_same_rollout_at_50_75_100_frames_of_240_h
         assert results["horizons"][str(h)]["translation_rmse"] == pytest.approx(np.sqrt(np.mean(np.concatenate(sq))))
     with pytest.raises(DataError, match="240 frames a second"):
         evaluate_run("movi_a", coarse, progress=False, protocol="240hz")
+
+
+def test_movi_a_multi_is_movi_a_fast_on_single_objects_and_keeps_crowded_objects_apart(tmp_path):
+    from datagen.cli import main as datagen
+    from gns.evaluate import evaluate_run
+    single, crowded = tmp_path / "single", tmp_path / "crowded"
+    toss = ["toss", "--shapes", "beveled_cube,cylinder,sphere", "--scenes", "0", "--seed", "7", "--quiet"]
+    assert datagen([*toss, "--test", "4", "--out", str(single)]) in (0, None)
+    assert datagen([*toss, "--test", "3", "--objects", "4-6", "--out", str(crowded)]) in (0, None)
+    a, pa, *_ = evaluate_run("movi_a_multi", single, progress=False)
+    b, pb, *_ = evaluate_run("movi_a_fast", single, progress=False)
+    assert a["rollout_options"]["keep_apart"] and not b["rollout_options"]["keep_apart"]
+    for x, y in zip(pa, pb):          # no collision edge: the same weights act, to the last bit
+        np.testing.assert_array_equal(x.positions, y.positions)
+    r, *_ = evaluate_run("movi_a_multi", crowded, progress=False)
+    assert r["num_diverged"] == 0 and r["pairs_passing_through_pct"] <= 10
+    plain, *_ = evaluate_run("movi_a_multi", crowded, progress=False, keep_apart=False)
+    assert r["interpenetration_pct"] < plain["interpenetration_pct"]
