@@ -145,7 +145,7 @@ def test_presets_resolve_by_name_and_a_missing_one_lists_them():
     from gns.config import ConfigError, build_config
     assert build_config(path="gns_cpu").model.latent_size == 64
     assert build_config(path="configs/gns_tiny.toml").model.latent_size == build_config(path="gns_tiny").model.latent_size
-    with pytest.raises(ConfigError, match="presets: gns_cpu, gns_paper, gns_tiny, movi_a"):
+    with pytest.raises(ConfigError, match="presets: gns_cpu, gns_paper, gns_tiny, kubric_movi_a, movi_a"):
         build_config(path="gns_huge")
 
 

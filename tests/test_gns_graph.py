@@ -221,6 +221,7 @@ def test_flops_count_collision_edges():
 
 
 
+@torch.no_grad()
 def test_each_object_is_seen_at_its_own_heading_and_the_scene_stays_exactly_equivariant():
     """features.canonical_heading turns each object to its own heading: an object far from the
     others predicts what it predicts alone, whichever way they move; collision vectors are turned
