@@ -29,16 +29,15 @@ from bench_learned_vs_physics import pybullet_specs  # noqa: E402
 from datagen.simulate import step_only  # noqa: E402
 from gns.checkpoint import default_options, load_simulator, checkpoint_of  # noqa: E402
 from gns.evaluate import load_split  # noqa: E402
+from gns.metrics import bounding_gaps  # noqa: E402
 from gns.network import HISTORY  # noqa: E402
 from gns.rollout import rollout_scenes  # noqa: E402
 
 
 def touching_pairs(sc, meshes) -> float:
     """Mean number of object pairs a frame whose bounding spheres touch, in the truth."""
-    r = np.array([np.linalg.norm(meshes[s][0], axis=1).max() for s in sc.shape]) * sc.scale
-    gap = np.linalg.norm(sc.positions[:, :, None] - sc.positions[:, None], axis=-1) - (r[:, None] + r[None])
     upper = np.triu(np.ones((sc.num_objects, sc.num_objects), bool), 1)
-    return float((gap[:, upper] < 0).sum(axis=1).mean())
+    return float((bounding_gaps(sc, meshes)[:, upper] < 0).sum(axis=1).mean())
 
 
 def main(argv=None) -> int:

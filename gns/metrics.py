@@ -299,6 +299,16 @@ def evaluate_scenes(pred_scenes: Sequence, true_scenes: Sequence, meshes: Mappin
     return results
 
 
+def bounding_gaps(sc, meshes: Mapping[str, tuple]) -> np.ndarray:
+    """(T, N, N) the gap between the bounding spheres (radius: the farthest vertex of the scaled
+    mesh) of each pair of objects of a scene at each frame; negative where they touch, inf on the
+    diagonal. A cheap, model-free mark of where objects may be in contact."""
+    r = np.array([np.linalg.norm(meshes[s][0], axis=1).max() for s in sc.shape]) * sc.scale
+    gap = np.linalg.norm(sc.positions[:, :, None] - sc.positions[:, None], axis=-1) - (r[:, None] + r[None])
+    gap[:, np.arange(sc.num_objects), np.arange(sc.num_objects)] = np.inf
+    return gap
+
+
 def _fmt(v) -> str:
     return "-" if v is None else f"{v:.3g}" if abs(v) < 0.1 else f"{v:.2f}"
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from gns.evaluate import evaluate_run, write_json
-from gns.metrics import scene_errors
+from gns.metrics import bounding_gaps, scene_errors
 from pipelines.common import guarded
 
 POSITION_BINS = (0.0, 5.0, 10.0, 25.0, 50.0, np.inf)   # % of size
@@ -61,10 +61,7 @@ def meeting_labels(true_scenes: list, meshes: dict) -> list[np.ndarray]:
     truth, else 1 before the first frame it does and 2 from that frame on."""
     out = []
     for sc in true_scenes:
-        r = np.array([np.linalg.norm(meshes[s][0], axis=1).max() for s in sc.shape]) * sc.scale
-        gap = np.linalg.norm(sc.positions[:, :, None] - sc.positions[:, None], axis=-1) - (r[:, None] + r[None])
-        gap[:, np.arange(sc.num_objects), np.arange(sc.num_objects)] = np.inf
-        near = (gap < 0).any(axis=2)                                   # (T, N)
+        near = (bounding_gaps(sc, meshes) < 0).any(axis=2)            # (T, N)
         first = np.where(near.any(axis=0), near.argmax(axis=0), sc.num_frames)
         label = np.where(np.arange(sc.num_frames)[:, None] >= first[None], 2, 1)
         out.append(np.where(near.any(axis=0)[None], label, 0))

@@ -51,3 +51,25 @@ def test_the_command_rolls_out_a_split_and_writes_json(tmp_path, capsys):
     assert b["num_scenes"] == 2 and b["split"] == "valid"
     assert sum(r["share_of_frames"] for r in b["rotation_by_position_error"]) == pytest.approx(1.0)
     assert main(["--run", str(tmp_path / "nothing"), "--data", str(data)]) == 2
+
+
+def test_meeting_labels_split_objects_by_their_first_meeting_with_another():
+    import numpy as np
+    from datagen.shards import Scene
+    from pipelines.error_breakdown import by_meeting, meeting_labels
+    cube = (np.array([[x, y, z] for x in (-.5, .5) for y in (-.5, .5) for z in (-.5, .5)]), np.zeros((0, 3), int))
+    T = 6
+    x = np.zeros((T, 3, 3))
+    x[:, 0, 0] = np.linspace(-3, 0, T)      # object 0 reaches object 1 (at the origin) at frame 5
+    x[:, 2, 0] = 20.0                       # object 2 never comes near
+    sc = Scene(x, np.tile([1.0, 0, 0, 0], (T, 3, 1)), np.zeros((T, 3, 3)), np.zeros((T, 3, 3)), ["cube"] * 3,
+               ["metal"] * 3, np.ones(3), np.ones(3), np.ones(3), np.ones(3))
+    labels = meeting_labels([sc], {"cube": cube})[0]
+    radius_sum = 2 * np.sqrt(3) / 2                           # bounding spheres touch below this distance
+    first = int(np.argmax(np.abs(x[:, 0, 0]) < radius_sum))
+    assert labels[:, 2].tolist() == [0] * T
+    assert labels[:, 0].tolist() == [1] * first + [2] * (T - first) == labels[:, 1].tolist()
+    errors = [{"position_error_pct": np.arange(T * 3, dtype=float).reshape(T, 3),
+               "rotation_error_deg": np.ones((T, 3))}]
+    rows = by_meeting(errors, [labels])
+    assert [r["group"] for r in rows][0].startswith("never") and abs(sum(r["share_of_frames"] for r in rows) - 1) < 1e-12
