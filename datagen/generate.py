@@ -160,8 +160,13 @@ def _shard_results(todo: list[ShardTask], cfg: dict, seed: int, out: Path, worke
             yield run_task(job)
     else:
         # fork where the platform has it: a spawned worker pays ~0.5 s re-importing trimesh and
-        # h5py, a fifth of a small run. Safe because the parent holds no PyBullet client.
-        method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+        # h5py, a fifth of a small run. Safe while the parent holds no PyBullet client and no
+        # native threads; once torch or Ray has started theirs (a pipeline, a test run) a forked
+        # child can inherit a lock held by one of them and hang, so workers then come from a
+        # clean fork server
+        threaded = "torch" in sys.modules or "ray" in sys.modules
+        methods = mp.get_all_start_methods()
+        method = ("forkserver" if threaded and "forkserver" in methods else "fork") if "fork" in methods else "spawn"
         with mp.get_context(method).Pool(min(workers, len(todo))) as pool:
             yield from pool.imap_unordered(run_task, jobs)
 
