@@ -29,7 +29,8 @@ import numpy as np
 
 from plumbing import check_output_folder, DataError
 from datagen.scenes import get_shape
-from datagen.shards import METADATA_FILE, SPLITS, Scene, clear_dataset, shard_name, write_metadata, write_shard
+from datagen.output import new_dataset
+from datagen.shards import METADATA_FILE, SPLITS, Scene, shard_name, write_metadata, write_shard
 
 HALF_WIDTH_M = 0.0524         # 1 data unit in metres (10.48 cm cube)
 CUBE_SCALE = 2.0              # unit asset spans 1; the data's cube spans 2 half-widths
@@ -233,20 +234,9 @@ def _write_dataset(out_dir: Path, scenes: dict[str, list[Scene]], consts: Mappin
     """Shards, then metadata.json; on any failure removes what it wrote, and out_dir if it made it."""
     shape = get_shape("cube")
     meshes = {"cube": (shape.vertices, shape.faces)}
-    created = not out_dir.exists()
-    written: list[Path] = []
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        if overwrite:
-            clear_dataset(out_dir)
+    with new_dataset(out_dir, overwrite) as written:
         split_meta = _write_shards(out_dir, scenes, meshes, shard_size, written)
         write_metadata(out_dir, _metadata(scenes, consts, split_meta))
-    except BaseException:
-        for p in written:
-            p.unlink(missing_ok=True)
-        if created and out_dir.is_dir() and not any(out_dir.iterdir()):
-            out_dir.rmdir()
-        raise
 
 
 def import_contactnets(src_dir: str | Path, out_dir: str | Path, ids: Iterable[int] | None = None,

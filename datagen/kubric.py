@@ -30,7 +30,8 @@ import numpy as np
 
 from plumbing import DataError, check_output_folder
 from datagen.scenes import get_shape
-from datagen.shards import METADATA_FILE, Scene, clear_dataset, continuous, shard_name, write_metadata, write_shard
+from datagen.output import new_dataset
+from datagen.shards import METADATA_FILE, Scene, continuous, shard_name, write_metadata, write_shard
 
 SHAPE_LABELS = ("cube", "cylinder", "sphere")      # the TFDS ClassLabel order of shape_label
 MATERIAL_LABELS = ("metal", "rubber")
@@ -140,11 +141,7 @@ def import_kubric(src: str | Path, out: str | Path, split: str = "test", frame_r
     rate = frame_rate or recorded or FRAME_RATE
     names = sorted({s for sc in scenes for s in sc.shape})
     meshes = {n: (get_shape(n).vertices, get_shape(n).faces) for n in names}
-    created, written = not out.exists(), []
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        if overwrite:
-            clear_dataset(out)
+    with new_dataset(out, overwrite) as written:
         shards = []
         for k in range(0, len(scenes), SHARD_SIZE):
             shards.append(shard_name(split, k // SHARD_SIZE))
@@ -159,10 +156,4 @@ def import_kubric(src: str | Path, out: str | Path, split: str = "test", frame_r
             "num_frames": {"min": min(lengths), "max": max(lengths)},
             "splits": {split: {"num_scenes": len(scenes), "shards": shards,
                                "records": [sc.attrs["source_record"] for sc in scenes]}}})
-    except BaseException:
-        for p in written:
-            p.unlink(missing_ok=True)
-        if created and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
-        raise
     return json.loads((out / METADATA_FILE).read_text())

@@ -57,6 +57,24 @@ def _close_in_child() -> None:
 os.register_at_fork(after_in_child=_close_in_child)
 
 
+@contextmanager
+def new_dataset(out: Path, overwrite: bool) -> Iterator[list[Path]]:
+    """A dataset folder an importer fills (cleared with `overwrite`), listing what it writes in the
+    yielded list: on any failure those files go, and the folder if this made it and it is empty."""
+    created, written = not out.exists(), []
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        if overwrite:
+            clear_dataset(out)
+        yield written
+    except BaseException:
+        for p in written:
+            p.unlink(missing_ok=True)
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
+
+
 class Busy(Exception):
     """The folder is claimed by another run."""
 
