@@ -103,11 +103,18 @@ def keep_freed_memory() -> None:
         pass
 
 
-def new_world(gravity, time_step: float, solver_iterations: int, split_impulse_all: bool = True) -> int:
+def new_world(gravity, time_step: float, solver_iterations: int, split_impulse_all: bool = True,
+              client: int | None = None) -> int:
     """A new DIRECT client with the engine settings above; returns its id. split_impulse_all=False
-    leaves Bullet's own split-impulse penetration threshold, as Kubric does (physics.split_impulse_all)."""
+    leaves Bullet's own split-impulse penetration threshold, as Kubric does (physics.split_impulse_all).
+    `client`: an open client emptied and set up again instead (what a program simulating many
+    scenes can do; benchmarks/speed_front.py times both)."""
     keep_freed_memory()
-    c = pb.connect(pb.DIRECT)
+    if client is None:
+        c = pb.connect(pb.DIRECT)
+    else:
+        c = client
+        pb.resetSimulation(physicsClientId=c)
     pb.setGravity(*[float(g) for g in gravity], physicsClientId=c)
     ours = {"splitImpulsePenetrationThreshold": 0} if split_impulse_all else {}
     pb.setPhysicsEngineParameter(
@@ -133,10 +140,12 @@ def add_floor(c: int, z: float, friction: float, restitution: float, body: str =
     return floor
 
 
-def build_world(spec: SceneSpec, cfg: dict) -> tuple[int, list[int]]:
-    """A new DIRECT client holding the floor and the scene's objects. Returns (client, body ids)."""
+def build_world(spec: SceneSpec, cfg: dict, client: int | None = None) -> tuple[int, list[int]]:
+    """A new DIRECT client (or `client`, emptied) holding the floor and the scene's objects.
+    Returns (client, body ids)."""
     ph, fl = cfg["physics"], cfg["floor"]
-    c = new_world(ph["gravity"], 1.0 / float(ph["rate"]), ph["solver_iterations"], ph.get("split_impulse_all", True))
+    c = new_world(ph["gravity"], 1.0 / float(ph["rate"]), ph["solver_iterations"], ph.get("split_impulse_all", True),
+                  client)
     if fl["enabled"]:
         add_floor(c, 0.0, fl["friction"], fl["restitution"], fl.get("body", "box"))
     bodies = []
@@ -161,17 +170,18 @@ def steps_per_frame(cfg: dict) -> int:
     return int(round(float(cfg["physics"]["rate"]) / float(cfg["scene"]["frame_rate"])))
 
 
-def simulate(spec: SceneSpec, cfg: dict, after_frame=None) -> Scene:
+def simulate(spec: SceneSpec, cfg: dict, after_frame=None, client: int | None = None) -> Scene:
     """Simulate one scene and record `scene.frames` frames (frame 0 is the initial state).
     `after_frame(t, client, bodies)`, if given, is called once each frame is recorded: a study may
-    change the world there (pipelines/movi_a_sensitivity.py perturbs the state at one frame)."""
+    change the world there (pipelines/movi_a_sensitivity.py perturbs the state at one frame).
+    `client`: an open client to reuse (emptied first, left open), else a fresh one, closed after."""
     frames, sub = int(cfg["scene"]["frames"]), steps_per_frame(cfg)
     n = len(spec.objects)
     pos = np.empty((frames, n, 3))
     quat = np.empty((frames, n, 4))
     vel = np.empty((frames, n, 3))
     ang = np.empty((frames, n, 3))
-    c, bodies = build_world(spec, cfg)
+    c, bodies = build_world(spec, cfg, client)
     try:
         for t in range(frames):
             if t:
@@ -184,7 +194,8 @@ def simulate(spec: SceneSpec, cfg: dict, after_frame=None) -> Scene:
             if after_frame is not None:
                 after_frame(t, c, bodies)
     finally:
-        pb.disconnect(c)
+        if client is None:
+            pb.disconnect(c)
     return Scene(
         positions=pos, quaternions=continuous(quat), velocities=vel, angular_velocities=ang,
         shape=[o.shape for o in spec.objects], material=[o.material for o in spec.objects],

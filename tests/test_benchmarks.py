@@ -180,3 +180,34 @@ def test_compare_rollouts_pairs_the_scenes_and_a_setting_against_itself_differs_
     for bad, message in ((f"{model}:d3", "unknown symmetry group 'd3'"), (f"{model}+", "an empty run name")):
         with pytest.raises(SystemExit, match=message):
             compare.main(["--a", bad, "--b", model, *sets[:2]])
+
+
+def test_speed_front_scores_pybullet_settings_and_a_model_against_the_data(tmp_path, capsys):
+    import json
+
+    bench, data = learned_vs_physics(tmp_path, 2, 9, "cube")
+    spec = importlib.util.spec_from_file_location("speed_front", BENCH.parent / "speed_front.py")
+    front = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(front)
+    model = str(Path(__file__).parent / "data" / "gns_movi_a_small.pt")
+    assert front.main(["--data", str(data), "--run", model, "--rates", "60,240", "--iterations", "10,50",
+                       "--precisions", "f32", "--compile", "no", "--repeats", "1",
+                       "--json", str(tmp_path / "f.json"), "--plot", str(tmp_path / "f.png")]) == 0
+    saved = json.loads((tmp_path / "f.json").read_text())
+    rows = saved["results"][0]["rows"]
+    bullet = {(r["rate"], r["iterations"], r["client"]): r for r in rows if r["family"] == "pybullet"}
+    assert len(bullet) == 8 and len(rows) == 9
+    # the data's own settings remake the data exactly, whether the client is fresh or reused
+    for client in ("fresh", "reused"):
+        assert bullet[(240, 50, client)]["position_error_pct"] == 0.0
+        assert bullet[(240, 50, client)]["rotation_error_deg"] == 0.0
+        assert bullet[(60, 50, client)]["position_error_pct"] > 0.1
+    learned = rows[-1]
+    assert learned["family"] == "learned" and learned["position_error_pct"] > 0
+    match = front.cheapest_as_good(learned, rows)
+    assert match["position_error_pct"] <= learned["position_error_pct"]
+    assert all(match["ms_per_simulated_second"] <= r["ms_per_simulated_second"] for r in bullet.values()
+               if r["position_error_pct"] <= learned["position_error_pct"])
+    out = capsys.readouterr().out
+    assert "features:" in out and "load average" in out and "cheapest PyBullet as accurate" in out
+    assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
