@@ -68,7 +68,7 @@ def prediction_arrays(scene: Scene, given: int = HISTORY) -> tuple[np.ndarray, .
 
 def prediction_scene(scene: Scene, arrays, engine: str, params, restitution: float) -> Scene:
     """The predicted Scene from filled prediction_arrays, its quaternions kept on one cover along
-    the toss (as the truth and datagen.simulate do)."""
+    the toss (as the truth and datagen.toss do)."""
     pos, quat, vel, ang = arrays
     return Scene(positions=pos, quaternions=continuous(quat), velocities=vel, angular_velocities=ang,
                  shape=list(scene.shape), material=list(scene.material), scale=scene.scale.copy(),

@@ -49,7 +49,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from datagen.scenes import sample_scene  # noqa: E402
-from datagen.simulate import step_only  # noqa: E402
+from datagen.toss import step_only  # noqa: E402
 from gns.evaluate import checkpoint_of, load_split  # noqa: E402
 from gns.metrics import evaluate_scenes  # noqa: E402
 from gns.rollout import rollout_scenes  # noqa: E402

@@ -26,7 +26,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench_learned_vs_physics import pybullet_specs  # noqa: E402
-from datagen.simulate import step_only  # noqa: E402
+from datagen.toss import step_only  # noqa: E402
 from gns.checkpoint import default_options, load_simulator, checkpoint_of  # noqa: E402
 from gns.evaluate import load_split  # noqa: E402
 from gns.metrics import bounding_gaps  # noqa: E402

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from plumbing import config_dir, DataError
 from datagen.scenes import load_config as load_scene_config
-from datagen.generate import generate
+from datagen.toss import generate
 from datagen.shards import Dataset
 from gns.config import build_config, config_differences
 from gns.evaluate import write_json

@@ -24,7 +24,7 @@ import torch
 from datagen.scenes import load_config as scene_config
 from datagen.scenes import sample_scene
 from datagen.shards import Dataset
-from datagen.simulate import simulate
+from datagen.toss import simulate
 from gns.config import build_config
 from gns.data import feature_spec
 from gns.evaluate import checkpoint_of, load_split, write_json

@@ -1,17 +1,35 @@
-"""The one place that sets up PyBullet: a world with its floor, a scene in it, stepped and recorded.
+"""`datagen toss`: MOVi-A scenes simulated in PyBullet and written as shards, a shard a task, on
+worker processes or a Ray cluster (datagen/ray_backend.py, loaded only when asked for).
 
-Settings follow Kubric's MOVi worker: a fresh client per scene (a reused world loses bit-exact
-repeatability), contactProcessingThreshold=0 per body (without it bounces die), no restitution
-velocity threshold, no warm starting, split impulse, no contact slop, deterministic overlapping
-pairs, no damping, and the mesh's true inertia (Bullet would otherwise replace it with a box
-approximation). baselines.pybullet builds its cube-toss worlds with `new_world` and `add_floor` too.
+This is the one place that sets up PyBullet. Settings follow Kubric's MOVi worker: a fresh
+client per scene (a reused world loses bit-exact repeatability), contactProcessingThreshold=0
+per body (without it bounces die), no restitution velocity threshold, no warm starting, split
+impulse, no contact slop, deterministic overlapping pairs, no damping, and the mesh's true
+inertia (Bullet would otherwise replace it with a box approximation). baselines.pybullet builds
+its cube-toss worlds with `new_world` and `add_floor` too.
+
+A shard is the unit of work and of writing: its content depends only on (config, seed, split,
+shard index), never on the worker count, the backend or how the shards are divided among runs
+(--shard-index/--num-shards, datagen/shared_output.py). Every run claims the output folder
+first and records each shard's checksum before the shard is in place (datagen/output.py), so
+runs started together cannot mix two plans.
 """
 from __future__ import annotations
 
+import multiprocessing as mp
 import os
 import sys
+from contextlib import nullcontext
+from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
+
+from . import __version__
+from plumbing import DataError
+from .output import Busy, ShardTask, check_output, claim, commit_shard, finalise, plan, plan_of, start_output
+from .scenes import FLOOR_HALF_WIDTH, SceneSpec, check_floor_covers, get_shape, sample_scene
+from .shards import SPLITS, Scene, continuous, shard_image, write_error, wxyz, xyzw
 
 
 def _import_pybullet_quietly():
@@ -30,39 +48,6 @@ def _import_pybullet_quietly():
 
 
 pb = _import_pybullet_quietly()
-
-from .scenes import SceneSpec, get_shape
-from .shards import Scene, continuous, wxyz, xyzw
-
-
-FLOOR_HALF_WIDTH = 1000.0
-
-
-def check_floor_covers(cfg: dict) -> None:
-    """Refuse a spawn box the physics floor (a box of half-width FLOOR_HALF_WIDTH) does not cover:
-    the metadata declares a floor everywhere, so objects beyond its edge would fall through what
-    the data calls a floor. (A wider box is no answer: contact precision falls with its size.)"""
-    from .scenes import ConfigError
-    if not cfg["floor"]["enabled"]:
-        return
-    sp = cfg["spawn"]
-    reach = max(float(cfg["sizes"][n]) for n in cfg["scene"]["sizes"]) * max(
-        float(np.linalg.norm(get_shape(n).vertices, axis=1).max()) for n in cfg["scene"]["shapes"])
-    far = max(abs(float(v)) for corner in (sp["low"], sp["high"]) for v in corner[:2])
-    if far + reach > FLOOR_HALF_WIDTH:
-        raise ConfigError(f"spawn.low/high reach {far:g} from the origin, beyond the physics floor "
-                          f"(|x|, |y| <= {FLOOR_HALF_WIDTH:g}); keep the spawn box within it or set floor.enabled=false")
-    # Where a toss can fly in the scene's time, before anything is simulated: the start velocity is
-    # u - x (u in the velocity box, towards the centre), and nothing but friction and collisions acts
-    # sideways, so x + (u - x) t bounds the travel; it is linear in x, u and t, so corners suffice.
-    t_end = float(cfg["scene"]["frames"]) / float(cfg["scene"]["frame_rate"])
-    flown = max(abs(float(x) + (float(u) - float(x)) * t_end)
-                for k in (0, 1) for x in (sp["low"][k], sp["high"][k])
-                for u in (sp["velocity_low"][k], sp["velocity_high"][k]))
-    if flown + reach > FLOOR_HALF_WIDTH:
-        raise ConfigError(f"tosses from the spawn box can fly {flown:g} from the origin within the scene's "
-                          f"{t_end:g} s, beyond the physics floor (|x|, |y| <= {FLOOR_HALF_WIDTH:g}); shrink the "
-                          "spawn box or the velocity box, or shorten the scenes")
 
 
 def off_floor(scene) -> list[tuple[int, int]]:
@@ -251,3 +236,166 @@ def floor_violations(sc: Scene, meshes: dict, floor_z: float, physics_dt: float)
             t = int(np.argmax(bad))
             out.append((n, t, float(sink[t])))
     return out
+
+
+def _meshes(cfg: dict) -> dict:
+    return {name: (get_shape(name).vertices, get_shape(name).faces) for name in cfg["scene"]["shapes"]}
+
+
+def build_task(task: ShardTask, cfg: dict, seed: int) -> tuple[bytes, list[str]]:
+    """Simulate one shard in memory. Returns the shard file's bytes and ids of tunnelled scenes."""
+    scenes = [simulate(sample_scene(cfg, seed, task.split, i), cfg) for i in range(task.first, task.first + task.count)]
+    meshes = _meshes(cfg)
+    floor = cfg["floor"]["enabled"]
+    dt = 1.0 / float(cfg["physics"]["rate"])
+    if floor:
+        for sc in scenes:
+            for n, t in off_floor(sc)[:1]:
+                # the floor is declared everywhere: an object past its edge would fall through it
+                raise DataError(f"scene {sc.attrs['scene_id']}: object {n} left the physics floor (|x| or |y| above "
+                                f"{FLOOR_HALF_WIDTH:g}) at frame {t}; slow the tosses or shrink the spawn box")
+    bad = [sc.attrs["scene_id"] for sc in scenes if floor and floor_violations(sc, meshes, 0.0, dt)]
+    image = shard_image(scenes, meshes, {"split": task.split, "shard": task.shard, "seed": seed,
+                                         "first_scene": task.first}, task.name)
+    return image, bad
+
+
+def run_task(args) -> tuple[str, int, list[str]]:
+    """Simulate and write one shard. Returns its name, scene count and ids of tunnelled scenes."""
+    task, cfg, seed, out, planned = args
+    try:
+        image, bad = build_task(task, cfg, seed)
+    except OSError as e:  # HDF5 failing to build the file in memory: one line, as a failed write
+        raise write_error(Path(out) / task.name, e) from None
+    commit_shard(Path(out), planned, task.name, image)
+    return task.name, task.count, bad
+
+
+def metadata(cfg: dict, seed: int, counts: dict[str, int], tasks: list[ShardTask], complete: bool) -> dict:
+    sc = cfg["scene"]
+    materials = [cfg["materials"][m] for m in sc["materials"]]
+    vary = len({(m["friction"], m["restitution"]) for m in materials}) > 1
+    return {
+        "complete": complete,
+        "generator": "datagen toss",
+        "generator_version": __version__,
+        "seed": seed,
+        "config": cfg,
+        "frame_rate": float(sc["frame_rate"]),
+        "physics_rate": float(cfg["physics"]["rate"]),
+        "steps_per_frame": steps_per_frame(cfg),
+        "num_frames": int(sc["frames"]),
+        "gravity": [float(g) for g in cfg["physics"]["gravity"]],
+        "floor": ({"z": 0.0, "friction": float(cfg["floor"]["friction"]),
+                   "restitution": float(cfg["floor"]["restitution"])} if cfg["floor"]["enabled"] else None),
+        "materials_vary": vary,
+        "quaternion_order": "wxyz",
+        "shapes": {n: {"num_vertices": int(len(get_shape(n).vertices)), "num_faces": int(len(get_shape(n).faces))}
+                   for n in sc["shapes"]},
+        "splits": {s: {"num_scenes": counts.get(s, 0), "shards": [t.name for t in tasks if t.split == s]}
+                   for s in SPLITS},
+    }
+
+
+BACKENDS = ("process", "ray")
+
+
+def _check_arguments(counts: dict[str, int], workers: int, per_shard: int, backend: str,
+                     ray_address: str | None = None) -> None:
+    """Refuse bad counts, sizes or backend before anything is written."""
+    for split, n in counts.items():
+        if n < 0:
+            raise DataError(f"scene count for {split} must be >= 0, got {n}")
+    if sum(counts.values()) < 1:
+        raise DataError("nothing to generate: give at least one scene")
+    if workers < 1:
+        raise DataError(f"--workers must be >= 1, got {workers}")
+    if per_shard < 1:
+        raise DataError(f"--scenes-per-shard must be >= 1, got {per_shard}")
+    if backend not in BACKENDS:
+        raise DataError(f"unknown backend {backend!r}; use {' or '.join(BACKENDS)}")
+    if ray_address and backend != "ray":
+        raise DataError("--ray-address needs --backend ray (the process backend runs on this machine only)")
+    if backend == "ray":
+        from .ray_backend import require_ray
+        require_ray()
+
+
+def _shard_results(todo: list[ShardTask], cfg: dict, seed: int, out: Path, workers: int, ray, planned: dict):
+    """Write the shards of `todo` on the chosen backend, yielding (name, count, tunnelled ids) for each."""
+    jobs = [(t, cfg, seed, str(out), planned) for t in todo]
+    if ray is not None and todo:
+        from .ray_backend import ray_tasks
+        yield from ray_tasks(ray, todo, cfg, seed, out, planned)
+    elif workers == 1 or len(todo) <= 1:
+        for job in jobs:
+            yield run_task(job)
+    else:
+        # fork where the platform has it: a spawned worker pays ~0.5 s re-importing trimesh and
+        # h5py, a fifth of a small run. Safe while the parent holds no PyBullet client and no
+        # native threads; once torch or Ray has started theirs (a pipeline, a test run) a forked
+        # child can inherit a lock held by one of them and hang, so workers then come from a
+        # clean fork server
+        threaded = "torch" in sys.modules or "ray" in sys.modules
+        methods = mp.get_all_start_methods()
+        method = ("forkserver" if threaded and "forkserver" in methods else "fork") if "fork" in methods else "spawn"
+        with mp.get_context(method).Pool(min(workers, len(todo))) as pool:
+            yield from pool.imap_unordered(run_task, jobs)
+
+
+def _make_shards(mine: list[ShardTask], todo: list[ShardTask], cfg: dict, seed: int, out: Path, workers: int,
+                 ray, planned: dict, progress: bool) -> list[str]:
+    """Write the missing shards under a progress bar counting all of this run's scenes; returns
+    the ids of tunnelled scenes."""
+    total = sum(t.count for t in mine)
+    bar = tqdm(total=total, initial=total - sum(t.count for t in todo),
+               unit="scene", desc="toss", disable=not progress, file=sys.stderr)
+    tunnelled: list[str] = []
+    for _, n, bad in _shard_results(todo, cfg, seed, out, workers, ray, planned):
+        bar.update(n)
+        tunnelled += bad
+    bar.close()
+    return tunnelled
+
+
+def _warn_tunnelled(tunnelled: list[str]) -> None:
+    if tunnelled:
+        # Kept, not dropped, so the dataset stays a function of the seed; inspect lists them.
+        print(f"warning: {len(tunnelled)} scene(s) sank through the floor (objects too fast for "
+              f"physics.rate; set physics.ccd=true or raise the rate): {', '.join(sorted(tunnelled)[:10])}",
+              file=sys.stderr)
+
+
+def generate(cfg: dict, seed: int, counts: dict[str, int], out: str | Path, workers: int = 1,
+             per_shard: int = 50, resume: bool = False, overwrite: bool = False, progress: bool = True,
+             backend: str = "process", shard_index: int | None = None, num_shards: int | None = None,
+             ray_address: str | None = None) -> dict:
+    """Generate a dataset into `out`, or, with `num_shards`, the part `shard_index` of it: the
+    shards whose position in the plan (train, then valid, then test shards, each in order)
+    modulo num_shards is shard_index. Returns the metadata written last; its `complete` is
+    false when other parts are still missing."""
+    out = Path(out)
+    _check_arguments(counts, workers, per_shard, backend, ray_address)
+    sharded = num_shards is not None or shard_index is not None
+    if sharded:
+        from .shared_output import check_sharding
+        check_sharding(shard_index, num_shards, overwrite)
+    check_floor_covers(cfg)
+    tasks = plan(counts, per_shard)
+    meta = metadata(cfg, seed, counts, tasks, complete=False)
+    mine = [t for k, t in enumerate(tasks) if not sharded or k % num_shards == shard_index]
+    check_output(out, meta, sharded, resume, overwrite)     # fails fast, before a cluster is asked
+    if backend == "ray":
+        from .ray_backend import ray_cluster
+    with (ray_cluster(workers, ray_address) if backend == "ray" else nullcontext()) as ray:
+        try:
+            with claim(out, shared=sharded):
+                # A part skips its shards already written (and verified), so a requeued array
+                # task redoes only what is missing; a whole run does so only with --resume.
+                todo = start_output(out, meta, mine, sharded, resume, overwrite)
+                tunnelled = _make_shards(mine, todo, cfg, seed, out, workers, ray, plan_of(meta), progress)
+                _warn_tunnelled(tunnelled)
+                return finalise(out, meta, tasks)
+        except Busy:
+            from .shared_output import busy_error
+            raise busy_error(out, meta, sharded) from None
