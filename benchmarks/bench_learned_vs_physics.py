@@ -53,7 +53,7 @@ from datagen.toss import step_only  # noqa: E402
 from gns.evaluate import checkpoint_of, load_split  # noqa: E402
 from gns.metrics import evaluate_scenes  # noqa: E402
 from gns.rollout import rollout_scenes  # noqa: E402
-from gns.stepping import SYMMETRY_GROUPS  # noqa: E402
+from gns.symmetry import SYMMETRY_GROUPS  # noqa: E402
 from gns.checkpoint import load_model, read_checkpoint  # noqa: E402
 
 GROUPS = tuple(g for g in SYMMETRY_GROUPS if g != "d2")   # --symmetrize GROUP; "sym" is d2

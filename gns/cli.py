@@ -194,7 +194,7 @@ def _add_rollout_args(p) -> None:
     o.add_argument("--sleep", action=argparse.BooleanOptionalAction,
                    help="hold resting objects still until another object touches them, as physics engines "
                         "deactivate bodies (docs/results.md); off by default")
-    # the keys of gns.stepping.SYMMETRY_GROUPS, written out so that --help does not import torch
+    # the keys of gns.symmetry.SYMMETRY_GROUPS, written out so that --help does not import torch
     o.add_argument("--symmetrize", nargs="?", const="d2", choices=["none", "d2", "d4", "d1", "c2", "c4"],
                    metavar="GROUP",
                    help="average each step's prediction over the floor's symmetries: d2 (the default when no GROUP "

@@ -46,7 +46,7 @@ from gns.config import Config, ConfigError
 from plumbing import DataError
 from gns.network import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
-from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, graph_sizes, mapped_symmetries, ragged_arange
+from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, graph_sizes, ragged_arange
 from gns.spec import Floor, ModelSpec, SpecError
 
 
@@ -210,6 +210,7 @@ class ObjectTracks:
             graph = replace(graph, rest=torch.einsum("nij,nj->ni", sym[graph.node_graph], graph.rest))
             rot = rot @ sym.transpose(1, 2)[:, None]
         if mirror:
+            from gns.symmetry import mapped_symmetries
             flip = torch.from_numpy(rng.random(len(windows)) < 0.5)[window_of]     # (B,) per window
             m = torch.ones(len(tracks), 3, dtype=torch.float64)
             m[flip, 0] = -1.0

@@ -4,7 +4,7 @@ Owns everything around the network: feature building and normalisation, how the 
 (autocast, compile), the ensemble, which nodes it sees, and the loss. The rollout (which objects
 the network moves, which fly free or sleep) is gns.stepping, which LearnedSimulator inherits; the
 rigid-body steps (the integrator x_{t+1} = x_t + (x_t - x_{t-1}) + a and its exact inverse, shape
-matching) are gns.geometry; the floor's symmetries and the averages over them gns.stepping.
+matching) are gns.geometry; the symmetries a step may average over gns.symmetry.
 Positions are float64 throughout; the network runs in float32 on normalised features.
 """
 from __future__ import annotations
@@ -19,7 +19,6 @@ from torch import nn
 
 from gns.network import FeatureLayout, Normalizer, make_layout, raw_collision_features, raw_edge_features, raw_node_features
 from gns.config import ConfigError
-from gns.contacts import collision_edges, surface_edges
 from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes,
                        select_nodes, with_surface_edges)
 from gns.network import EncodeProcessDecode
@@ -28,7 +27,6 @@ from gns.hardware import resolve_autocast
 from gns.geometry import acceleration_of, integrate, posed, shape_match_packed
 from gns.spec import ModelSpec
 from gns.stepping import Stepping
-from gns.stepping import averaged_over_images, turn_about_z
 
 # the options applied when a model is loaded (gns.checkpoint.load_simulator), not per rollout
 LOAD_OPTIONS = ("autocast", "compile", "ensemble")
@@ -199,6 +197,8 @@ class LearnedSimulator(Stepping, nn.Module):
         """The graph's collision edges if given, else built from positions x (N, 3)."""
         if graph.collision_edges is not None:
             return graph.collision_edges
+        # imported here: a model of single objects never builds them
+        from gns.contacts import collision_edges, surface_edges
         if self.collision_mode == "surface":
             return surface_edges(x, graph, self.layout.collision_radius)
         return collision_edges(x, graph, self.layout.collision_radius)
@@ -229,6 +229,7 @@ class LearnedSimulator(Stepping, nn.Module):
             c = self.collision_edges(world[:, -1], graph)
             raw = raw_collision_features(world, c)
             if turn is not None:
+                from gns.symmetry import turn_about_z
                 raw["collision_relative"] = turn_about_z(raw["collision_relative"], turn[0][c.receivers],
                                                          turn[1][c.receivers]).to(torch.float32)
             features = torch.cat([self.collision_normalizers[n](raw[n], acc) for n, _ in self.layout.collision_groups], -1)
@@ -255,6 +256,7 @@ class LearnedSimulator(Stepping, nn.Module):
         velocity = torch.zeros(graph.num_graphs, 2, dtype=history.dtype, device=history.device).index_add_(0, own, step)
         angle = -torch.atan2(velocity[:, 1], velocity[:, 0])
         cos, sin = torch.cos(angle).index_select(0, own), torch.sin(angle).index_select(0, own)
+        from gns.symmetry import turn_about_z
         turned = turn_about_z(history, cos, sin)
         nodes, edge_sets = self._inputs(turned, graph, world=history, turn=(cos, sin))
         out = self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
@@ -310,10 +312,11 @@ class LearnedSimulator(Stepping, nn.Module):
 
     def _predict_one(self, history: torch.Tensor, graph: GraphBatch, symmetrize, body_frames: bool) -> torch.Tensor:
         """This model's acceleration (N, 3) float64, averaged over the images of `symmetrize` (a
-        group of gns.stepping.SYMMETRY_GROUPS, a rollout option) and with `body_frames` over each
-        object's equivalent body frames (gns.stepping.averaged_over_images)."""
+        group of gns.symmetry.SYMMETRY_GROUPS, a rollout option) and with `body_frames` over each
+        object's equivalent body frames (gns.symmetry.averaged_over_images)."""
         if not symmetrize and not body_frames:
             return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
+        from gns.symmetry import averaged_over_images
         return averaged_over_images(self, history, graph, symmetrize, body_frames)
 
     def network_nodes(self, x_t: torch.Tensor, graph: GraphBatch) -> tuple[GraphBatch, torch.Tensor] | None:

@@ -327,8 +327,8 @@ def test_symmetrized_images_in_one_call_equal_one_call_per_image(run):
     # scenes of several touching objects: each image keeps its own collision edges
     from dataclasses import replace
 
-    import gns.stepping as symmetry
-    from gns.stepping import FLOOR_SYMMETRIES
+    import gns.symmetry as symmetry
+    from gns.symmetry import FLOOR_SYMMETRIES
     model = gns.load(run / "run", symmetrize="d2")
     sim = model.simulator
     state = model.state(**three_cubes(), warn=False)

@@ -162,7 +162,7 @@ def test_d4_symmetrized_predictions_are_exactly_quarter_turn_equivariant(tmp_pat
     sim, b = sim_and_batch(tmp_path)
     from dataclasses import replace
 
-    from gns.stepping import symmetry_group
+    from gns.symmetry import symmetry_group
     quarter = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     diagonal = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
