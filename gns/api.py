@@ -40,8 +40,7 @@ from gns import api_inputs as inputs
 from gns.geometry import posed, shape_match_packed
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-from gns.checkpoint import CheckpointError, checkpoint_of, load_simulator
-from gns.hardware import parse_device
+from gns.checkpoint import CheckpointError, checkpoint_of, load_simulator, parse_device
 from gns.spec import RolloutOptions
 from gns.checkpoint import default_options
 

@@ -18,8 +18,7 @@ EXIT_BAD_INPUT = 2
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    from gns.hardware import world_from_env
-    from gns.run_folder import resolve_config
+    from gns.run_folder import resolve_config, world_from_env
     from gns.train import train
 
     flags = {"steps": args.steps, "device": args.device, "autocast": args.autocast,
@@ -68,8 +67,7 @@ def _threads(n: int) -> None:
 
 
 def cmd_rollout(args: argparse.Namespace) -> None:
-    from gns.checkpoint import checkpoint_of, load_simulator
-    from gns.hardware import parse_device
+    from gns.checkpoint import checkpoint_of, load_simulator, parse_device
     from gns.evaluate import check_ranges, load_split, options_record, provenance_of
     from gns.rollout import (DivergedError, check_output, diverged_line, scene_label, timed_rollout,
                              write_rollouts)

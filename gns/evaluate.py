@@ -14,13 +14,12 @@ from datagen.shards import Dataset
 from gns.metrics import DEFAULT_HORIZONS, PROTOCOLS, evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
 from gns.rollout import diverged_line, split_diverged, timed_rollout, upsample_scene
 from gns.data import feature_spec
-from gns.hardware import parse_device
 from gns.network import HISTORY
 from gns.spec import RolloutOptions
 from gns.spec import outside_training
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-from gns.checkpoint import checkpoint_of, load_simulator
+from gns.checkpoint import checkpoint_of, load_simulator, parse_device
 from gns.checkpoint import default_options
 
 

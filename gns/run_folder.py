@@ -11,16 +11,15 @@ import signal
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import torch
 
-from gns import hardware
-from gns.checkpoint import LATEST, CheckpointError, checkpoint_paths, resume_point
+from gns.checkpoint import LATEST, CheckpointError, checkpoint_paths, parse_device, resume_point
 from gns.config import Config, ConfigError, build_config
-from gns.hardware import training_device
 from plumbing import atomic_file, check_writable
 
 
@@ -280,7 +279,57 @@ class StopRequest:
         return False
 
 
-def check_start(run: Path, cfg: Config, world: hardware.World, resume: bool, overwrite: bool,
+# Where the run runs: its device and threads, and its place among the processes of a torchrun
+# training (gns.processes, loaded only when there are several).
+
+
+@dataclass(frozen=True)
+class World:
+    rank: int = 0
+    size: int = 1
+    local_rank: int = 0
+
+    @property
+    def main(self) -> bool:
+        """The process that writes checkpoints, metrics and logs."""
+        return self.rank == 0
+
+
+def _env_int(name: str, default: int) -> int:
+    value = os.environ.get(name, str(default))
+    try:
+        return int(value)
+    except ValueError:
+        raise ConfigError(f"environment variable {name}={value!r} is not an integer (set by torchrun)") from None
+
+
+def world_from_env() -> World:
+    """This process's place among the torchrun processes (one process when not launched by torchrun)."""
+    return World(_env_int("RANK", 0), _env_int("WORLD_SIZE", 1), _env_int("LOCAL_RANK", 0))
+
+
+def training_device(name: str, world: World = World()) -> torch.device:
+    device = parse_device(name)
+    if world.size > 1 and device.type == "cuda":
+        return torch.device("cuda", world.local_rank)  # torchrun: one GPU per process
+    if world.size > 1 and device.type == "mps":
+        raise ConfigError("training on several processes runs on cpu or cuda, not mps")
+    return device
+
+
+def set_threads(threads: int, log: Callable[[str], None]) -> None:
+    """Use `threads` (0 = all cores), warning when other processes already load the cores:
+    OpenMP threads that get descheduled stall every parallel region (measured: 16 -> 0.6 steps/s)."""
+    cores = os.cpu_count() or 1
+    threads = threads or cores
+    torch.set_num_threads(threads)
+    load = os.getloadavg()[0]
+    if threads > 1 and load + threads > cores + 0.5:
+        log(f"warning: {threads} threads on {cores} cores with a load average of {load:.1f}; "
+            f"if steps/s collapse, use --set train.threads=1")
+
+
+def check_start(run: Path, cfg: Config, world: World, resume: bool, overwrite: bool,
                  log: Callable[[str], None]) -> tuple[list[Path], torch.device, tuple[Path, dict] | None]:
     """Everything checked before the data is read: the batch split, the run folder, the device,
     the checkpoint to resume, the extras asked for. Returns (files of an earlier run to delete,

@@ -10,7 +10,6 @@ Positions are float64 throughout; the network runs in float32 on normalised feat
 from __future__ import annotations
 
 import contextlib
-import types
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 
@@ -23,31 +22,12 @@ from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_
                        select_nodes, with_surface_edges)
 from gns.network import EncodeProcessDecode
 from gns.spec import OptionsError, RolloutOptions
-from gns.hardware import resolve_autocast
 from gns.geometry import acceleration_of, integrate, posed, shape_match_packed
 from gns.spec import ModelSpec
 from gns.stepping import Stepping
 
 # the options applied when a model is loaded (gns.checkpoint.load_simulator), not per rollout
 LOAD_OPTIONS = ("autocast", "compile", "ensemble")
-
-
-class _OwnCode(nn.Module):
-    """The network as torch.compile should see it (set_speed). torch.compile caches compiled code
-    per code object, up to dynamo's recompile_limit (8) entries, then runs eager, silently; the
-    network's own forward is one code object for every model of the class. So two compiles of one
-    network (frozen for rollouts, unfrozen for training) would share graphs, whichever came first,
-    and the ninth compiled model of a process (an ensemble, a benchmark, a script scoring many
-    runs; found scoring 12 in one) ran eager. Each instance's forward is a code object of its own."""
-
-    def __init__(self, network: nn.Module):
-        super().__init__()
-        self.network = network
-        f = type(self)._forward
-        self.forward = types.MethodType(types.FunctionType(f.__code__.replace(), f.__globals__, "forward"), self)
-
-    def _forward(self, *args: torch.Tensor) -> torch.Tensor:
-        return self.network(*args)
 
 
 def _listed(t: torch.Tensor | None) -> list | None:
@@ -153,7 +133,7 @@ class LearnedSimulator(Stepping, nn.Module):
         edge counts), compiled once and reused when switched on again. The compiled module is
         kept out of the module tree like `distribute`, so state_dict keys and checkpoints are
         unchanged. The first calls compile (tens of seconds on a CPU). autocast "auto": bf16 if it
-        measures faster here (gns.hardware); `self.autocast_used` says which was taken.
+        measures faster here (gns.speedups); `self.autocast_used` says which was taken.
 
         `freeze` (with `compile`, for rollouts of a trained model only): inductor's freezing, which
         takes the weights as constants at the first call and lays them out for the CPU's matrix
@@ -161,14 +141,17 @@ class LearnedSimulator(Stepping, nn.Module):
         that call are not seen, so a training never freezes; in training mode the unfrozen
         compile (or the plain network) runs."""
         if autocast != "none":   # auto decides here; bf16 on a CPU that emulates it warns
+            from gns.speedups import resolve_autocast
             device = next(self.network.parameters()).device
             autocast = resolve_autocast(autocast, self.network.decoder[0].in_features, device)
         self.autocast_used = autocast
         self.autocast = torch.bfloat16 if autocast == "bf16" else None
+        if compile:
+            from gns.speedups import compiled
         if compile and "_compiled_cache" not in self.__dict__:
-            self.__dict__["_compiled_cache"] = torch.compile(_OwnCode(self.network), dynamic=True)
+            self.__dict__["_compiled_cache"] = compiled(self.network)
         if compile and freeze and "_frozen_cache" not in self.__dict__:
-            self.__dict__["_frozen_cache"] = torch.compile(_OwnCode(self.network), dynamic=True)
+            self.__dict__["_frozen_cache"] = compiled(self.network)
         self.__dict__["_compiled"] = self.__dict__["_compiled_cache"] if compile else None
         self.__dict__["_frozen"] = self.__dict__["_frozen_cache"] if compile and freeze else None
 

@@ -149,7 +149,7 @@ def sweep_runs(p: dict, out: Path) -> list[tuple[str, Path]]:
 
 
 # the fast rollout options: gns eval --free-flight --autocast auto --compile (and --symmetrize);
-# auto: bf16 where it measures faster on this machine (gns.hardware), else float32; each row says which
+# auto: bf16 where it measures faster on this machine (gns.speedups), else float32; each row says which
 FAST = "free flight + auto precision + compile"
 FAST_SYM = FAST + " + symmetrized"
 MODES = {None: "gns batched", "fast": "gns fast", "fast sym": "gns fast sym"}
