@@ -1,7 +1,8 @@
-"""The run folder a training writes and a resumed one reads back: metrics.jsonl, config.json,
-provenance.json, TensorBoard events, the progress lines of a run off a terminal, and the checks
-made before a run starts over or goes on
-(the checkpoints themselves are gns.checkpoint)."""
+"""The run folder a training writes and a resumed one reads back (metrics.jsonl, config.json,
+provenance.json), where the run runs (its device, threads and place among torchrun processes),
+the progress lines of a run off a terminal, the signals that stop it, and the checks made before
+a run starts over or goes on. The checkpoints themselves are gns.checkpoint's; TensorBoard's
+event files, written only with train.tensorboard, gns.tensorboard_log's."""
 from __future__ import annotations
 
 import json
@@ -29,6 +30,7 @@ METRICS = "metrics.jsonl"
 PROVENANCE = "provenance.json"
 
 
+# TensorBoard event files (gns.tensorboard_log) go here: an overwrite deletes them with the rest
 TENSORBOARD_DIR = "tb"
 
 
@@ -90,38 +92,6 @@ def read_metrics(path: str | Path) -> list[dict]:
     return entries
 
 
-def tensorboard_writer(run: Path, purge_step: int | None):
-    """A SummaryWriter on RUN/tb. On resume, events after the checkpoint's step (logged before a
-    crash, trained again now) are purged, as _drop_metrics_after drops their metrics lines."""
-    from torch.utils.tensorboard import SummaryWriter
-    return SummaryWriter(log_dir=str(run / TENSORBOARD_DIR), purge_step=purge_step)
-
-
-def check_tensorboard() -> None:
-    """train.tensorboard needs the extra; checked before any work, one line."""
-    try:
-        import tensorboard  # noqa: F401
-    except ImportError:
-        raise ConfigError("train.tensorboard=true needs TensorBoard: pip install 'rigid-gns[tensorboard]'") from None
-
-
-def tensorboard_tag(key: str) -> str:
-    """metrics.jsonl key -> TensorBoard tag, grouped as TensorBoard shows them: train/, valid/, speed/."""
-    if key.startswith("valid_"):
-        return "valid/" + key[len("valid_"):]
-    if key.endswith("_per_sec"):
-        return "speed/" + key
-    return "train/" + key
-
-
-def _log_scalars(writer, entry: dict) -> None:
-    for key, value in entry.items():
-        if key in ("step", "time") or isinstance(value, bool) or not isinstance(value, (int, float)):
-            continue   # None (all rollouts diverged) is not a scalar; counts and rates are
-        writer.add_scalar(tensorboard_tag(key), value, entry["step"])
-    writer.flush()
-
-
 def run_provenance(data_dir: str | Path, fingerprint: str, step: int, earlier: dict | None) -> dict:
     """What a run records of where it came from: versions, code commit, the data it trained on;
     earlier runs of a resumed training are kept in `earlier`, oldest first."""
@@ -152,7 +122,8 @@ def write_metrics(metrics, writer, entry: dict) -> None:
     metrics.write(json.dumps(entry) + "\n")
     metrics.flush()
     if writer is not None:
-        _log_scalars(writer, entry)
+        from gns.tensorboard_log import log_scalars
+        log_scalars(writer, entry)
 
 
 def resolve_config(run_dir: str | Path, resume: bool, config_path: str | None, overrides: list[str]) -> Config:
@@ -348,5 +319,6 @@ def check_start(run: Path, cfg: Config, world: World, resume: bool, overwrite: b
     if world.main:
         check_writable(run, "run folder")
     if cfg.train.tensorboard:
+        from gns.tensorboard_log import check_tensorboard
         check_tensorboard()
     return stale, device, resumed

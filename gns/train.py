@@ -29,7 +29,7 @@ from gns.data import Batch, ObjectTracks, load_data
 from gns.network import HISTORY
 from gns.geometry import shape_match_packed
 from gns.run_folder import (METRICS, StopRequest, World, check_start, progress_bar, restore_rng, rng_state,
-                            run_provenance, set_threads, start_run_folder, tensorboard_writer, world_from_env,
+                            run_provenance, set_threads, start_run_folder, world_from_env,
                             write_metrics)
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
@@ -176,8 +176,10 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
     last_good = resumed_from
     bar = progress_bar(cfg.train.steps, step, log, enabled=world.main)
     metrics = open(run / METRICS, "a") if world.main else None
-    writer = (tensorboard_writer(run, step + 1 if resumed_from else None)
-              if cfg.train.tensorboard and world.main else None)
+    writer = None
+    if cfg.train.tensorboard and world.main:
+        from gns.tensorboard_log import tensorboard_writer
+        writer = tensorboard_writer(run, step + 1 if resumed_from else None)
     stop = StopRequest() if world.size == 1 else contextlib.nullcontext()
     try:
         with stop:
