@@ -142,9 +142,11 @@ def _at_data_rate(args: argparse.Namespace) -> bool:
     """--at-data-rate as given, else as a zoo model's card says it was scored (its [eval] table)."""
     if args.at_data_rate is not None:
         return args.at_data_rate
-    from gns import checkpoint
-    if checkpoint.is_name(args.run_dir) and args.run_dir in checkpoint.names():
-        return bool(checkpoint.card(args.run_dir).data.get("eval", {}).get("at_data_rate", False))
+    from gns.checkpoint import is_name
+    if is_name(args.run_dir):
+        from gns import zoo
+        if args.run_dir in zoo.names():
+            return bool(zoo.card(args.run_dir).data.get("eval", {}).get("at_data_rate", False))
     return False
 
 
@@ -264,7 +266,8 @@ def add_eval_parsers(sub) -> None:
 
 
 def cmd_export(args: argparse.Namespace) -> None:
-    from gns.checkpoint import checkpoint_of, export_model
+    from gns.checkpoint import checkpoint_of
+    from gns.zoo import export_model
 
     out = export_model(checkpoint_of(args.run_dir), args.out, overwrite=args.overwrite)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB): model, config and training ranges, no optimiser state")
@@ -320,8 +323,8 @@ def add_plot_parser(sub) -> None:
 
 
 def cmd_models(args: argparse.Namespace) -> None:
-    from gns import checkpoint
-    print(checkpoint.format_card(args.name) if args.name else checkpoint.format_list())
+    from gns import zoo
+    print(zoo.format_card(args.name) if args.name else zoo.format_list())
 
 
 def add_models_parser(sub) -> None:
@@ -347,10 +350,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _failures() -> tuple:
-    """The error classes of work that ran and failed (exit 1) among the modules the command loaded:
-    importing gns.train only to name its error would load the training for `gns eval`."""
-    names = (("gns.train", "TrainingError"), ("gns.rollout", "DivergedError"))
+# Error classes of modules a command may not load, as (module, class): bad input (exit 2), and
+# work that ran and failed (exit 1).
+BAD_INPUT = (("gns.zoo", "ZooError"),)
+FAILED = (("gns.train", "TrainingError"), ("gns.rollout", "DivergedError"))
+
+
+def _loaded(names: tuple) -> tuple:
+    """The classes of `names` among the modules the command loaded: importing gns.train only to
+    name its error would load the training for `gns eval`."""
     return tuple(getattr(sys.modules[m], n) for m, n in names if m in sys.modules)
 
 
@@ -363,11 +371,10 @@ def main(argv: list[str] | None = None) -> None:
     # Imported after parsing so that `gns --help` and usage errors do not wait for torch.
     from gns.checkpoint import CheckpointError
     from gns.spec import OptionsError
-    from gns.checkpoint import ZooError
 
     try:
         args.run(args)
-    except (DataError, ConfigError, CheckpointError, OptionsError, ZooError) as e:
+    except (DataError, ConfigError, CheckpointError, OptionsError, *_loaded(BAD_INPUT)) as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(EXIT_BAD_INPUT)
     except BrokenPipeError:
@@ -379,7 +386,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"error: {e.strerror or e}: {e.filename}", file=sys.stderr)
         raise SystemExit(EXIT_FAILED)
     except Exception as e:  # after OSError: a re-raise here reaches no other clause
-        if not isinstance(e, _failures()):
+        if not isinstance(e, _loaded(FAILED)):
             raise
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(EXIT_FAILED)

@@ -16,7 +16,8 @@ from plumbing import DataError
 from gns.api import history_poses, matrix_to_quat, quat_to_matrix
 from gns.cli import main as gns_main
 from gns.config import ConfigError, build_config
-from gns.checkpoint import CheckpointError, export_model, read_checkpoint
+from gns.checkpoint import CheckpointError, read_checkpoint
+from gns.zoo import export_model
 from gns.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
