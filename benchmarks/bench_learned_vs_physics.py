@@ -50,9 +50,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from datagen.scenes import sample_scene  # noqa: E402
 from datagen.toss import step_only  # noqa: E402
-from gns.evaluate import checkpoint_of, load_split  # noqa: E402
+from gns.checkpoint import checkpoint_of  # noqa: E402
+from gns.evaluate import load_split, rollout_scenes  # noqa: E402
 from gns.metrics import evaluate_scenes  # noqa: E402
-from gns.rollout import rollout_scenes  # noqa: E402
 from gns.symmetry import SYMMETRY_GROUPS  # noqa: E402
 from gns.checkpoint import load_model, read_checkpoint  # noqa: E402
 

@@ -31,7 +31,7 @@ from gns.checkpoint import default_options, load_simulator, checkpoint_of  # noq
 from gns.evaluate import load_split  # noqa: E402
 from gns.metrics import bounding_gaps  # noqa: E402
 from gns.network import HISTORY  # noqa: E402
-from gns.rollout import rollout_scenes  # noqa: E402
+from gns.evaluate import rollout_scenes  # noqa: E402
 
 
 def touching_pairs(sc, meshes) -> float:

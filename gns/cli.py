@@ -6,6 +6,7 @@ line `error: ...` on stderr and exits with status 2 (bad input) or 1 (training f
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import warnings
@@ -67,37 +68,15 @@ def _threads(n: int) -> None:
 
 
 def cmd_rollout(args: argparse.Namespace) -> None:
-    from gns.checkpoint import checkpoint_of, load_simulator, parse_device
-    from gns.evaluate import check_ranges, load_split, options_record, provenance_of
-    from gns.rollout import (DivergedError, check_output, diverged_line, scene_label, timed_rollout,
-                             write_rollouts)
-    from gns.spec import ModelSpec
+    from gns.rollout_dataset import rollout_run
 
     _threads(args.threads)
-
     options = _rollout_options(args)
-    device = parse_device(args.device, "--device")
-    check_output(args.out, args.overwrite, args.data)
-    ckpt = checkpoint_of(args.run_dir)
-    sim, saved = load_simulator(ckpt, device, options)
-    spec = ModelSpec.from_dict(saved["spec"])
-    ds, scenes = load_split(args.data, args.split, args.limit, spec.frame_rate)
-    check_ranges(spec, ds, scenes)
-    pred, seconds, warmup = timed_rollout(sim, scenes, ds.meshes, ds.frame_rate)
-    diverged = [scene_label(sc, i) for i, (p, sc) in enumerate(zip(pred, scenes)) if "diverged_at_frame" in p.attrs]
-    if len(diverged) == len(pred):
-        raise DivergedError(f"every rollout diverged ({len(pred)} scenes: positions became inf or NaN); "
-                            f"nothing written to {args.out}")
-    if diverged:
-        print(diverged_line(diverged, len(pred), f"not written (listed in {args.out}/metadata.json)"), file=sys.stderr)
-    info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]),
-            "data": str(args.data), "split": args.split, "given_frames": 3, "seconds": seconds,
-            "warmup_seconds": warmup, "object_steps": sim.rollout_counts, **options_record(sim),
-            **provenance_of(saved, ds)}
-    write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
-    print(f"rolled out {len(pred)} scenes in {seconds:.2f} s"
+    done, written, seconds, warmup = rollout_run(args.run_dir, args.data, args.out, args.split, args.limit, options,
+                                                 args.device, args.overwrite)
+    print(f"rolled out {done} scenes in {seconds:.2f} s"
           + (f" (after {warmup:.1f} s compiling, not counted)" if warmup is not None else "")
-          + f"; wrote {len(pred) - len(diverged)} to {args.out}")
+          + f"; wrote {written} to {args.out}")
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
@@ -159,7 +138,6 @@ def _rollout_options(args: argparse.Namespace):
     """The model's default options (a zoo model's scored ones, gns.checkpoint.default_options) with the
     flags given on top."""
     from gns.checkpoint import default_options
-    from gns.rollout import check_flags
     check_flags(**{k: getattr(args, k) for k in ("batch", "limit", "sleep_fraction", "free_clearance")})
     given = {k: getattr(args, k) for k in OPTION_FLAGS}
     if given["ensemble"] is not None:
@@ -170,6 +148,18 @@ def _rollout_options(args: argparse.Namespace):
     if args.sleep_fraction is not None and not options.sleep:
         raise ConfigError("--sleep-fraction sets when an object is at rest: it needs --sleep")
     return options
+
+
+def check_flags(**flags) -> None:
+    """Numeric rollout flags (`gns rollout`, `gns eval`) out of range ({dest: value}, None when
+    unset): one line naming the flag, before the model or the data are read."""
+    rules = {"batch": (lambda v: v >= 1, "a whole number >= 1"), "limit": (lambda v: v >= 1, ">= 1 scene"),
+             "sleep_fraction": (lambda v: math.isfinite(v) and v > 0, "a finite number > 0"),
+             "free_clearance": (lambda v: math.isfinite(v) and v >= 0, "a finite height >= 0 above the floor")}
+    for dest, value in flags.items():
+        ok, want = rules[dest]
+        if value is not None and not ok(value):
+            raise DataError(f"--{dest.replace('_', '-')} must be {want}, got {value:g}")
 
 
 def _add_rollout_args(p) -> None:
@@ -285,31 +275,10 @@ def add_export_parser(sub) -> None:
 
 
 def cmd_plot_curves(args: argparse.Namespace) -> None:
-    from pathlib import Path
+    from gns.charts import plot_runs
 
-    from plumbing import check_writable
-    from gns.charts import plot_training_curves
-    from gns.run_folder import METRICS, read_metrics
-
-    out = Path(args.out)
-    if out.suffix.lower() not in (".png", ".pdf", ".svg"):
-        raise DataError(f"--out {out}: give a .png, .pdf or .svg file name")
-    if out.is_dir():
-        raise DataError(f"--out {out} is a folder; give a file name such as {out / 'curves.png'}")
-    runs = {}
-    for run in args.runs:
-        path = Path(run)
-        path = path / METRICS if path.is_dir() else path
-        if not path.is_file():
-            raise DataError(f"no {METRICS} in {run}: not a training run folder")
-        entries = read_metrics(path)
-        if not entries:
-            raise DataError(f"{path} holds no metrics yet")
-        label = Path(run).name if Path(run).is_dir() else Path(run).parent.name
-        runs[label if label not in runs else str(run)] = entries
-    check_writable(out.parent, "output folder")
-    plot_training_curves(runs, out, log_loss=not args.linear)
-    print(f"wrote {out} ({len(runs)} run{'s' if len(runs) > 1 else ''})")
+    out, count = plot_runs(args.runs, args.out, log_loss=not args.linear)
+    print(f"wrote {out} ({count} run{'s' if count > 1 else ''})")
 
 
 def add_plot_parser(sub) -> None:
@@ -353,7 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
 # Error classes of modules a command may not load, as (module, class): bad input (exit 2), and
 # work that ran and failed (exit 1).
 BAD_INPUT = (("gns.zoo", "ZooError"),)
-FAILED = (("gns.train", "TrainingError"), ("gns.rollout", "DivergedError"))
+FAILED = (("gns.train", "TrainingError"), ("gns.evaluate", "DivergedError"))
 
 
 def _loaded(names: tuple) -> tuple:

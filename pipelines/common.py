@@ -74,7 +74,7 @@ def finished_dataset(out: Path, key: str, value, what: str) -> Dataset | None:
 def guarded(stages) -> int:
     """Run a pipeline's stages; a user error ends it with one `error:` line and exit status 2."""
     from gns.config import ConfigError
-    from gns.rollout import DivergedError
+    from gns.evaluate import DivergedError
     from gns.train import TrainingError
     try:
         stages()

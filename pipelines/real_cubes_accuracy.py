@@ -27,7 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from plumbing import DataError
-from gns.evaluate import evaluate_baseline, evaluate_run, write_json
+from baselines.toss import evaluate_baseline
+from gns.evaluate import evaluate_run, write_json
 from gns.checkpoint import read_checkpoint
 from gns.zoo import export_model
 from pipelines.common import Costs, done, guarded, say, train_stage

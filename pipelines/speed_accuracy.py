@@ -27,9 +27,9 @@ from datagen.shards import Dataset
 from datagen.toss import simulate
 from gns.config import build_config
 from gns.data import feature_spec
-from gns.evaluate import checkpoint_of, load_split, write_json
+from gns.checkpoint import checkpoint_of
+from gns.evaluate import load_split, rollout_scenes, split_diverged, write_json
 from gns.metrics import METRICS, evaluate_scenes
-from gns.rollout import rollout_scenes, split_diverged
 from gns.simulator import LearnedSimulator
 from gns.checkpoint import load_model, read_checkpoint
 from plumbing import check_writable
