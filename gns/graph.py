@@ -26,7 +26,7 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     pairs = np.concatenate([pairs, pairs[:, ::-1]])
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]
     # one int64 key a pair, ordered as the pairs are: np.unique on rows (axis=0) is ~20x slower,
-    # and ensembles rebuild a whole batch's edges every step (with_surface_edges)
+    # and ensembles rebuild a whole batch's edges every step (gns.ensemble.with_surface_edges)
     base = int(pairs.max(initial=-1)) + 1
     keys = np.unique(pairs[:, 0] * base + pairs[:, 1])
     return np.stack([keys // base, keys % base], axis=1)
@@ -310,32 +310,3 @@ def lowest_nodes(z: torch.Tensor, graph: GraphBatch, k: int, top: int = 0) -> to
     rank = torch.empty_like(order).scatter_(1, order, torch.arange(width, device=z.device).expand_as(order))
     rank = rank.view(-1).index_select(0, slot)
     return (rank <= k) | (rank >= (count - top).index_select(0, node_graph))
-
-
-def with_surface_edges(graph: GraphBatch, surface: bool) -> GraphBatch:
-    """A graph with centre nodes (the last node of each graph, MeshLibrary's centre_node) with its
-    mesh edges rebuilt from its faces: the surface edges (if `surface`) and the spokes, in the
-    order MeshLibrary packs them, so that a model trained on the other kind of graph
-    (features.surface_edges) reads the same nodes (an ensemble member)."""
-    if graph.faces is None:
-        raise ValueError("the graph has no faces to rebuild its surface edges from")
-    g = graph.num_graphs
-    device = graph.node_graph.device
-    count = torch.bincount(graph.node_graph, minlength=g)
-    centre = torch.cumsum(count, 0) - 1
-    ring = torch.ones(graph.num_nodes, dtype=torch.bool, device=device)
-    ring[centre] = False
-    ring = ring.nonzero()[:, 0]
-    hub = centre[graph.node_graph[ring]]
-    parts = [torch.stack([ring, hub], 1), torch.stack([hub, ring], 1)]
-    kinds = [1, 2]
-    if surface:   # the batch's node numbers keep each graph's edges together and sorted as its own
-        parts.insert(0, torch.from_numpy(mesh_edges(graph.faces.cpu().numpy())).to(device))
-        kinds.insert(0, 0)
-    edges = torch.cat(parts)
-    kind = torch.cat([torch.full((len(p),), k, device=device) for p, k in zip(parts, kinds)])
-    # graph by graph, and within a graph surface edges, then spokes in, then spokes out
-    order = torch.sort(graph.node_graph[edges[:, 0]] * 3 + kind, stable=True).indices
-    edges = edges[order]
-    return replace(graph, mesh_edges=EdgeSet(edges[:, 0].contiguous(), edges[:, 1].contiguous()))
-

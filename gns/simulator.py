@@ -18,8 +18,7 @@ from torch import nn
 
 from gns.network import FeatureLayout, Normalizer, make_layout, raw_collision_features, raw_edge_features, raw_node_features
 from gns.config import ConfigError
-from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes,
-                       select_nodes, with_surface_edges)
+from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes, select_nodes
 from gns.network import EncodeProcessDecode
 from gns.spec import OptionsError, RolloutOptions
 from gns.geometry import acceleration_of, integrate, posed, shape_match_packed
@@ -28,19 +27,6 @@ from gns.stepping import Stepping
 
 # the options applied when a model is loaded (gns.checkpoint.load_simulator), not per rollout
 LOAD_OPTIONS = ("autocast", "compile", "ensemble")
-
-
-def _listed(t: torch.Tensor | None) -> list | None:
-    """A small tensor as a list, for comparisons and messages."""
-    return None if t is None else [round(float(v), 12) for v in t.reshape(-1)]
-
-
-def _surface_free(settings: dict, other: "LearnedSimulator") -> dict:
-    """Graph settings as an ensemble compares them: surface_edges left out where both models have
-    centre nodes (the spokes are then rebuilt exactly)."""
-    if settings["centre_node"] and other._graph_settings["centre_node"]:
-        return {k: v for k, v in settings.items() if k != "surface_edges"}
-    return settings
 
 
 class LearnedSimulator(Stepping, nn.Module):
@@ -256,22 +242,9 @@ class LearnedSimulator(Stepping, nn.Module):
         differ (e.g. the floor seen from farther): free flight then waits until every member's
         floor feature is clear (free_flight_clip). With centre nodes on both, a member may differ in
         features.surface_edges alone: it reads each step's graph with its own mesh edges, rebuilt
-        from the faces (gns.graph.with_surface_edges)."""
-        for k, m in enumerate(members, 1):
-            for what, mine, theirs in (("network mesh (features.centre_node, surface_edges)",
-                                        _surface_free(self._graph_settings, m), _surface_free(m._graph_settings, self)),
-                                       ("floor height", self.layout.floor_z, m.layout.floor_z),
-                                       ("collision edges (features and radius)",
-                                        (self.layout.collision_groups, self.layout.collision_radius),
-                                        (m.layout.collision_groups, m.layout.collision_radius)),
-                                       ("time step and gravity", _listed(self.gravity_per_frame),
-                                        _listed(m.gravity_per_frame)),
-                                       ("nodes seen (features.lowest_vertices, highest_vertices)",
-                                        (self.lowest_vertices, self.highest_vertices),
-                                        (m.lowest_vertices, m.highest_vertices))):
-                if mine != theirs:
-                    raise ValueError(f"ensemble member {k} differs from the model in its {what}: "
-                                     f"{theirs} there, {mine} in the model")
+        from the faces (gns.ensemble.with_surface_edges)."""
+        from gns.ensemble import check_members
+        check_members(self, members)
         self.__dict__["_members"] = list(members)
 
     @property
@@ -287,6 +260,7 @@ class LearnedSimulator(Stepping, nn.Module):
         members = self.__dict__.get("_members")
         if not members:  # the rollout's hot path: no extra tensor work without an ensemble
             return acc
+        from gns.ensemble import with_surface_edges
         for m in members:
             own = m._graph_settings["surface_edges"]
             seen = graph if own == self._graph_settings["surface_edges"] else with_surface_edges(graph, own)
