@@ -26,13 +26,14 @@ import fcntl
 import os
 import time
 from contextlib import contextmanager
-from pathlib import Path
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Iterator
 
 from plumbing import atomic_file, DataError
 from plumbing import file_sha256
-from .shards import METADATA_FILE, SHARED, SPLITS, clear_dataset, dataset_files, shard_name, write_metadata, write_shard_image
+from .shards import (METADATA_FILE, SHARED, SPLITS, clear_dataset, dataset_files, shard_name, write_metadata,
+                     write_shard_image)
 
 CLAIM_FILE = ".datagen-toss.claim"
 LOCK_FILE = ".datagen-toss.lock"

@@ -238,6 +238,10 @@ def floor_violations(sc: Scene, meshes: dict, floor_z: float, physics_dt: float)
     return out
 
 
+# The dataset: each shard simulated in memory by whichever process takes it, and written in place
+# (the plan and the folder's claim are datagen/output.py's).
+
+
 def _meshes(cfg: dict) -> dict:
     return {name: (get_shape(name).vertices, get_shape(name).faces) for name in cfg["scene"]["shapes"]}
 

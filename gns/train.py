@@ -29,8 +29,7 @@ from gns.data import Batch, ObjectTracks, load_data
 from gns.network import HISTORY
 from gns.geometry import shape_match_packed
 from gns.run_folder import (METRICS, StopRequest, World, check_start, progress_bar, restore_rng, rng_state,
-                            run_provenance, set_threads, start_run_folder, world_from_env,
-                            write_metrics)
+                            run_provenance, set_threads, start_run_folder, world_from_env, write_metrics)
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 
