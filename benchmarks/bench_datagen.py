@@ -25,7 +25,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from datagen.scenes import load_config  # noqa: E402
 from datagen.toss import generate  # noqa: E402
 from datagen.scenes import sample_scene  # noqa: E402
-from datagen.toss import step_only  # noqa: E402
+from datagen.toss import build_world, pb, steps_per_frame  # noqa: E402
+
+
+def step_only(spec, cfg: dict) -> None:
+    """Build and step the same world as datagen.toss.simulate without recording: the bare-PyBullet
+    baseline (here and in bench_learned_vs_physics.py, bench_multi_object.py)."""
+    frames, sub = int(cfg["scene"]["frames"]), steps_per_frame(cfg)
+    c, _ = build_world(spec, cfg)
+    try:
+        for _ in range((frames - 1) * sub):
+            pb.stepSimulation(physicsClientId=c)
+    finally:
+        pb.disconnect(c)
 
 
 def best_of(repeats, fn):

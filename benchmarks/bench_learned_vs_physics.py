@@ -46,10 +46,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path[:0] = [str(Path(__file__).resolve().parent.parent), str(Path(__file__).resolve().parent)]
 
+from bench_datagen import step_only  # noqa: E402
 from datagen.scenes import sample_scene  # noqa: E402
-from datagen.toss import step_only  # noqa: E402
 from gns.checkpoint import checkpoint_of  # noqa: E402
 from gns.evaluate import load_split, rollout_scenes  # noqa: E402
 from gns.metrics import evaluate_scenes  # noqa: E402

@@ -192,17 +192,6 @@ def simulate(spec: SceneSpec, cfg: dict, after_frame=None, client: int | None = 
     )
 
 
-def step_only(spec: SceneSpec, cfg: dict) -> None:
-    """Build and step the same world without recording: the benchmark's bare-PyBullet baseline."""
-    frames, sub = int(cfg["scene"]["frames"]), steps_per_frame(cfg)
-    c, _ = build_world(spec, cfg)
-    try:
-        for _ in range((frames - 1) * sub):
-            pb.stepSimulation(physicsClientId=c)
-    finally:
-        pb.disconnect(c)
-
-
 # A recorded frame can catch an impact between the physics step that crossed the floor and the
 # one that resolves it, so a vertex may legitimately sit one physics step of travel below the
 # floor, or a few % of the size in a resting contact. Deeper than both is a bug or tunnelling.
