@@ -3,7 +3,7 @@
 The toss protocol (given frames, start state, score) is baselines.toss's, the identification
 baselines.identify's; this module is the engine.
 
-The world follows datagen/simulate.py (Kubric's settings): a fresh DIRECT client per toss, a
+The world follows datagen/toss.py (Kubric's settings): a fresh DIRECT client per toss, a
 thick box floor with its top at z = floor_z, maximal coordinates, contactProcessingThreshold=0,
 no restitution velocity threshold, split impulse with splitImpulsePenetrationThreshold=0, no
 damping. The cube is a GEOM_BOX (box-box contacts are exact: it rests at z = 1 - 1e-4, where a
@@ -38,7 +38,7 @@ from baselines.toss import FRAME_RATE, GRAVITY, half_extent, initial_state, pred
 from datagen.contactnets import DEFAULTS as CONTACTNETS
 from datagen.shards import Scene
 from datagen.shards import wxyz, xyzw
-from datagen.simulate import add_floor, new_world, pb
+from datagen.toss import add_floor, new_world, pb
 from gns.network import HISTORY
 
 

@@ -14,10 +14,13 @@ build meshes; tests check the copy against gns.metrics.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
+from plumbing import DataError
 from datagen.contactnets import DEFAULTS as CONTACTNETS
 from datagen.shards import continuous, rotation
 from datagen.shards import Scene
@@ -68,7 +71,7 @@ def prediction_arrays(scene: Scene, given: int = HISTORY) -> tuple[np.ndarray, .
 
 def prediction_scene(scene: Scene, arrays, engine: str, params, restitution: float) -> Scene:
     """The predicted Scene from filled prediction_arrays, its quaternions kept on one cover along
-    the toss (as the truth and datagen.simulate do)."""
+    the toss (as the truth and datagen.toss do)."""
     pos, quat, vel, ang = arrays
     return Scene(positions=pos, quaternions=continuous(quat), velocities=vel, angular_velocities=ang,
                  shape=list(scene.shape), material=list(scene.material), scale=scene.scale.copy(),
@@ -95,3 +98,25 @@ def first_frames(scene: Scene, frames: int | None) -> Scene:
         return scene
     return replace(scene, positions=scene.positions[:frames], quaternions=scene.quaternions[:frames],
                    velocities=scene.velocities[:frames], angular_velocities=scene.angular_velocities[:frames])
+
+
+def evaluate_baseline(data: str | Path, split: str = "test", params=None, limit: int | None = None,
+                      plots_dir: str | Path | None = None, engine: str = "pybullet",
+                      given: int = HISTORY) -> tuple[dict, list, list, object]:
+    """gns.evaluate.evaluate_run for an analytic baseline ("pybullet" or "mujoco"): every
+    one-cube scene of a split simulated from its first `given` frames with `params` (default: the
+    engine's defaults, for PyBullet the published ContactNets constants), scored the same way.
+    Returns (results, predicted, true, dataset)."""
+    from baselines import baseline_engine  # the engines only when asked for
+    from gns.evaluate import load_split, score_predictions
+    params_class, simulate, _ = baseline_engine(engine)
+    params = params_class() if params is None else params
+    ds, scenes = load_split(data, split, limit)
+    t0 = time.perf_counter()
+    try:
+        pred = [simulate(sc, params, frame_rate=ds.frame_rate, given=given) for sc in scenes]
+    except ValueError as e:
+        raise DataError(f"{data}: {e}") from None
+    results = score_predictions(pred, scenes, ds, time.perf_counter() - t0, plots_dir)
+    results.update(baseline=engine, params=params.to_dict(), data=str(data), split=split, given_frames=given)
+    return results, pred, scenes, ds

@@ -6,7 +6,7 @@ Bare PyBullet = build the same world (fresh client, same settings) and step it f
 duration, without recording or writing. Last, `datagen toss` as a user runs it (a fresh
 process, 1 worker, start-up included), with and without glibc's default heap behaviour
 (DATAGEN_KEEP_HEAP=0: freed memory handed back to the system after a scene and faulted in again
-by the next, datagen.simulate.keep_freed_memory); in-process timings cannot show that saving,
+by the next, datagen.toss.keep_freed_memory); in-process timings cannot show that saving,
 because how much is handed back depends on what the process allocated before. `datagen` = scene sampling, simulation, recording and
 HDF5 writing, as `datagen toss` runs them. All figures come from this one run; the best of
 --repeats is taken to damp noise from other processes.
@@ -23,9 +23,21 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from datagen.scenes import load_config  # noqa: E402
-from datagen.generate import generate  # noqa: E402
+from datagen.toss import generate  # noqa: E402
 from datagen.scenes import sample_scene  # noqa: E402
-from datagen.simulate import step_only  # noqa: E402
+from datagen.toss import build_world, pb, steps_per_frame  # noqa: E402
+
+
+def step_only(spec, cfg: dict) -> None:
+    """Build and step the same world as datagen.toss.simulate without recording: the bare-PyBullet
+    baseline (here and in bench_learned_vs_physics.py, bench_multi_object.py)."""
+    frames, sub = int(cfg["scene"]["frames"]), steps_per_frame(cfg)
+    c, _ = build_world(spec, cfg)
+    try:
+        for _ in range((frames - 1) * sub):
+            pb.stepSimulation(physicsClientId=c)
+    finally:
+        pb.disconnect(c)
 
 
 def best_of(repeats, fn):
@@ -83,7 +95,7 @@ def main(argv=None):
         print(f"{name:<34}{t:9.2f}{a.scenes / t:10.1f}{r:8.2f}x")
     print(f"overhead of datagen over bare PyBullet (1 worker): {t_one / t_bare:.2f}x")
     print(f"speed-up of 2 workers over 1: {t_one / t_two:.2f}x")
-    print(f"keeping freed heap memory (datagen.simulate.keep_freed_memory): datagen toss {t_cli_given / t_cli_kept:.2f}x "
+    print(f"keeping freed heap memory (datagen.toss.keep_freed_memory): datagen toss {t_cli_given / t_cli_kept:.2f}x "
           "as fast as with glibc's defaults")
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from datagen.scenes import load_config  # noqa: E402
-from datagen.generate import generate  # noqa: E402
+from datagen.toss import generate  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_datagen import best_of  # noqa: E402

@@ -46,14 +46,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path[:0] = [str(Path(__file__).resolve().parent.parent), str(Path(__file__).resolve().parent)]
 
+from bench_datagen import step_only  # noqa: E402
 from datagen.scenes import sample_scene  # noqa: E402
-from datagen.simulate import step_only  # noqa: E402
-from gns.evaluate import checkpoint_of, load_split  # noqa: E402
+from gns.checkpoint import checkpoint_of  # noqa: E402
+from gns.evaluate import load_split, rollout_scenes  # noqa: E402
 from gns.metrics import evaluate_scenes  # noqa: E402
-from gns.rollout import rollout_scenes  # noqa: E402
-from gns.stepping import SYMMETRY_GROUPS  # noqa: E402
+from gns.symmetry import SYMMETRY_GROUPS  # noqa: E402
 from gns.checkpoint import load_model, read_checkpoint  # noqa: E402
 
 GROUPS = tuple(g for g in SYMMETRY_GROUPS if g != "d2")   # --symmetrize GROUP; "sym" is d2

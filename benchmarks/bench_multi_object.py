@@ -23,15 +23,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path[:0] = [str(Path(__file__).resolve().parent.parent), str(Path(__file__).resolve().parent)]
 
+from bench_datagen import step_only  # noqa: E402
 from bench_learned_vs_physics import pybullet_specs  # noqa: E402
-from datagen.simulate import step_only  # noqa: E402
 from gns.checkpoint import default_options, load_simulator, checkpoint_of  # noqa: E402
 from gns.evaluate import load_split  # noqa: E402
 from gns.metrics import bounding_gaps  # noqa: E402
 from gns.network import HISTORY  # noqa: E402
-from gns.rollout import rollout_scenes  # noqa: E402
+from gns.evaluate import rollout_scenes  # noqa: E402
 
 
 def touching_pairs(sc, meshes) -> float:

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 import gns.network
 from gns.config import build_config
-from gns.rollout import rollout_tracks
+from gns.evaluate import rollout_tracks
 from gns.checkpoint import build_simulator
 
 HERE = Path(__file__).resolve().parent

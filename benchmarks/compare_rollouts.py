@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from gns.checkpoint import CheckpointError  # noqa: E402
 from gns.config import ConfigError  # noqa: E402
 from gns.evaluate import evaluate_run, write_json  # noqa: E402
-from gns.stepping import SYMMETRY_GROUPS  # noqa: E402
+from gns.symmetry import SYMMETRY_GROUPS  # noqa: E402
 from plumbing import DataError  # noqa: E402
 
 METRICS = {"position_error_pct": "position %", "rotation_error_deg": "rotation deg"}

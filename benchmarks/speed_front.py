@@ -35,12 +35,11 @@ import torch
 sys.path[:0] = [str(Path(__file__).resolve().parent.parent), str(Path(__file__).resolve().parent)]
 
 from bench_learned_vs_physics import pareto_front, pybullet_specs  # noqa: E402
-from datagen.simulate import simulate  # noqa: E402
+from datagen.toss import simulate  # noqa: E402
 from gns.checkpoint import default_options, load_simulator  # noqa: E402
-from gns.evaluate import load_split  # noqa: E402
-from gns.hardware import bf16_speedup, resolve_autocast  # noqa: E402
+from gns.evaluate import load_split, rollout_scenes  # noqa: E402
+from gns.speedups import bf16_speedup, resolve_autocast  # noqa: E402
 from gns.metrics import evaluate_scenes  # noqa: E402
-from gns.rollout import rollout_scenes  # noqa: E402
 
 RATES = (24, 36, 60, 120, 240, 480, 960)      # physics steps per second; multiples of MOVi-A's 12 fps
 ITERATIONS = (5, 10, 20, 50)

@@ -46,7 +46,7 @@ def cmd_toss(a) -> int:
         return cmd_toss_mujoco(a)
     if a.stiffness is not None:
         raise ConfigError("--stiffness is MuJoCo's contact stiffness: give --engine mujoco")
-    from .generate import generate
+    from .toss import generate
     sets = list(a.set or [])
     for flag, key in (("shapes", "scene.shapes"), ("sizes", "scene.sizes"), ("materials", "scene.materials")):
         val = getattr(a, flag)

@@ -14,7 +14,7 @@ import numpy as np
 from .shards import METADATA_FILE, Dataset, Scene, read_shard
 from plumbing import DataError
 from plumbing import file_sha256
-from .simulate import floor_violations, rotate
+from .toss import floor_violations, rotate
 
 UNIT_QUAT_TOL = 1e-6
 

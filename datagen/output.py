@@ -26,15 +26,14 @@ import fcntl
 import os
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator
+from typing import Iterator
 
 from plumbing import atomic_file, DataError
 from plumbing import file_sha256
-from .shards import METADATA_FILE, SHARED, clear_dataset, dataset_files, write_metadata, write_shard_image
-
-if TYPE_CHECKING:
-    from .generate import ShardTask
+from .shards import (METADATA_FILE, SHARED, SPLITS, clear_dataset, dataset_files, shard_name, write_metadata,
+                     write_shard_image)
 
 CLAIM_FILE = ".datagen-toss.claim"
 LOCK_FILE = ".datagen-toss.lock"
@@ -177,6 +176,31 @@ def plan_lock(out: str | Path, timeout: float = 600.0) -> Iterator[None]:
         os.close(fd)
 
 
+# The plan, fixed before any shard is simulated so that a resumed run or another part can be
+# checked against it: the shards in order, and the metadata keys that decide what they hold.
+
+
+@dataclass(frozen=True)
+class ShardTask:
+    split: str
+    shard: int
+    first: int   # index of the first scene in its split
+    count: int
+
+    @property
+    def name(self) -> str:
+        return shard_name(self.split, self.shard)
+
+
+def plan(counts: dict[str, int], per_shard: int) -> list[ShardTask]:
+    tasks = []
+    for split in SPLITS:
+        n = counts.get(split, 0)
+        for k, first in enumerate(range(0, n, per_shard)):
+            tasks.append(ShardTask(split, k, first, min(per_shard, n - first)))
+    return tasks
+
+
 PLAN_KEYS = ("config", "seed", "splits")
 
 
@@ -190,7 +214,7 @@ def plan_of(meta: dict) -> dict:
     return {k: meta[k] for k in PLAN_KEYS}
 
 
-def _plan_difference(old, planned: dict) -> str | None:
+def plan_difference(old, planned: dict) -> str | None:
     """The first plan key in which `old` (a metadata.json) differs from `planned`, or None."""
     for key in PLAN_KEYS:
         if not isinstance(old, dict) or old.get(key) != planned[key]:
@@ -198,7 +222,7 @@ def _plan_difference(old, planned: dict) -> str | None:
     return None
 
 
-def _read_metadata(out: Path, what: str) -> dict:
+def read_metadata(out: Path, what: str) -> dict:
     import json
     path = out / METADATA_FILE
     try:
@@ -218,7 +242,7 @@ def _write_json(out: Path, meta: dict) -> None:
         tmp.write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
 
 
-def _recorded(old: dict) -> dict[str, str]:
+def recorded_checksums(old: dict) -> dict[str, str]:
     """sha256 by shard name, as the metadata recorded them when the shards were written."""
     rec = {}
     for key in ("checksums", WRITTEN):
@@ -235,8 +259,8 @@ def commit_shard(out: Path, planned: dict, name: str, image: bytes) -> None:
     import hashlib
     digest = hashlib.sha256(image).hexdigest()
     with plan_lock(out):
-        old = _read_metadata(out, f"write {name}")
-        key = _plan_difference(old, planned)
+        old = read_metadata(out, f"write {name}")
+        key = plan_difference(old, planned)
         if key:
             raise DataError(f"cannot write {name} into {out}: its {key} changed since this run started "
                             "(another run replaced the plan)")
@@ -245,10 +269,10 @@ def commit_shard(out: Path, planned: dict, name: str, image: bytes) -> None:
         write_shard_image(out / name, image)
 
 
-def _same_plan(out: Path, meta: dict, what: str) -> dict:
+def same_plan(out: Path, meta: dict, what: str) -> dict:
     """The metadata in `out`, refused in one line if its plan is not `meta`'s."""
-    old = _read_metadata(out, what)
-    key = _plan_difference(old, plan_of(meta))
+    old = read_metadata(out, what)
+    key = plan_difference(old, plan_of(meta))
     if key:
         raise DataError(f"cannot {what} {out}: its {key} differs from this command's")
     return old
@@ -267,7 +291,7 @@ def check_output(out: Path, meta: dict, sharded: bool, resume: bool, overwrite: 
     held = _foreign(out)
     if sharded:
         if (out / METADATA_FILE).exists():
-            _same_plan(out, meta, "add shards to")
+            same_plan(out, meta, "add shards to")
         elif any(p not in dataset_files(out) for p in held):
             raise DataError(f"output folder {out} holds files that are not a dataset's and no {METADATA_FILE}; "
                             "give sharded runs an empty or new folder")
@@ -280,13 +304,13 @@ def check_output(out: Path, meta: dict, sharded: bool, resume: bool, overwrite: 
         if resume:
             if not (out / METADATA_FILE).exists():
                 raise DataError(f"cannot resume: {out} has no {METADATA_FILE}")
-            _same_plan(out, meta, "resume")
+            same_plan(out, meta, "resume")
     elif resume:
         raise DataError(f"cannot resume: {out} does not exist" if not out.exists() else
                         f"cannot resume: {out} has no {METADATA_FILE}")
 
 
-def _kept(out: Path, tasks: list[ShardTask], recorded: dict[str, str], what: str) -> list[ShardTask]:
+def to_make(out: Path, tasks: list[ShardTask], recorded: dict[str, str], what: str) -> list[ShardTask]:
     """The shards of `tasks` still to make: those missing, or present without a recorded
     checksum (written by hand or by an older datagen: made again, never trusted). A present
     shard whose bytes are not the recorded ones is refused: it was changed since it was written."""
@@ -312,9 +336,9 @@ def prepare_output(out: Path, meta: dict, tasks: list[ShardTask], resume: bool, 
         clear_dataset(out)  # only the tool's own files: a user's notes in the folder stay
         todo = tasks
     elif resume and _foreign(out):
-        old = _same_plan(out, meta, "resume")
-        recorded = _recorded(old)
-        todo = _kept(out, tasks, recorded, "resume")
+        old = same_plan(out, meta, "resume")
+        recorded = recorded_checksums(old)
+        todo = to_make(out, tasks, recorded, "resume")
         for stale in out.glob(".*.tmp"):    # the claim is exclusive: no other run is writing these
             stale.unlink(missing_ok=True)
         if not todo and old.get("complete") is True:
@@ -326,60 +350,15 @@ def prepare_output(out: Path, meta: dict, tasks: list[ShardTask], resume: bool, 
     return todo
 
 
-def prepare_shared_output(out: Path, meta: dict, mine: list[ShardTask]) -> list[ShardTask]:
-    """The claimed folder of a part of a sharded generation (--num-shards), which other parts
-    share: it may be new, empty, hold the same plan, or hold only the tool's files of a part
-    that is just starting. Called under the plan lock, so the plan is written once, by the
-    first part, and every other part compares its plan with it. Returns this part's shards to make."""
-    check_output(out, meta, True, False, False)
-    # Only this part's own leftovers: another part's temporary files may be shards being written.
-    for task in mine:
-        for stale in out.glob(f".{task.name}.*.tmp"):
-            stale.unlink(missing_ok=True)
-    if not (out / METADATA_FILE).exists():
-        write_metadata(out, {**meta, WRITTEN: {}})
-        return list(mine)
-    old = _same_plan(out, meta, "add shards to")
-    recorded = _recorded(old)
-    todo = _kept(out, mine, recorded, "add shards to")
-    if todo and old.get("complete") is True:
-        # A finished dataset that lost a shard of this part: incomplete again until it is back.
-        kept = {name: d for name, d in recorded.items() if (out / name).exists()}
-        write_metadata(out, {**meta, WRITTEN: kept})
-    return todo
-
-
 def start_output(out: Path, meta: dict, mine: list[ShardTask], sharded: bool, resume: bool,
                   overwrite: bool) -> list[ShardTask]:
     """Make the claimed folder ready and write the incomplete metadata (a shared folder's only if
     none is there); returns the shards of `mine` still to make."""
     with plan_lock(out):
         if sharded:
+            from .shared_output import prepare_shared_output
             return prepare_shared_output(out, meta, mine)
         return prepare_output(out, meta, mine, resume, overwrite)
-
-
-def busy_error(out: Path, meta: dict, sharded: bool) -> DataError:
-    """One line for a folder another run has claimed, naming how its plan differs when it has
-    written one (it does so right after claiming: a moment's wait)."""
-    import time
-    planned, old = plan_of(meta), None
-    deadline = time.monotonic() + 3.0
-    # Read without the plan lock: metadata.json is only ever replaced whole, and taking the lock
-    # here could leave its file behind in a folder whose holder has just cleaned up.
-    while old is None and time.monotonic() < deadline:
-        try:
-            old = _read_metadata(out, "read the plan") if (out / METADATA_FILE).exists() else None
-        except DataError:
-            break
-        if old is None:
-            time.sleep(0.05)
-    who = "a whole `datagen toss` run" if sharded else "another `datagen toss`"
-    key = _plan_difference(old, planned) if old is not None else None
-    if key:
-        return DataError(f"cannot write {out}: {who} is writing a dataset there whose {key} differs from this command's")
-    return DataError(f"cannot write {out}: {who} is writing it now; wait for it to end "
-                     "(then --resume finishes the same plan)")
 
 
 def finalise(out: Path, meta: dict, tasks: list[ShardTask]) -> dict:
@@ -387,11 +366,11 @@ def finalise(out: Path, meta: dict, tasks: list[ShardTask]) -> dict:
     recorded when it was written; else the plan, marked incomplete. Never hashes over a change:
     a shard changed since it was written is refused by name, and metadata.json stays as it was."""
     with plan_lock(out):
-        old = _same_plan(out, meta, "finish")
+        old = same_plan(out, meta, "finish")
         # Shards appear only complete (temporary file, then rename), so existing means written.
         if any(not (out / t.name).exists() for t in tasks):
             return {**old, "splits": meta["splits"], "complete": False}   # the plan's order of splits
-        recorded = _recorded(old)
+        recorded = recorded_checksums(old)
         for t in tasks:
             if t.name not in recorded:
                 raise DataError(f"cannot finish {out}: {t.name} is there but no run of this plan recorded writing "

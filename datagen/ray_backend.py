@@ -10,8 +10,8 @@ from pathlib import Path
 
 from plumbing import ConfigError, DataError
 
-from .generate import ShardTask, build_task
-from .output import commit_shard
+from .output import ShardTask, commit_shard
+from .toss import build_task
 from .shards import write_error
 
 

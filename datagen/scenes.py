@@ -272,6 +272,36 @@ def validate(cfg: dict) -> None:
         raise ConfigError("spawn.low z must be >= 0 (above the floor)")
 
 
+# the physics floor: a box this wide each way from the origin (datagen.toss.add_floor)
+FLOOR_HALF_WIDTH = 1000.0
+
+
+def check_floor_covers(cfg: dict) -> None:
+    """Refuse a spawn box the physics floor (a box of half-width FLOOR_HALF_WIDTH) does not cover:
+    the metadata declares a floor everywhere, so objects beyond its edge would fall through what
+    the data calls a floor. (A wider box is no answer: contact precision falls with its size.)"""
+    if not cfg["floor"]["enabled"]:
+        return
+    sp = cfg["spawn"]
+    reach = max(float(cfg["sizes"][n]) for n in cfg["scene"]["sizes"]) * max(
+        float(np.linalg.norm(get_shape(n).vertices, axis=1).max()) for n in cfg["scene"]["shapes"])
+    far = max(abs(float(v)) for corner in (sp["low"], sp["high"]) for v in corner[:2])
+    if far + reach > FLOOR_HALF_WIDTH:
+        raise ConfigError(f"spawn.low/high reach {far:g} from the origin, beyond the physics floor "
+                          f"(|x|, |y| <= {FLOOR_HALF_WIDTH:g}); keep the spawn box within it or set floor.enabled=false")
+    # Where a toss can fly in the scene's time, before anything is simulated: the start velocity is
+    # u - x (u in the velocity box, towards the centre), and nothing but friction and collisions acts
+    # sideways, so x + (u - x) t bounds the travel; it is linear in x, u and t, so corners suffice.
+    t_end = float(cfg["scene"]["frames"]) / float(cfg["scene"]["frame_rate"])
+    flown = max(abs(float(x) + (float(u) - float(x)) * t_end)
+                for k in (0, 1) for x in (sp["low"][k], sp["high"][k])
+                for u in (sp["velocity_low"][k], sp["velocity_high"][k]))
+    if flown + reach > FLOOR_HALF_WIDTH:
+        raise ConfigError(f"tosses from the spawn box can fly {flown:g} from the origin within the scene's "
+                          f"{t_end:g} s, beyond the physics floor (|x|, |y| <= {FLOOR_HALF_WIDTH:g}); shrink the "
+                          "spawn box or the velocity box, or shorten the scenes")
+
+
 # Scene specifications: each scene its own generator, so it does not depend on the grouping.
 
 SPLIT_KEYS = {"train": 0, "valid": 1, "test": 2}

@@ -33,14 +33,14 @@ import torch
 from plumbing import DataError
 from gns.config import Config, ConfigError, build_config
 from gns.network import HISTORY
-from gns.graph import GraphBatch, with_symmetries
+from gns.graph import GraphBatch
+from gns.symmetry import with_symmetries
 from gns.spec import outside_training
 from gns import api_inputs as inputs
 from gns.geometry import posed, shape_match_packed
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
-from gns.checkpoint import CheckpointError, checkpoint_of, load_simulator
-from gns.hardware import parse_device
+from gns.checkpoint import CheckpointError, checkpoint_of, load_simulator, parse_device
 from gns.spec import RolloutOptions
 from gns.checkpoint import default_options
 
@@ -330,7 +330,7 @@ def load(model: str | Path, device: str | torch.device = "cpu", quaternion_order
     averages each step over the floor's mirror images (`gns eval --symmetrize`; four network
     calls a step), rollouts exactly
     mirror-equivariant as far as the mesh graph is (a cube's triangulated faces are not quite),
-    or another group of gns.stepping.SYMMETRY_GROUPS ("none": off); ensemble: more models (names,
+    or another group of gns.symmetry.SYMMETRY_GROUPS ("none": off); ensemble: more models (names,
     folders, files) whose predictions each step averages with this one's (`gns eval --ensemble`);
     they must read the same graphs."""
     device = parse_device(str(device), "device")

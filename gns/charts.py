@@ -135,6 +135,33 @@ def plot_training_curves(runs: Mapping[str, Sequence[Mapping]], path, log_loss: 
     return path
 
 
+def plot_runs(runs: Sequence[str | Path], out: str | Path, log_loss: bool = True) -> tuple[Path, int]:
+    """`gns plot-curves`: the training curves of run folders (or their metrics.jsonl files), overlaid,
+    written to `out` (.png, .pdf or .svg); checked before anything is drawn, each problem one line.
+    Returns (out, the number of runs drawn)."""
+    from plumbing import DataError, check_writable
+    from gns.run_folder import METRICS, read_metrics
+
+    out = Path(out)
+    if out.suffix.lower() not in (".png", ".pdf", ".svg"):
+        raise DataError(f"--out {out}: give a .png, .pdf or .svg file name")
+    if out.is_dir():
+        raise DataError(f"--out {out} is a folder; give a file name such as {out / 'curves.png'}")
+    curves = {}
+    for run in runs:
+        path = Path(run)
+        path = path / METRICS if path.is_dir() else path
+        if not path.is_file():
+            raise DataError(f"no {METRICS} in {run}: not a training run folder")
+        entries = read_metrics(path)
+        if not entries:
+            raise DataError(f"{path} holds no metrics yet")
+        label = Path(run).name if Path(run).is_dir() else Path(run).parent.name
+        curves[label if label not in curves else str(run)] = entries
+    check_writable(out.parent, "output folder")
+    return plot_training_curves(curves, out, log_loss=log_loss), len(curves)
+
+
 def _overlap(a, b) -> float:
     w = min(a.x1, b.x1) - max(a.x0, b.x0)
     h = min(a.y1, b.y1) - max(a.y0, b.y0)

@@ -1,23 +1,22 @@
-"""Where a model comes from: checkpoint files (written safely, read with one-line errors, exported
-slim, rebuilt into a simulator), run folders, and the zoo's named models with their cards.
+"""Where a model comes from: checkpoint files (written safely, read with one-line errors, rebuilt
+into a simulator on a checked device), run folders, and the names of zoo models (whose cards and
+exported files are gns.zoo's).
 
 A checkpoint is a `torch.save` dict of format CHECKPOINT_FORMAT: "format", "step", "seed",
 "config" (the full config as a dict), "spec" (the dataset feature spec, gns.spec.ModelSpec),
 "model" (weights and normalisers), "provenance", and in a training checkpoint also
 "optimizer" and "rng", and with `train.ema_decay` "trained" (the weights training goes on from;
-"model" then holds their moving average, gns.weight_average). An exported model (`export_model`)
-drops the last three. docs/model.md documents the keys.
+"model" then holds their moving average, gns.weight_average). An exported model
+(gns.zoo.export_model) drops the last three. docs/model.md documents the keys.
 """
 from __future__ import annotations
 
 import shutil
-import tomllib
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from plumbing import atomic_file, check_writable, DataError
+from plumbing import atomic_file
 from gns.config import Config, ConfigError, build_config
 from gns.spec import RolloutOptions
 from gns.simulator import LearnedSimulator
@@ -31,9 +30,10 @@ TRAINED = "trained"
 
 def checkpoint_of(run: str | Path) -> Path:
     """A run folder means its latest checkpoint; a .pt file is taken as it is; a bare name that
-    is neither is a zoo model's name (see `card`), and one that is not in the zoo is refused with
+    is neither is a zoo model's name (gns.zoo.card), and one that is not in the zoo is refused with
     the names that are."""
     if is_name(run):
+        from gns.zoo import card   # a zoo name: the only case that reads the cards
         return card(str(run)).file
     run = Path(run)
     if run.is_dir():
@@ -43,6 +43,22 @@ def checkpoint_of(run: str | Path) -> Path:
 
 class CheckpointError(Exception):
     """A run folder or checkpoint that cannot be used as asked. One line for a user."""
+
+
+def is_name(run) -> bool:
+    """A bare word that is not a path on disk: meant as a zoo name."""
+    run = Path(str(run))
+    return not run.exists() and run.parent == Path(".") and run.suffix == "" and str(run) != "."
+
+
+def default_options(run) -> RolloutOptions:
+    """The options a run is rolled out with unless told otherwise: a zoo model's scored ones,
+    else the defaults."""
+    if is_name(run):
+        from gns.zoo import ZOO, card
+        if (ZOO / f"{run}.toml").is_file():
+            return card(str(run)).options
+    return RolloutOptions()
 
 
 def checkpoint_paths(run: Path) -> list[Path]:
@@ -125,31 +141,22 @@ def resume_point(run: str | Path) -> tuple[Path, dict, str | None]:
                           "move them away to train from the start")
 
 
-def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool = False) -> Path:
-    """A checkpoint without the optimiser and random state (about half the size): enough to
-    roll out and evaluate (load_model), not to resume training.
-
-    An existing `out` is replaced only with `overwrite` and only if it is itself an exported
-    model: a full checkpoint (a run's latest.pt, say) or another file is never replaced."""
-    ckpt = read_checkpoint(checkpoint_path)
-    out = Path(out)
-    if out.is_dir():
-        raise DataError(f"--out {out} is a folder; give a file name such as {out / 'model.pt'}")
-    if out.exists():
-        if not overwrite:
-            raise DataError(f"{out} exists; pass --overwrite to replace an earlier exported model")
-        try:
-            old = read_checkpoint(out)
-        except CheckpointError:
-            old = None
-        if old is None or not is_exported(old):
-            raise DataError(f"{out} exists and is not an exported gns model; refusing to replace it")
-    check_writable(out.parent, "output folder")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance") if k in ckpt}
-    with atomic_file(out, mode=0o644) as tmp:  # an exported model is meant to be shared
-        torch.save(slim, tmp)
-    return out
+def parse_device(name: str, what: str = "train.device") -> torch.device:
+    """A device name as a torch device, checked before any work: one line, not torch's assertion."""
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"{what}={name!r} is not a torch device; use 'cpu' or 'cuda'") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"{what}={name} but CUDA is not available in this torch build "
+                          f"(torch {torch.__version__}); use {what}=cpu")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise ConfigError(f"{what}={name} but this machine has {torch.cuda.device_count()} CUDA device(s)")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise ConfigError(f"{what}={name} but MPS is not available here; use {what}=cpu")
+    if device.type not in ("cpu", "cuda", "mps"):
+        raise ConfigError(f"{what}={name}: only cpu, cuda and mps are supported")
+    return device
 
 
 def build_simulator(cfg: Config, spec: ModelSpec, options: RolloutOptions | None = None) -> LearnedSimulator:
@@ -195,109 +202,3 @@ def load_simulator(run: str | Path, device: str | torch.device = "cpu",
         except ValueError as e:
             raise CheckpointError(f"ensemble: {e}") from None
     return sim, checkpoints[0]
-
-
-# The model zoo: a few trained models named by purpose, each with a card (gns/models/NAME.toml).
-#
-# A card says what the model is for, the data it was trained on, the one command that retrains
-# it, what that costs, its scores with the exact eval command, its speed and its limits, and the
-# rollout options it was scored with: `gns.load(NAME)` and `gns eval --run NAME` use those unless
-# told otherwise.
-
-
-ZOO = Path(__file__).resolve().parent / "models"
-
-
-class ZooError(LookupError):
-    """A zoo name that is not there. One line for a user, naming the ones that are."""
-
-
-@dataclass(frozen=True)
-class Card:
-    name: str
-    file: Path            # the weights (several cards may share one file)
-    options: RolloutOptions
-    data: dict            # the card's TOML as read
-
-    @property
-    def purpose(self) -> str:
-        return self.data.get("purpose", "")
-
-
-def names() -> list[str]:
-    return sorted(p.stem for p in ZOO.glob("*.toml"))
-
-
-def card(name: str) -> Card:
-    path = ZOO / f"{name}.toml"
-    if not path.is_file():
-        raise ZooError(f"{name!r} is no run folder, checkpoint file or zoo model; the zoo has: "
-                       f"{', '.join(names())} (`gns models` tells what each is for)")
-    with open(path, "rb") as f:
-        data = tomllib.load(f)
-    return Card(name, ZOO / data["file"], RolloutOptions.from_dict(data.get("rollout"), f"{path.name} [rollout]"),
-                data)
-
-
-def is_name(run) -> bool:
-    """A bare word that is not a path on disk: meant as a zoo name."""
-    run = Path(str(run))
-    return not run.exists() and run.parent == Path(".") and run.suffix == "" and str(run) != "."
-
-
-def default_options(run) -> RolloutOptions:
-    """The options a run is rolled out with unless told otherwise: a zoo model's scored ones,
-    else the defaults."""
-    return card(str(run)).options if is_name(run) and (ZOO / f"{run}.toml").is_file() else RolloutOptions()
-
-
-def _score_line(s: dict) -> str:
-    if "sides" in s:
-        return f"on the right side: {s['sides']}"
-    parts = [f"{s['position_error_pct']:g}% position / {s['rotation_error_deg']:g} deg rotation"]
-    if "penetration_pct" in s:
-        parts.append(f"{s['penetration_pct']:g}% penetration")
-    return ", ".join(parts)
-
-
-def format_list() -> str:
-    """`gns models`: one block a model, its purpose and its first score."""
-    lines = []
-    for name in names():
-        c = card(name)
-        first = c.data.get("scores", [{}])[0]
-        lines.append(f"{name}\n    {c.purpose}")
-        if first:
-            lines.append(f"    {_score_line(first)} on {first['test_set']}")
-        opts = c.options.describe()
-        lines.append(f"    rolled out with: {opts or 'the defaults'}\n")
-    lines.append("`gns models NAME` prints a model's card; `gns eval --run NAME --data DIR` scores it, "
-                 "`gns.load(NAME)` loads it, with the options above unless told otherwise.")
-    return "\n".join(lines)
-
-
-def format_card(name: str) -> str:
-    """`gns models NAME`: the whole card, for a person."""
-    c = card(name)
-    d = c.data
-    out = [f"# {name}", "", d.get("purpose", ""), "", f"Use: {d.get('use', '')}", "", "Limits:"]
-    out += [f"- {x}" for x in d.get("limits", [])]
-    data = d.get("data", {})
-    out += ["", f"Data: {data.get('what', '')}", f"  made by: {data.get('command', '')}",
-            f"  fingerprint: {data.get('fingerprint', '')}"]
-    recipe = d.get("recipe", {})
-    out += ["", f"Model: {recipe.get('model', '')}", f"Retrain: {recipe.get('command', '')}",
-            f"  cost: {recipe.get('cost', '')}"]
-    out += ["", f"Rollout options (the defaults of gns eval and gns.load): {c.options.describe() or 'none'}"]
-    out += ["", "Scores:"]
-    for s in d.get("scores", []):
-        out.append(f"- {_score_line(s)} on {s['test_set']}")
-        for key, label in (("data_command", "data"), ("eval_command", "eval"), ("note", "note")):
-            if key in s:
-                out.append(f"    {label}: {s[key]}")
-    speed = d.get("speed", {})
-    if speed:
-        out += ["", f"Speed: {speed.get('summary', '')}", f"  measured by: {speed.get('command', '')}",
-                f"  on: {speed.get('machine', '')}"]
-    out.append(f"\nWeights: {c.file.name} ({c.file.stat().st_size / 1e6:.1f} MB)")
-    return "\n".join(out)

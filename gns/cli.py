@@ -6,6 +6,7 @@ line `error: ...` on stderr and exits with status 2 (bad input) or 1 (training f
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import warnings
@@ -18,8 +19,7 @@ EXIT_BAD_INPUT = 2
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    from gns.hardware import world_from_env
-    from gns.run_folder import resolve_config
+    from gns.run_folder import resolve_config, world_from_env
     from gns.train import train
 
     flags = {"steps": args.steps, "device": args.device, "autocast": args.autocast,
@@ -68,38 +68,15 @@ def _threads(n: int) -> None:
 
 
 def cmd_rollout(args: argparse.Namespace) -> None:
-    from gns.checkpoint import checkpoint_of, load_simulator
-    from gns.hardware import parse_device
-    from gns.evaluate import check_ranges, load_split, options_record, provenance_of
-    from gns.rollout import (DivergedError, check_output, diverged_line, scene_label, timed_rollout,
-                             write_rollouts)
-    from gns.spec import ModelSpec
+    from gns.rollout_dataset import rollout_run
 
     _threads(args.threads)
-
     options = _rollout_options(args)
-    device = parse_device(args.device, "--device")
-    check_output(args.out, args.overwrite, args.data)
-    ckpt = checkpoint_of(args.run_dir)
-    sim, saved = load_simulator(ckpt, device, options)
-    spec = ModelSpec.from_dict(saved["spec"])
-    ds, scenes = load_split(args.data, args.split, args.limit, spec.frame_rate)
-    check_ranges(spec, ds, scenes)
-    pred, seconds, warmup = timed_rollout(sim, scenes, ds.meshes, ds.frame_rate)
-    diverged = [scene_label(sc, i) for i, (p, sc) in enumerate(zip(pred, scenes)) if "diverged_at_frame" in p.attrs]
-    if len(diverged) == len(pred):
-        raise DivergedError(f"every rollout diverged ({len(pred)} scenes: positions became inf or NaN); "
-                            f"nothing written to {args.out}")
-    if diverged:
-        print(diverged_line(diverged, len(pred), f"not written (listed in {args.out}/metadata.json)"), file=sys.stderr)
-    info = {"run": str(args.run_dir), "checkpoint": str(ckpt), "step": int(saved["step"]),
-            "data": str(args.data), "split": args.split, "given_frames": 3, "seconds": seconds,
-            "warmup_seconds": warmup, "object_steps": sim.rollout_counts, **options_record(sim),
-            **provenance_of(saved, ds)}
-    write_rollouts(args.out, pred, ds, args.split, info, overwrite=args.overwrite)
-    print(f"rolled out {len(pred)} scenes in {seconds:.2f} s"
+    done, written, seconds, warmup = rollout_run(args.run_dir, args.data, args.out, args.split, args.limit, options,
+                                                 args.device, args.overwrite)
+    print(f"rolled out {done} scenes in {seconds:.2f} s"
           + (f" (after {warmup:.1f} s compiling, not counted)" if warmup is not None else "")
-          + f"; wrote {len(pred) - len(diverged)} to {args.out}")
+          + f"; wrote {written} to {args.out}")
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
@@ -144,9 +121,11 @@ def _at_data_rate(args: argparse.Namespace) -> bool:
     """--at-data-rate as given, else as a zoo model's card says it was scored (its [eval] table)."""
     if args.at_data_rate is not None:
         return args.at_data_rate
-    from gns import checkpoint
-    if checkpoint.is_name(args.run_dir) and args.run_dir in checkpoint.names():
-        return bool(checkpoint.card(args.run_dir).data.get("eval", {}).get("at_data_rate", False))
+    from gns.checkpoint import is_name
+    if is_name(args.run_dir):
+        from gns import zoo
+        if args.run_dir in zoo.names():
+            return bool(zoo.card(args.run_dir).data.get("eval", {}).get("at_data_rate", False))
     return False
 
 
@@ -159,7 +138,6 @@ def _rollout_options(args: argparse.Namespace):
     """The model's default options (a zoo model's scored ones, gns.checkpoint.default_options) with the
     flags given on top."""
     from gns.checkpoint import default_options
-    from gns.rollout import check_flags
     check_flags(**{k: getattr(args, k) for k in ("batch", "limit", "sleep_fraction", "free_clearance")})
     given = {k: getattr(args, k) for k in OPTION_FLAGS}
     if given["ensemble"] is not None:
@@ -170,6 +148,18 @@ def _rollout_options(args: argparse.Namespace):
     if args.sleep_fraction is not None and not options.sleep:
         raise ConfigError("--sleep-fraction sets when an object is at rest: it needs --sleep")
     return options
+
+
+def check_flags(**flags) -> None:
+    """Numeric rollout flags (`gns rollout`, `gns eval`) out of range ({dest: value}, None when
+    unset): one line naming the flag, before the model or the data are read."""
+    rules = {"batch": (lambda v: v >= 1, "a whole number >= 1"), "limit": (lambda v: v >= 1, ">= 1 scene"),
+             "sleep_fraction": (lambda v: math.isfinite(v) and v > 0, "a finite number > 0"),
+             "free_clearance": (lambda v: math.isfinite(v) and v >= 0, "a finite height >= 0 above the floor")}
+    for dest, value in flags.items():
+        ok, want = rules[dest]
+        if value is not None and not ok(value):
+            raise DataError(f"--{dest.replace('_', '-')} must be {want}, got {value:g}")
 
 
 def _add_rollout_args(p) -> None:
@@ -194,7 +184,7 @@ def _add_rollout_args(p) -> None:
     o.add_argument("--sleep", action=argparse.BooleanOptionalAction,
                    help="hold resting objects still until another object touches them, as physics engines "
                         "deactivate bodies (docs/results.md); off by default")
-    # the keys of gns.stepping.SYMMETRY_GROUPS, written out so that --help does not import torch
+    # the keys of gns.symmetry.SYMMETRY_GROUPS, written out so that --help does not import torch
     o.add_argument("--symmetrize", nargs="?", const="d2", choices=["none", "d2", "d4", "d1", "c2", "c4"],
                    metavar="GROUP",
                    help="average each step's prediction over the floor's symmetries: d2 (the default when no GROUP "
@@ -266,7 +256,8 @@ def add_eval_parsers(sub) -> None:
 
 
 def cmd_export(args: argparse.Namespace) -> None:
-    from gns.checkpoint import checkpoint_of, export_model
+    from gns.checkpoint import checkpoint_of
+    from gns.zoo import export_model
 
     out = export_model(checkpoint_of(args.run_dir), args.out, overwrite=args.overwrite)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB): model, config and training ranges, no optimiser state")
@@ -284,31 +275,10 @@ def add_export_parser(sub) -> None:
 
 
 def cmd_plot_curves(args: argparse.Namespace) -> None:
-    from pathlib import Path
+    from gns.charts import plot_runs
 
-    from plumbing import check_writable
-    from gns.charts import plot_training_curves
-    from gns.run_folder import METRICS, read_metrics
-
-    out = Path(args.out)
-    if out.suffix.lower() not in (".png", ".pdf", ".svg"):
-        raise DataError(f"--out {out}: give a .png, .pdf or .svg file name")
-    if out.is_dir():
-        raise DataError(f"--out {out} is a folder; give a file name such as {out / 'curves.png'}")
-    runs = {}
-    for run in args.runs:
-        path = Path(run)
-        path = path / METRICS if path.is_dir() else path
-        if not path.is_file():
-            raise DataError(f"no {METRICS} in {run}: not a training run folder")
-        entries = read_metrics(path)
-        if not entries:
-            raise DataError(f"{path} holds no metrics yet")
-        label = Path(run).name if Path(run).is_dir() else Path(run).parent.name
-        runs[label if label not in runs else str(run)] = entries
-    check_writable(out.parent, "output folder")
-    plot_training_curves(runs, out, log_loss=not args.linear)
-    print(f"wrote {out} ({len(runs)} run{'s' if len(runs) > 1 else ''})")
+    out, count = plot_runs(args.runs, args.out, log_loss=not args.linear)
+    print(f"wrote {out} ({count} run{'s' if count > 1 else ''})")
 
 
 def add_plot_parser(sub) -> None:
@@ -322,8 +292,8 @@ def add_plot_parser(sub) -> None:
 
 
 def cmd_models(args: argparse.Namespace) -> None:
-    from gns import checkpoint
-    print(checkpoint.format_card(args.name) if args.name else checkpoint.format_list())
+    from gns import zoo
+    print(zoo.format_card(args.name) if args.name else zoo.format_list())
 
 
 def add_models_parser(sub) -> None:
@@ -349,10 +319,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _failures() -> tuple:
-    """The error classes of work that ran and failed (exit 1) among the modules the command loaded:
-    importing gns.train only to name its error would load the training for `gns eval`."""
-    names = (("gns.train", "TrainingError"), ("gns.rollout", "DivergedError"))
+# Error classes of modules a command may not load, as (module, class): bad input (exit 2), and
+# work that ran and failed (exit 1).
+BAD_INPUT = (("gns.zoo", "ZooError"),)
+FAILED = (("gns.train", "TrainingError"), ("gns.evaluate", "DivergedError"))
+
+
+def _loaded(names: tuple) -> tuple:
+    """The classes of `names` among the modules the command loaded: importing gns.train only to
+    name its error would load the training for `gns eval`."""
     return tuple(getattr(sys.modules[m], n) for m, n in names if m in sys.modules)
 
 
@@ -365,11 +340,10 @@ def main(argv: list[str] | None = None) -> None:
     # Imported after parsing so that `gns --help` and usage errors do not wait for torch.
     from gns.checkpoint import CheckpointError
     from gns.spec import OptionsError
-    from gns.checkpoint import ZooError
 
     try:
         args.run(args)
-    except (DataError, ConfigError, CheckpointError, OptionsError, ZooError) as e:
+    except (DataError, ConfigError, CheckpointError, OptionsError, *_loaded(BAD_INPUT)) as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(EXIT_BAD_INPUT)
     except BrokenPipeError:
@@ -381,7 +355,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"error: {e.strerror or e}: {e.filename}", file=sys.stderr)
         raise SystemExit(EXIT_FAILED)
     except Exception as e:  # after OSError: a re-raise here reaches no other clause
-        if not isinstance(e, _failures()):
+        if not isinstance(e, _loaded(FAILED)):
             raise
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(EXIT_FAILED)

@@ -46,7 +46,7 @@ from gns.config import Config, ConfigError
 from plumbing import DataError
 from gns.network import HISTORY
 from gns.geometry import quat_to_matrix, rotation_angle
-from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, graph_sizes, mapped_symmetries, ragged_arange
+from gns.graph import GraphBatch, MeshLibrary, graph_settings, graph_sizes, ragged_arange
 from gns.spec import Floor, ModelSpec, SpecError
 
 
@@ -77,24 +77,6 @@ class Batch:
     def to(self, device) -> "Batch":
         future = None if self.future is None else self.future.to(device)
         return Batch(self.history.to(device), self.target.to(device), self.graph.to(device), future)
-
-    def windows(self, lo: int, hi: int) -> "Batch":
-        """The windows [lo, hi) of this batch (its graphs of scenes lo .. hi-1), renumbered: a
-        process's share of a global batch (gns.hardware.share)."""
-        g = self.graph
-        keep_graph = (g.graph_scene >= lo) & (g.graph_scene < hi)
-        keep = keep_graph[g.node_graph]
-        new_node = torch.cumsum(keep, 0) - 1                   # new index of each kept node
-        new_graph = torch.cumsum(keep_graph, 0) - 1
-        edges = keep[g.mesh_edges.senders]                     # mesh edges stay inside one graph
-        faces = None if g.faces is None else new_node[g.faces[keep[g.faces[:, 0]]]]
-        graph = GraphBatch(EdgeSet(new_node[g.mesh_edges.senders[edges]], new_node[g.mesh_edges.receivers[edges]]),
-                      g.rest[keep], g.material[keep], new_graph[g.node_graph[keep]], int(keep_graph.sum()),
-                      g.graph_scene[keep_graph] - lo, None, faces,
-                      symmetries=None if g.symmetries is None else g.symmetries[keep_graph],
-                      num_symmetries=None if g.num_symmetries is None else g.num_symmetries[keep_graph])
-        future = None if self.future is None else self.future[keep]
-        return Batch(self.history[keep], self.target[keep], graph, future)
 
     @property
     def targets(self) -> torch.Tensor:
@@ -210,6 +192,7 @@ class ObjectTracks:
             graph = replace(graph, rest=torch.einsum("nij,nj->ni", sym[graph.node_graph], graph.rest))
             rot = rot @ sym.transpose(1, 2)[:, None]
         if mirror:
+            from gns.symmetry import mapped_symmetries
             flip = torch.from_numpy(rng.random(len(windows)) < 0.5)[window_of]     # (B,) per window
             m = torch.ones(len(tracks), 3, dtype=torch.float64)
             m[flip, 0] = -1.0

@@ -1,4 +1,13 @@
-"""Judge a trained run on a dataset: rollouts, metrics, plots. Used by `gns eval` and pipelines."""
+"""A trained model judged on a dataset: its rollouts of a split's scenes, batched, and their scores
+(`gns eval`, and the pipelines); `gns rollout` writes the same rollouts (gns.rollout_dataset).
+
+Each object track starts from its first 3 true frames and runs on its own predictions to the
+end of its scene. All objects of a scene are rolled out together (collision edges between them
+are rebuilt from the predictions every step), and scenes of similar length share one packed
+graph, so a batch of scenes costs about one network call per step. Vertex positions are integrated in
+float64; poses (centre, quaternion) are recovered from the predicted vertices by shape matching
+(with shape matching on, the vertices already are that rigid pose). The scores are gns.metrics'.
+"""
 from __future__ import annotations
 
 import dataclasses
@@ -8,24 +17,198 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+from tqdm import tqdm
 
 from plumbing import atomic_file, check_writable, DataError
-from datagen.shards import Dataset
-from gns.metrics import DEFAULT_HORIZONS, PROTOCOLS, evaluate_scenes, per_frame_curves, per_scene_means, scene_errors
-from gns.rollout import diverged_line, split_diverged, timed_rollout, upsample_scene
-from gns.data import feature_spec
-from gns.hardware import parse_device
+from datagen.shards import Dataset, Scene, continuous, rotation
+from gns.checkpoint import checkpoint_of, default_options, load_simulator, parse_device
+from gns.data import ObjectTracks, feature_spec
+from gns.geometry import matrix_to_quat
+from gns.metrics import DEFAULT_HORIZONS, PROTOCOLS, evaluate_scenes, per_scene_means, scene_errors
 from gns.network import HISTORY
-from gns.spec import RolloutOptions
-from gns.spec import outside_training
 from gns.simulator import LearnedSimulator
-from gns.spec import ModelSpec
-from gns.checkpoint import checkpoint_of, load_simulator
-from gns.checkpoint import default_options
+from gns.spec import ModelSpec, RolloutOptions, outside_training
 
 
-def _worst_first(per_scene: list[float]) -> list[int]:
-    return list(np.argsort(per_scene)[::-1])
+# Rollouts, batched over a dataset's scenes: the same for `gns eval`, `gns rollout` and the pipelines.
+
+
+def angular_velocities(quat: np.ndarray, dt: float) -> np.ndarray:
+    """World-frame angular velocity (T, N, 3) from orientations (T, N, 4) wxyz, backward differences."""
+    out = np.zeros(quat.shape[:-1] + (3,))
+    flat = quat.reshape(-1, 4)
+    # a diverged rollout has non-finite (or zero) quaternions: NaN there, not a scipy error
+    good = np.isfinite(flat).all(axis=1) & (np.linalg.norm(np.nan_to_num(flat), axis=1) > 0)
+    rot = np.full((len(flat), 3, 3), np.nan)
+    rot[good] = rotation(flat[good]).as_matrix()
+    rot = rot.reshape(quat.shape[:-1] + (3, 3))
+    rel = (rot[1:] @ np.swapaxes(rot[:-1], -1, -2)).reshape(-1, 3, 3)
+    ok = np.isfinite(rel).all(axis=(1, 2))
+    vec = np.full((len(rel), 3), np.nan)
+    vec[ok] = Rotation.from_matrix(rel[ok]).as_rotvec()
+    out[1:] = vec.reshape((quat.shape[0] - 1, *quat.shape[1:-1], 3)) / dt
+    return out
+
+
+@torch.no_grad()
+def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Tensor,
+                   length: int) -> tuple[np.ndarray, np.ndarray]:
+    """Roll out tracks `which` (B,), all `length` frames long, as sim.options ask. Tracks of one
+    scene interact (collision edges), so pass every track of the scenes wanted.
+
+    Returns centres (length, B, 3) and quaternions (length, B, 4): the first 3 frames are the
+    truth, the rest predicted.
+    """
+    graph, verts, _ = tracks.track_vertices(which, HISTORY)
+    device = next(sim.parameters()).device
+    # the whole rollout runs on the model's device; only the poses come back
+    # the poses come from the rollout's own shape matching (one per step, not a second pass)
+    _, rot, centre = sim.rollout(verts.to(device), graph.to(device), length - HISTORY, poses=True)
+    rot, centre = rot.cpu(), centre.cpu()
+    idx = (tracks.start[which])[:, None] + torch.arange(HISTORY)
+    true_pos = tracks.positions[idx].permute(1, 0, 2).numpy()
+    true_quat = tracks.quaternions[idx].permute(1, 0, 2).numpy()
+    positions = np.concatenate([true_pos, centre.numpy()])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        quaternions = np.concatenate([true_quat, matrix_to_quat(rot.numpy())])
+    # A diverged track (a vertex went to inf or NaN) has no pose from then on: NaN, not the
+    # identity rotation or zero quaternion that shape matching and matrix_to_quat make of it.
+    bad = np.maximum.accumulate(~np.isfinite(positions).all(-1) | ~np.isfinite(quaternions).all(-1), axis=0)
+    positions[bad] = np.nan
+    quaternions[bad] = np.nan
+    return positions, continuous(quaternions)
+
+
+def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, frame_rate: float,
+                   progress: bool = True) -> list[Scene]:
+    """Predicted copies of `scenes`: same objects, poses rolled out from the first 3 frames as
+    sim.options ask (LearnedSimulator.rollout), sim.options.batch objects at a time; the share of
+    object-steps that entered the network is left in `sim.rollout_counts` (summed over batches)."""
+    sim.eval()
+    tracks = ObjectTracks(scenes, sim.mesh_library(meshes), name="rollout scenes")
+    if int(tracks.length.min()) <= HISTORY:
+        raise DataError(f"every scene needs more than {HISTORY} frames to roll out")
+    T_max, B = int(tracks.length.max()), tracks.num_tracks
+    positions = np.full((T_max, B, 3), np.nan)
+    quaternions = np.full((T_max, B, 4), np.nan)
+    bar = tqdm(total=B, unit="track", desc="rollout", disable=not progress)
+    counts: dict[str, int] = {}
+    for batch_scenes in scene_batches(scenes, sim.options.batch):
+        ids = torch.cat([tracks.scene_first_track[i] + torch.arange(int(tracks.scene_num_tracks[i]))
+                         for i in batch_scenes])
+        lengths = tracks.length[ids].tolist()
+        p, q = rollout_tracks(sim, tracks, ids, max(lengths))
+        for key, value in sim.rollout_counts.items():
+            counts[key] = counts.get(key, 0) + value
+        for j, (i, length) in enumerate(zip(ids.tolist(), lengths)):
+            positions[:length, i] = p[:length, j]
+            quaternions[:length, i] = q[:length, j]
+        bar.update(len(ids))
+    bar.close()
+    sim.rollout_counts = counts
+    return predicted_scenes(scenes, positions, quaternions, 1.0 / frame_rate)
+
+
+def timed_rollout(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, frame_rate: float,
+                  progress: bool = True) -> tuple[list[Scene], float, float | None]:
+    """rollout_scenes, its wall-clock seconds, and (with sim.options.compile) the seconds of a first
+    batch rolled out before the clock starts: a compiled network compiles at its first calls (tens
+    of seconds on a CPU, several times the rollouts of 400 MOVi-A scenes), which the timed rollout
+    should not count. Nothing of the first batch is kept but the compiled graphs (rollout_scenes
+    resets the counts)."""
+    warmup = None
+    if sim.options.compile:
+        t0 = time.perf_counter()
+        first = scene_batches(scenes, sim.options.batch)[0]
+        rollout_scenes(sim, [scenes[i] for i in first], meshes, frame_rate, progress=False)
+        warmup = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    pred = rollout_scenes(sim, scenes, meshes, frame_rate, progress=progress)
+    return pred, time.perf_counter() - t0, warmup
+
+
+def scene_batches(scenes: list[Scene], batch_tracks: int) -> list[list[int]]:
+    """Scene indices in batches of about `batch_tracks` objects, shortest scenes first.
+
+    Tracks of different lengths share a batch: each batch runs to its longest track and the
+    others are cut. Real tosses have nearly as many lengths as tosses (80-442 frames), and a
+    network call costs about the same for 1 or 100 small graphs, so one batch per length
+    would cost the sum of the lengths in calls instead of the longest.
+    All objects of a scene are rolled out together (one batch), so collision edges between
+    them are rebuilt from the predicted positions at every step: batches hold whole scenes."""
+    scene_length = torch.tensor([sc.num_frames for sc in scenes])
+    order = torch.argsort(scene_length, stable=True).tolist()
+    batches, current, objects = [], [], 0
+    for i in order:
+        current.append(i)
+        objects += scenes[i].num_objects   # a running count: summing the batch again made this quadratic
+        if objects >= batch_tracks:
+            batches.append(current)
+            current, objects = [], 0
+    if current:
+        batches.append(current)
+    return batches
+
+
+def predicted_scenes(scenes: list[Scene], positions: np.ndarray, quaternions: np.ndarray, dt: float) -> list[Scene]:
+    """Copies of `scenes` holding the predicted poses (T_max, all tracks, 3 or 4), velocities by
+    finite differences (the given frames' own), and `diverged_at_frame` where a pose is not finite."""
+    out, first = [], 0
+    # one call over every track, not one a scene: scipy's per-call overhead was ~5% of a batched
+    # MOVi-A rollout's time (frames past a scene's end are NaN and stay out of its slice)
+    spin = angular_velocities(quaternions, dt)
+    for sc in scenes:
+        T, N = sc.num_frames, sc.num_objects
+        pos, quat = positions[:T, first:first + N], quaternions[:T, first:first + N]
+        vel = np.zeros_like(pos)
+        vel[1:] = (pos[1:] - pos[:-1]) / dt
+        vel[:HISTORY] = sc.velocities[:HISTORY]
+        finite = np.isfinite(pos).all() and np.isfinite(quat).all()
+        ang = spin[:T, first:first + N].copy() if finite else np.full_like(pos, np.nan)
+        ang[:HISTORY] = sc.angular_velocities[:HISTORY]
+        attrs = {**sc.attrs, "rollout": True}
+        if not finite:
+            attrs["diverged_at_frame"] = int(np.argmax(~(np.isfinite(pos).all((-1, -2)) & np.isfinite(quat).all((-1, -2)))))
+        out.append(Scene(positions=pos, quaternions=quat, velocities=vel, angular_velocities=ang,
+                         shape=list(sc.shape), material=list(sc.material), scale=sc.scale.copy(),
+                         mass=sc.mass.copy(), friction=sc.friction.copy(), restitution=sc.restitution.copy(),
+                         attrs=attrs))
+        first += N
+    return out
+
+
+class DivergedError(Exception):
+    """Every rollout went to inf or NaN: nothing to score or write. One line for a user."""
+
+
+def scene_label(scene: Scene, index: int):
+    """A scene's id for reports: its scene_id attribute, else its index in the split."""
+    sid = scene.attrs.get("scene_id", index)
+    return sid.item() if hasattr(sid, "item") else sid
+
+
+def split_diverged(pred: list[Scene], true: list[Scene]) -> tuple[list[Scene], list[Scene], list]:
+    """(finite predictions, their true scenes, ids of the scenes whose rollout diverged).
+
+    Raises DivergedError when every rollout diverged."""
+    ok = [i for i, p in enumerate(pred) if "diverged_at_frame" not in p.attrs]
+    diverged = [scene_label(true[i], i) for i in range(len(pred)) if "diverged_at_frame" in pred[i].attrs]
+    if not ok:
+        raise DivergedError(f"every rollout diverged ({len(pred)} scenes: positions became inf or NaN); "
+                            "the model is unstable on this data")
+    return [pred[i] for i in ok], [true[i] for i in ok], diverged
+
+
+def diverged_line(diverged: list, total: int, what: str) -> str:
+    shown = ", ".join(map(str, diverged[:10])) + (f" and {len(diverged) - 10} more" if len(diverged) > 10 else "")
+    return f"warning: {len(diverged)} of {total} rollouts diverged (inf or NaN positions), {what}: {shown}"
+
+
+
+
+# Scores, and what every result records of how it was made and where it came from.
 
 
 def write_json(path: str | Path, obj) -> None:
@@ -56,7 +239,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
 
     A model trained at every k-th frame rolls out at its own rate from frames 0, k, 2k; it is
     scored at those frames, or with `at_data_rate` at every frame of the data (its poses
-    interpolated, gns.rollout.upsample_scene), i.e. at the same instants as any other simulator.
+    interpolated, gns.at_data_rate.upsample_scene), i.e. at the same instants as any other simulator.
 
     protocol="240hz": the protocol of later MOVi-A work (scenes recorded at 240 Hz, errors at 50,
     75 and 100 frames of 240 Hz after the last given frame, RMSE in metres and degrees): the data
@@ -68,6 +251,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     """
     options = (default_options(run) if options is None else options).replace(**changes)
     if protocol is not None:
+        from gns.at_data_rate import check_protocol
         check_protocol(protocol, data)
         at_data_rate = True
     device = parse_device(device, "--device")
@@ -86,6 +270,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
         _warn(diverged_line(diverged, len(scenes) + len(diverged), "left out of the metrics"))
     model_stride = ds.stride
     if at_data_rate and ds.stride > 1:
+        from gns.at_data_rate import upsample_scene
         full = Dataset(data)
         truth = full.load(split, limit)
         pairs = [upsample_scene(p, ds.stride, truth[i], full.frame_rate) for p, i in zip(pred, kept, strict=True)]
@@ -129,27 +314,6 @@ def check_ranges(trained_spec: ModelSpec, ds: Dataset, scenes: list, warn=None) 
     return problems
 
 
-def evaluate_baseline(data: str | Path, split: str = "test", params=None, limit: int | None = None,
-                      plots_dir: str | Path | None = None, engine: str = "pybullet",
-                      given: int = HISTORY) -> tuple[dict, list, list, Dataset]:
-    """`evaluate_run` for an analytic baseline (baselines: "pybullet" or "mujoco"): every
-    one-cube scene of a split simulated from its first `given` frames with `params` (default: the
-    engine's defaults, for PyBullet the published ContactNets constants), scored the same way.
-    Returns (results, predicted, true, dataset)."""
-    from baselines import baseline_engine  # the engines only when asked for
-    params_class, simulate, _ = baseline_engine(engine)
-    params = params_class() if params is None else params
-    ds, scenes = load_split(data, split, limit)
-    t0 = time.perf_counter()
-    try:
-        pred = [simulate(sc, params, frame_rate=ds.frame_rate, given=given) for sc in scenes]
-    except ValueError as e:
-        raise DataError(f"{data}: {e}") from None
-    results = score_predictions(pred, scenes, ds, time.perf_counter() - t0, plots_dir)
-    results.update(baseline=engine, params=params.to_dict(), data=str(data), split=split, given_frames=given)
-    return results, pred, scenes, ds
-
-
 def load_split(data: str | Path, split: str, limit: int | None,
                frame_rate: float | None = None) -> tuple[Dataset, list]:
     """Scenes of a split. Given a model's `frame_rate`, data recorded at a whole multiple of it
@@ -187,16 +351,6 @@ def verify_shards(ds: Dataset) -> None:
                             f"{ds.root}`")
 
 
-def check_protocol(protocol: str, data: str | Path) -> None:
-    """Refuse, in one line, a protocol this code does not know or data it cannot be scored on."""
-    if protocol not in PROTOCOLS:
-        raise DataError(f"unknown protocol {protocol!r}; known: {', '.join(PROTOCOLS)}")
-    rate = Dataset(data).frame_rate
-    if abs(rate - 240) > 1e-9:
-        raise DataError(f"{data}: the 240hz protocol needs scenes recorded at 240 frames a second, these are at "
-                        f"{rate:g} (datagen toss --set scene.frame_rate=240 scene.frames=461 records MOVi-A's 2 s)")
-
-
 def score_predictions(pred: list, scenes: list, ds: Dataset, seconds: float,
                       plots_dir: str | Path | None = None, horizons=DEFAULT_HORIZONS, num_given: int = HISTORY) -> dict:
     """Metrics (gns.metrics.evaluate_scenes) of predicted scenes against the truth, what the
@@ -211,35 +365,6 @@ def score_predictions(pred: list, scenes: list, ds: Dataset, seconds: float,
                    wall_seconds_per_simulated_second=seconds / simulated if simulated else None,
                    per_scene=per_scene_means(pred, scenes, ds.meshes, floor_z, errors=errors))
     if plots_dir is not None:
+        from gns.plots import write_plots
         write_plots(plots_dir, pred, scenes, ds, results, errors=errors)
     return results
-
-
-def write_plots(out: str | Path, pred: list, true: list, ds: Dataset, results: dict, count: int = 2,
-                errors: list[dict] | None = None) -> list[Path]:
-    """Figure-1 views and a GIF of the best and worst scenes, and error against time.
-    `errors`: gns.metrics.scene_errors of pred against true, if already computed."""
-    from gns.plots import animate_rollout, plot_error_vs_time, plot_trajectory
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    floor_z = float(ds.floor["z"]) if ds.floor else 0.0
-    if errors is None:
-        errors = scene_errors(pred, true, ds.meshes, floor_z)
-    scores = [float(np.mean(f["position_error_pct"])) for f in errors]
-    order = _worst_first(scores)
-    picks = {"best": order[-1], "worst": order[0]}
-    if len(order) > 2:
-        picks["median"] = order[len(order) // 2]
-    paths = []
-    unit = ds.meta.get("units", "")
-    unit = "half-widths" if "half-width" in unit else unit
-    for name, i in list(picks.items())[:max(count, 1) + 1]:
-        paths.append(plot_trajectory(pred[i], true[i], ds.meshes, out / f"trajectory_{name}.png", dt=ds.dt,
-                                     floor_z=floor_z, unit=unit,
-                                     title=f"{name} scene ({scores[i]:.1f}% position error): prediction vs truth"))
-    curves = per_frame_curves(pred, true, ds.meshes, floor_z, errors=errors)
-    paths.append(plot_error_vs_time({k: v for k, v in curves.items() if k != "count"}, out / "error_vs_time.png", dt=ds.dt))
-    worst = picks["worst"]
-    paths.append(animate_rollout(pred[worst], true[worst], ds.meshes, out / "rollout_worst.gif", fps=min(ds.frame_rate, 24),
-                                 floor_z=floor_z, max_frames=120))
-    return paths

@@ -115,29 +115,6 @@ def pose_to_vertices(positions: np.ndarray, quaternions: np.ndarray, scale, rest
     return np.einsum("...ij,...vj->...vi", rot, body) + positions[..., None, :]
 
 
-def feature_edges(faces: np.ndarray, vertices: np.ndarray, angle_deg: float = 1.0) -> np.ndarray:
-    """(E, 2) vertex pairs of a triangle mesh's edges, dropping edges between coplanar triangles.
-
-    The triangulation diagonals of a flat face are not edges of the solid; drawing them clutters
-    plots of a cube. Boundary edges (one triangle) are kept.
-    """
-    faces = np.asarray(faces, np.int64)
-    v = np.asarray(vertices, np.float64)
-    normals = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    owner = np.tile(np.arange(len(faces)), 3)
-    edges = np.sort(edges, axis=1)
-    order = np.lexsort((edges[:, 1], edges[:, 0]))
-    edges, owner = edges[order], owner[order]
-    uniq, start, counts = np.unique(edges, axis=0, return_index=True, return_counts=True)
-    keep = np.ones(len(uniq), bool)
-    two = counts == 2
-    cos = np.sum(normals[owner[start[two]]] * normals[owner[start[two] + 1]], axis=1)
-    keep[two] = cos < np.cos(np.radians(angle_deg))
-    return uniq[keep]
-
-
 # Rigid-body steps in torch, batched over the objects of a packed graph (float64 positions):
 # the integrator and its exact inverse, posing rest shapes, and shape
 # matching (the best rigid fit of a rest shape to predicted vertices, with a finite gradient for

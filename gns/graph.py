@@ -26,7 +26,7 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     pairs = np.concatenate([pairs, pairs[:, ::-1]])
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]
     # one int64 key a pair, ordered as the pairs are: np.unique on rows (axis=0) is ~20x slower,
-    # and ensembles rebuild a whole batch's edges every step (with_surface_edges)
+    # and ensembles rebuild a whole batch's edges every step (gns.ensemble.with_surface_edges)
     base = int(pairs.max(initial=-1)) + 1
     keys = np.unique(pairs[:, 0] * base + pairs[:, 1])
     return np.stack([keys // base, keys % base], axis=1)
@@ -136,30 +136,6 @@ def padded_groups(groups: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]
     for i, g in enumerate(groups):
         padded[i, :len(g)] = g
     return torch.from_numpy(padded), torch.tensor(counts)
-
-
-def mapped_symmetries(graph: "GraphBatch", g: torch.Tensor) -> torch.Tensor | None:
-    """The symmetry groups of graph's rest shapes once rest is mapped r -> g r (g (3, 3) for all
-    graphs or (G, 3, 3) per graph, orthogonal): g S g^T. None if graph carries none."""
-    if graph.symmetries is None:
-        return None
-    g = g.to(graph.symmetries)
-    if g.dim() == 2 and bool((g == torch.diag(torch.diagonal(g))).all()):
-        # the floor's mirrors and half turn (symmetrized rollouts, every step): g S g^T is S
-        # with entry (i, j) times g_ii g_jj, without two batched matmuls
-        d = torch.diagonal(g)
-        return graph.symmetries * (d[:, None] * d[None, :])
-    g = g[:, None] if g.dim() == 3 else g
-    return g @ graph.symmetries @ g.transpose(-1, -2)
-
-
-def with_symmetries(graph: "GraphBatch") -> "GraphBatch":
-    """A copy of graph carrying each graph's body-frame symmetry group (mesh_symmetries of its
-    rest shape), for predictions averaged over them (LearnedSimulator.body_frames)."""
-    rest = graph.rest.detach().cpu().numpy()
-    owner = graph.node_graph.cpu().numpy()
-    padded, counts = padded_groups([mesh_symmetries(rest[owner == g]) for g in range(graph.num_graphs)])
-    return replace(graph, symmetries=padded.to(graph.rest), num_symmetries=counts.to(graph.rest.device))
 
 
 def ragged_arange(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -334,66 +310,3 @@ def lowest_nodes(z: torch.Tensor, graph: GraphBatch, k: int, top: int = 0) -> to
     rank = torch.empty_like(order).scatter_(1, order, torch.arange(width, device=z.device).expand_as(order))
     rank = rank.view(-1).index_select(0, slot)
     return (rank <= k) | (rank >= (count - top).index_select(0, node_graph))
-
-
-def stack_graphs(graphs: list[GraphBatch]) -> GraphBatch:
-    """One batch holding the given batches one after the other (nodes, edges, faces renumbered);
-    each keeps its scenes to itself (scene numbers offset), so no collision edge joins two of
-    them. Collision edges are kept only if every batch has them (else rebuilt by the caller)."""
-    first = graphs[0]
-    node_offset = torch.cumsum(torch.tensor([0] + [g.num_nodes for g in graphs[:-1]]), 0).tolist()
-    graph_offset = torch.cumsum(torch.tensor([0] + [g.num_graphs for g in graphs[:-1]]), 0).tolist()
-
-    def edges(sets: list[EdgeSet | None]) -> EdgeSet | None:
-        if any(e is None for e in sets):
-            return None
-        extra = [None if sets[0].vectors is None else torch.cat([e.vectors for e in sets]),
-                 None if sets[0].signed is None else torch.cat([e.signed for e in sets])]
-        return EdgeSet(torch.cat([e.senders + o for e, o in zip(sets, node_offset)]),
-                       torch.cat([e.receivers + o for e, o in zip(sets, node_offset)]), *extra)
-
-    scenes = None
-    if first.graph_scene is not None:
-        # scene numbers of each batch moved past the previous batch's largest
-        parts, base = [], 0
-        for g in graphs:
-            parts.append(g.graph_scene + base)
-            base += int(g.graph_scene.max()) + 1 if g.num_graphs else 0
-        scenes = torch.cat(parts)
-    cat = lambda name: None if getattr(first, name) is None else torch.cat([getattr(g, name) for g in graphs])  # noqa: E731
-    return GraphBatch(
-        mesh_edges=edges([g.mesh_edges for g in graphs]), rest=cat("rest"), material=cat("material"),
-        node_graph=torch.cat([g.node_graph + o for g, o in zip(graphs, graph_offset)]),
-        num_graphs=sum(g.num_graphs for g in graphs), graph_scene=scenes,
-        collision_edges=edges([g.collision_edges for g in graphs]),
-        faces=None if first.faces is None else torch.cat([g.faces + o for g, o in zip(graphs, node_offset)]),
-        symmetries=cat("symmetries"), num_symmetries=cat("num_symmetries"))
-
-
-def with_surface_edges(graph: GraphBatch, surface: bool) -> GraphBatch:
-    """A graph with centre nodes (the last node of each graph, MeshLibrary's centre_node) with its
-    mesh edges rebuilt from its faces: the surface edges (if `surface`) and the spokes, in the
-    order MeshLibrary packs them, so that a model trained on the other kind of graph
-    (features.surface_edges) reads the same nodes (an ensemble member)."""
-    if graph.faces is None:
-        raise ValueError("the graph has no faces to rebuild its surface edges from")
-    g = graph.num_graphs
-    device = graph.node_graph.device
-    count = torch.bincount(graph.node_graph, minlength=g)
-    centre = torch.cumsum(count, 0) - 1
-    ring = torch.ones(graph.num_nodes, dtype=torch.bool, device=device)
-    ring[centre] = False
-    ring = ring.nonzero()[:, 0]
-    hub = centre[graph.node_graph[ring]]
-    parts = [torch.stack([ring, hub], 1), torch.stack([hub, ring], 1)]
-    kinds = [1, 2]
-    if surface:   # the batch's node numbers keep each graph's edges together and sorted as its own
-        parts.insert(0, torch.from_numpy(mesh_edges(graph.faces.cpu().numpy())).to(device))
-        kinds.insert(0, 0)
-    edges = torch.cat(parts)
-    kind = torch.cat([torch.full((len(p),), k, device=device) for p, k in zip(parts, kinds)])
-    # graph by graph, and within a graph surface edges, then spokes in, then spokes out
-    order = torch.sort(graph.node_graph[edges[:, 0]] * 3 + kind, stable=True).indices
-    edges = edges[order]
-    return replace(graph, mesh_edges=EdgeSet(edges[:, 0].contiguous(), edges[:, 1].contiguous()))
-

@@ -22,9 +22,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.distributed as dist
 from torch import nn
 
-from gns import hardware
 from gns.config import ConfigError
 from gns.graph import GraphBatch
 
@@ -223,9 +223,12 @@ class Normalizer(nn.Module):
             return
         x = x.detach().to(torch.float64)
         size = self.sum.shape[0]
-        # one vector, summed over the processes of a multi-process run, so that every process
-        # holds the statistics of the whole global batch (identical to one process training it)
-        stats = hardware.sum_over_processes(torch.cat([x.sum(0), (x * x).sum(0), x.new_full((1,), x.shape[0])]))
+        stats = torch.cat([x.sum(0), (x * x).sum(0), x.new_full((1,), x.shape[0])])
+        if dist.is_available() and dist.is_initialized():
+            # one vector, summed over the processes of a multi-process run, so that every process
+            # holds the statistics of the whole global batch (identical to one process training it)
+            from gns.processes import sum_over_processes
+            stats = sum_over_processes(stats)
         if stats[-1] == 0:
             return
         self.count += stats[-1]

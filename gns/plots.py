@@ -20,9 +20,10 @@ from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from scipy.spatial import ConvexHull, QhullError
 
+from datagen.shards import Dataset
 from gns.network import HISTORY
-from gns.geometry import feature_edges, pose_to_vertices
-from gns.metrics import object_width
+from gns.geometry import pose_to_vertices
+from gns.metrics import object_width, per_frame_curves, scene_errors
 
 PRED_COLOR = "tab:blue"
 TRUE_COLOR = "black"
@@ -81,6 +82,29 @@ def contact_frames(scene, meshes, obj: int = 0, floor_z: float = 0.0, tol: float
     if tol is None:
         tol = 0.02 * float(object_width(scene.scale[obj], meshes[scene.shape[obj]][0]))
     return np.nonzero(verts[..., 2].min(axis=1) - floor_z <= tol)[0]
+
+
+def feature_edges(faces: np.ndarray, vertices: np.ndarray, angle_deg: float = 1.0) -> np.ndarray:
+    """(E, 2) vertex pairs of a triangle mesh's edges, dropping edges between coplanar triangles.
+
+    The triangulation diagonals of a flat face are not edges of the solid; drawing them clutters
+    plots of a cube. Boundary edges (one triangle) are kept.
+    """
+    faces = np.asarray(faces, np.int64)
+    v = np.asarray(vertices, np.float64)
+    normals = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    owner = np.tile(np.arange(len(faces)), 3)
+    edges = np.sort(edges, axis=1)
+    order = np.lexsort((edges[:, 1], edges[:, 0]))
+    edges, owner = edges[order], owner[order]
+    uniq, start, counts = np.unique(edges, axis=0, return_index=True, return_counts=True)
+    keep = np.ones(len(uniq), bool)
+    two = counts == 2
+    cos = np.sum(normals[owner[start[two]]] * normals[owner[start[two] + 1]], axis=1)
+    keep[two] = cos < np.cos(np.radians(angle_deg))
+    return uniq[keep]
 
 
 def plot_trajectory(pred, true, meshes: Mapping[str, tuple], path, obj: int = 0, dt: float | None = None,
@@ -265,3 +289,35 @@ def animate_rollout(pred, true, meshes: Mapping[str, tuple], path, fps: float = 
             writer.grab_frame()
     return path
 
+
+def _worst_first(per_scene: list[float]) -> list[int]:
+    return list(np.argsort(per_scene)[::-1])
+
+
+def write_plots(out: str | Path, pred: list, true: list, ds: Dataset, results: dict, count: int = 2,
+                errors: list[dict] | None = None) -> list[Path]:
+    """`gns eval --plots`: Figure-1 views and a GIF of the best and worst scenes, and error against time.
+    `errors`: gns.metrics.scene_errors of pred against true, if already computed."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    floor_z = float(ds.floor["z"]) if ds.floor else 0.0
+    if errors is None:
+        errors = scene_errors(pred, true, ds.meshes, floor_z)
+    scores = [float(np.mean(f["position_error_pct"])) for f in errors]
+    order = _worst_first(scores)
+    picks = {"best": order[-1], "worst": order[0]}
+    if len(order) > 2:
+        picks["median"] = order[len(order) // 2]
+    paths = []
+    unit = ds.meta.get("units", "")
+    unit = "half-widths" if "half-width" in unit else unit
+    for name, i in list(picks.items())[:max(count, 1) + 1]:
+        paths.append(plot_trajectory(pred[i], true[i], ds.meshes, out / f"trajectory_{name}.png", dt=ds.dt,
+                                     floor_z=floor_z, unit=unit,
+                                     title=f"{name} scene ({scores[i]:.1f}% position error): prediction vs truth"))
+    curves = per_frame_curves(pred, true, ds.meshes, floor_z, errors=errors)
+    paths.append(plot_error_vs_time({k: v for k, v in curves.items() if k != "count"}, out / "error_vs_time.png", dt=ds.dt))
+    worst = picks["worst"]
+    paths.append(animate_rollout(pred[worst], true[worst], ds.meshes, out / "rollout_worst.gif", fps=min(ds.frame_rate, 24),
+                                 floor_z=floor_z, max_frames=120))
+    return paths

@@ -1,7 +1,8 @@
-"""The run folder a training writes and a resumed one reads back: metrics.jsonl, config.json,
-provenance.json, TensorBoard events, the progress lines of a run off a terminal, and the checks
-made before a run starts over or goes on
-(the checkpoints themselves are gns.checkpoint)."""
+"""The run folder a training writes and a resumed one reads back (metrics.jsonl, config.json,
+provenance.json), where the run runs (its device, threads and place among torchrun processes),
+the progress lines of a run off a terminal, the signals that stop it, and the checks made before
+a run starts over or goes on. The checkpoints themselves are gns.checkpoint's; TensorBoard's
+event files, written only with train.tensorboard, gns.tensorboard_log's."""
 from __future__ import annotations
 
 import json
@@ -11,16 +12,15 @@ import signal
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import torch
 
-from gns import hardware
-from gns.checkpoint import LATEST, CheckpointError, checkpoint_paths, resume_point
+from gns.checkpoint import LATEST, CheckpointError, checkpoint_paths, parse_device, resume_point
 from gns.config import Config, ConfigError, build_config
-from gns.hardware import training_device
 from plumbing import atomic_file, check_writable
 
 
@@ -30,6 +30,7 @@ METRICS = "metrics.jsonl"
 PROVENANCE = "provenance.json"
 
 
+# TensorBoard event files (gns.tensorboard_log) go here: an overwrite deletes them with the rest
 TENSORBOARD_DIR = "tb"
 
 
@@ -91,38 +92,6 @@ def read_metrics(path: str | Path) -> list[dict]:
     return entries
 
 
-def tensorboard_writer(run: Path, purge_step: int | None):
-    """A SummaryWriter on RUN/tb. On resume, events after the checkpoint's step (logged before a
-    crash, trained again now) are purged, as _drop_metrics_after drops their metrics lines."""
-    from torch.utils.tensorboard import SummaryWriter
-    return SummaryWriter(log_dir=str(run / TENSORBOARD_DIR), purge_step=purge_step)
-
-
-def check_tensorboard() -> None:
-    """train.tensorboard needs the extra; checked before any work, one line."""
-    try:
-        import tensorboard  # noqa: F401
-    except ImportError:
-        raise ConfigError("train.tensorboard=true needs TensorBoard: pip install 'rigid-gns[tensorboard]'") from None
-
-
-def tensorboard_tag(key: str) -> str:
-    """metrics.jsonl key -> TensorBoard tag, grouped as TensorBoard shows them: train/, valid/, speed/."""
-    if key.startswith("valid_"):
-        return "valid/" + key[len("valid_"):]
-    if key.endswith("_per_sec"):
-        return "speed/" + key
-    return "train/" + key
-
-
-def _log_scalars(writer, entry: dict) -> None:
-    for key, value in entry.items():
-        if key in ("step", "time") or isinstance(value, bool) or not isinstance(value, (int, float)):
-            continue   # None (all rollouts diverged) is not a scalar; counts and rates are
-        writer.add_scalar(tensorboard_tag(key), value, entry["step"])
-    writer.flush()
-
-
 def run_provenance(data_dir: str | Path, fingerprint: str, step: int, earlier: dict | None) -> dict:
     """What a run records of where it came from: versions, code commit, the data it trained on;
     earlier runs of a resumed training are kept in `earlier`, oldest first."""
@@ -153,7 +122,8 @@ def write_metrics(metrics, writer, entry: dict) -> None:
     metrics.write(json.dumps(entry) + "\n")
     metrics.flush()
     if writer is not None:
-        _log_scalars(writer, entry)
+        from gns.tensorboard_log import log_scalars
+        log_scalars(writer, entry)
 
 
 def resolve_config(run_dir: str | Path, resume: bool, config_path: str | None, overrides: list[str]) -> Config:
@@ -280,7 +250,57 @@ class StopRequest:
         return False
 
 
-def check_start(run: Path, cfg: Config, world: hardware.World, resume: bool, overwrite: bool,
+# Where the run runs: its device and threads, and its place among the processes of a torchrun
+# training (gns.processes, loaded only when there are several).
+
+
+@dataclass(frozen=True)
+class World:
+    rank: int = 0
+    size: int = 1
+    local_rank: int = 0
+
+    @property
+    def main(self) -> bool:
+        """The process that writes checkpoints, metrics and logs."""
+        return self.rank == 0
+
+
+def _env_int(name: str, default: int) -> int:
+    value = os.environ.get(name, str(default))
+    try:
+        return int(value)
+    except ValueError:
+        raise ConfigError(f"environment variable {name}={value!r} is not an integer (set by torchrun)") from None
+
+
+def world_from_env() -> World:
+    """This process's place among the torchrun processes (one process when not launched by torchrun)."""
+    return World(_env_int("RANK", 0), _env_int("WORLD_SIZE", 1), _env_int("LOCAL_RANK", 0))
+
+
+def training_device(name: str, world: World = World()) -> torch.device:
+    device = parse_device(name)
+    if world.size > 1 and device.type == "cuda":
+        return torch.device("cuda", world.local_rank)  # torchrun: one GPU per process
+    if world.size > 1 and device.type == "mps":
+        raise ConfigError("training on several processes runs on cpu or cuda, not mps")
+    return device
+
+
+def set_threads(threads: int, log: Callable[[str], None]) -> None:
+    """Use `threads` (0 = all cores), warning when other processes already load the cores:
+    OpenMP threads that get descheduled stall every parallel region (measured: 16 -> 0.6 steps/s)."""
+    cores = os.cpu_count() or 1
+    threads = threads or cores
+    torch.set_num_threads(threads)
+    load = os.getloadavg()[0]
+    if threads > 1 and load + threads > cores + 0.5:
+        log(f"warning: {threads} threads on {cores} cores with a load average of {load:.1f}; "
+            f"if steps/s collapse, use --set train.threads=1")
+
+
+def check_start(run: Path, cfg: Config, world: World, resume: bool, overwrite: bool,
                  log: Callable[[str], None]) -> tuple[list[Path], torch.device, tuple[Path, dict] | None]:
     """Everything checked before the data is read: the batch split, the run folder, the device,
     the checkpoint to resume, the extras asked for. Returns (files of an earlier run to delete,
@@ -299,5 +319,6 @@ def check_start(run: Path, cfg: Config, world: hardware.World, resume: bool, ove
     if world.main:
         check_writable(run, "run folder")
     if cfg.train.tensorboard:
+        from gns.tensorboard_log import check_tensorboard
         check_tensorboard()
     return stale, device, resumed

@@ -4,13 +4,12 @@ Owns everything around the network: feature building and normalisation, how the 
 (autocast, compile), the ensemble, which nodes it sees, and the loss. The rollout (which objects
 the network moves, which fly free or sleep) is gns.stepping, which LearnedSimulator inherits; the
 rigid-body steps (the integrator x_{t+1} = x_t + (x_t - x_{t-1}) + a and its exact inverse, shape
-matching) are gns.geometry; the floor's symmetries and the averages over them gns.stepping.
+matching) are gns.geometry; the symmetries a step may average over gns.symmetry.
 Positions are float64 throughout; the network runs in float32 on normalised features.
 """
 from __future__ import annotations
 
 import contextlib
-import types
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 
@@ -19,50 +18,15 @@ from torch import nn
 
 from gns.network import FeatureLayout, Normalizer, make_layout, raw_collision_features, raw_edge_features, raw_node_features
 from gns.config import ConfigError
-from gns.contacts import collision_edges, surface_edges
-from gns.graph import (EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes,
-                       select_nodes, with_surface_edges)
+from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes, select_nodes
 from gns.network import EncodeProcessDecode
 from gns.spec import OptionsError, RolloutOptions
-from gns.hardware import resolve_autocast
 from gns.geometry import acceleration_of, integrate, posed, shape_match_packed
 from gns.spec import ModelSpec
 from gns.stepping import Stepping
-from gns.stepping import averaged_over_images, turn_about_z
 
 # the options applied when a model is loaded (gns.checkpoint.load_simulator), not per rollout
 LOAD_OPTIONS = ("autocast", "compile", "ensemble")
-
-
-class _OwnCode(nn.Module):
-    """The network as torch.compile should see it (set_speed). torch.compile caches compiled code
-    per code object, up to dynamo's recompile_limit (8) entries, then runs eager, silently; the
-    network's own forward is one code object for every model of the class. So two compiles of one
-    network (frozen for rollouts, unfrozen for training) would share graphs, whichever came first,
-    and the ninth compiled model of a process (an ensemble, a benchmark, a script scoring many
-    runs; found scoring 12 in one) ran eager. Each instance's forward is a code object of its own."""
-
-    def __init__(self, network: nn.Module):
-        super().__init__()
-        self.network = network
-        f = type(self)._forward
-        self.forward = types.MethodType(types.FunctionType(f.__code__.replace(), f.__globals__, "forward"), self)
-
-    def _forward(self, *args: torch.Tensor) -> torch.Tensor:
-        return self.network(*args)
-
-
-def _listed(t: torch.Tensor | None) -> list | None:
-    """A small tensor as a list, for comparisons and messages."""
-    return None if t is None else [round(float(v), 12) for v in t.reshape(-1)]
-
-
-def _surface_free(settings: dict, other: "LearnedSimulator") -> dict:
-    """Graph settings as an ensemble compares them: surface_edges left out where both models have
-    centre nodes (the spokes are then rebuilt exactly)."""
-    if settings["centre_node"] and other._graph_settings["centre_node"]:
-        return {k: v for k, v in settings.items() if k != "surface_edges"}
-    return settings
 
 
 class LearnedSimulator(Stepping, nn.Module):
@@ -155,7 +119,7 @@ class LearnedSimulator(Stepping, nn.Module):
         edge counts), compiled once and reused when switched on again. The compiled module is
         kept out of the module tree like `distribute`, so state_dict keys and checkpoints are
         unchanged. The first calls compile (tens of seconds on a CPU). autocast "auto": bf16 if it
-        measures faster here (gns.hardware); `self.autocast_used` says which was taken.
+        measures faster here (gns.speedups); `self.autocast_used` says which was taken.
 
         `freeze` (with `compile`, for rollouts of a trained model only): inductor's freezing, which
         takes the weights as constants at the first call and lays them out for the CPU's matrix
@@ -163,14 +127,17 @@ class LearnedSimulator(Stepping, nn.Module):
         that call are not seen, so a training never freezes; in training mode the unfrozen
         compile (or the plain network) runs."""
         if autocast != "none":   # auto decides here; bf16 on a CPU that emulates it warns
+            from gns.speedups import resolve_autocast
             device = next(self.network.parameters()).device
             autocast = resolve_autocast(autocast, self.network.decoder[0].in_features, device)
         self.autocast_used = autocast
         self.autocast = torch.bfloat16 if autocast == "bf16" else None
+        if compile:
+            from gns.speedups import compiled
         if compile and "_compiled_cache" not in self.__dict__:
-            self.__dict__["_compiled_cache"] = torch.compile(_OwnCode(self.network), dynamic=True)
+            self.__dict__["_compiled_cache"] = compiled(self.network)
         if compile and freeze and "_frozen_cache" not in self.__dict__:
-            self.__dict__["_frozen_cache"] = torch.compile(_OwnCode(self.network), dynamic=True)
+            self.__dict__["_frozen_cache"] = compiled(self.network)
         self.__dict__["_compiled"] = self.__dict__["_compiled_cache"] if compile else None
         self.__dict__["_frozen"] = self.__dict__["_frozen_cache"] if compile and freeze else None
 
@@ -199,6 +166,8 @@ class LearnedSimulator(Stepping, nn.Module):
         """The graph's collision edges if given, else built from positions x (N, 3)."""
         if graph.collision_edges is not None:
             return graph.collision_edges
+        # imported here: a model of single objects never builds them
+        from gns.contacts import collision_edges, surface_edges
         if self.collision_mode == "surface":
             return surface_edges(x, graph, self.layout.collision_radius)
         return collision_edges(x, graph, self.layout.collision_radius)
@@ -229,6 +198,7 @@ class LearnedSimulator(Stepping, nn.Module):
             c = self.collision_edges(world[:, -1], graph)
             raw = raw_collision_features(world, c)
             if turn is not None:
+                from gns.symmetry import turn_about_z
                 raw["collision_relative"] = turn_about_z(raw["collision_relative"], turn[0][c.receivers],
                                                          turn[1][c.receivers]).to(torch.float32)
             features = torch.cat([self.collision_normalizers[n](raw[n], acc) for n, _ in self.layout.collision_groups], -1)
@@ -255,6 +225,7 @@ class LearnedSimulator(Stepping, nn.Module):
         velocity = torch.zeros(graph.num_graphs, 2, dtype=history.dtype, device=history.device).index_add_(0, own, step)
         angle = -torch.atan2(velocity[:, 1], velocity[:, 0])
         cos, sin = torch.cos(angle).index_select(0, own), torch.sin(angle).index_select(0, own)
+        from gns.symmetry import turn_about_z
         turned = turn_about_z(history, cos, sin)
         nodes, edge_sets = self._inputs(turned, graph, world=history, turn=(cos, sin))
         out = self.run_network(nodes, *(t for edge_set in edge_sets for t in edge_set))
@@ -271,22 +242,9 @@ class LearnedSimulator(Stepping, nn.Module):
         differ (e.g. the floor seen from farther): free flight then waits until every member's
         floor feature is clear (free_flight_clip). With centre nodes on both, a member may differ in
         features.surface_edges alone: it reads each step's graph with its own mesh edges, rebuilt
-        from the faces (gns.graph.with_surface_edges)."""
-        for k, m in enumerate(members, 1):
-            for what, mine, theirs in (("network mesh (features.centre_node, surface_edges)",
-                                        _surface_free(self._graph_settings, m), _surface_free(m._graph_settings, self)),
-                                       ("floor height", self.layout.floor_z, m.layout.floor_z),
-                                       ("collision edges (features and radius)",
-                                        (self.layout.collision_groups, self.layout.collision_radius),
-                                        (m.layout.collision_groups, m.layout.collision_radius)),
-                                       ("time step and gravity", _listed(self.gravity_per_frame),
-                                        _listed(m.gravity_per_frame)),
-                                       ("nodes seen (features.lowest_vertices, highest_vertices)",
-                                        (self.lowest_vertices, self.highest_vertices),
-                                        (m.lowest_vertices, m.highest_vertices))):
-                if mine != theirs:
-                    raise ValueError(f"ensemble member {k} differs from the model in its {what}: "
-                                     f"{theirs} there, {mine} in the model")
+        from the faces (gns.ensemble.with_surface_edges)."""
+        from gns.ensemble import check_members
+        check_members(self, members)
         self.__dict__["_members"] = list(members)
 
     @property
@@ -302,6 +260,7 @@ class LearnedSimulator(Stepping, nn.Module):
         members = self.__dict__.get("_members")
         if not members:  # the rollout's hot path: no extra tensor work without an ensemble
             return acc
+        from gns.ensemble import with_surface_edges
         for m in members:
             own = m._graph_settings["surface_edges"]
             seen = graph if own == self._graph_settings["surface_edges"] else with_surface_edges(graph, own)
@@ -310,10 +269,11 @@ class LearnedSimulator(Stepping, nn.Module):
 
     def _predict_one(self, history: torch.Tensor, graph: GraphBatch, symmetrize, body_frames: bool) -> torch.Tensor:
         """This model's acceleration (N, 3) float64, averaged over the images of `symmetrize` (a
-        group of gns.stepping.SYMMETRY_GROUPS, a rollout option) and with `body_frames` over each
-        object's equivalent body frames (gns.stepping.averaged_over_images)."""
+        group of gns.symmetry.SYMMETRY_GROUPS, a rollout option) and with `body_frames` over each
+        object's equivalent body frames (gns.symmetry.averaged_over_images)."""
         if not symmetrize and not body_frames:
             return self.target_normalizer.inverse(self(history, graph).to(torch.float64))
+        from gns.symmetry import averaged_over_images
         return averaged_over_images(self, history, graph, symmetrize, body_frames)
 
     def network_nodes(self, x_t: torch.Tensor, graph: GraphBatch) -> tuple[GraphBatch, torch.Tensor] | None:

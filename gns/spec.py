@@ -245,7 +245,7 @@ class OptionsError(ConfigError, ValueError):
 class RolloutOptions:
     # the Euler update is followed by fitting each object's rest shape (the paper's shape matching)
     shape_matching: bool = True
-    # average each step over a group of the floor's symmetries (gns.stepping): d1 two network calls
+    # average each step over a group of the floor's symmetries (gns.symmetry): d1 two network calls
     # a step, d2 four, d4 eight; "none" one
     symmetrize: str = "none"
     # average over each object's equivalent body frames as well (24x for a cube)

@@ -23,15 +23,13 @@ import numpy as np
 import torch
 
 from datagen.shards import Dataset
-from gns import hardware
 from gns.checkpoint import CHECKPOINT_FORMAT, TRAINED, CheckpointError, build_simulator, save_checkpoint
 from gns.config import Config, config_to_dict
 from gns.data import Batch, ObjectTracks, load_data
 from gns.network import HISTORY
 from gns.geometry import shape_match_packed
-from gns.hardware import set_threads
-from gns.run_folder import (METRICS, StopRequest, check_start, progress_bar, restore_rng, rng_state, run_provenance,
-                            start_run_folder, tensorboard_writer, write_metrics)
+from gns.run_folder import (METRICS, StopRequest, World, check_start, progress_bar, restore_rng, rng_state,
+                            run_provenance, set_threads, start_run_folder, world_from_env, write_metrics)
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 
@@ -53,14 +51,14 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     """Train until cfg.train.steps; returns the final step.
 
     Launched by torchrun with WORLD_SIZE > 1, each process trains on its share of every global
-    batch of cfg.train.batch_size windows (DistributedDataParallel; see gns.hardware): the
+    batch of cfg.train.batch_size windows (DistributedDataParallel; see gns.processes): the
     same updates as one process with that batch, in 1/WORLD_SIZE of the network time. Only
     rank 0 writes the run folder and logs.
 
     Raises DataError, CheckpointError or TrainingError with one-line messages. Nothing in the
     run folder changes until the data, config and checkpoint have all been checked.
     """
-    world = hardware.world_from_env()
+    world = world_from_env()
     if not world.main:
         log = _quiet
     run = Path(run_dir)
@@ -82,7 +80,9 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
         # the DDP reducer must go before its process group: freed after it (when train returned),
         # its destructor hung 3 runs in ~45 (none in 80 since)
         sim.distribute(None)
-        hardware.stop(world, together=finished)
+        if world.size > 1:
+            from gns.processes import stop
+            stop(world, together=finished)
 
 
 def _quiet(line: str) -> None:
@@ -139,22 +139,22 @@ def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] |
     return sim, optimizer, spec, step, average
 
 
-def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world: hardware.World) -> None:
+def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world: World) -> None:
     """The simulator on its device in training mode, under bf16 autocast and compiled if asked, joined to
     the other processes' (DistributedDataParallel) when there are several."""
     sim.to(device).train()
     sim.set_speed(cfg.train.autocast, cfg.train.compile)
     if device.type == "cuda":
         torch.cuda.set_device(device)
-    hardware.start(world, device)
     if world.size > 1:
-        from torch.nn.parallel import DistributedDataParallel
-        sim.distribute(DistributedDataParallel(sim.network, device_ids=[device.index] if device.type == "cuda" else None))
+        from gns.processes import distributed, start
+        start(world, device)
+        sim.distribute(distributed(sim.network, device))
 
 
 def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer,
                 tracks: ObjectTracks, valid: ObjectTracks | None, spec: ModelSpec, step: int,
-                rng: np.random.Generator, device: torch.device, world: hardware.World, stale: list[Path],
+                rng: np.random.Generator, device: torch.device, world: World, stale: list[Path],
                 resumed_from: Path | None, provenance: dict, log: Callable[[str], None],
                 average: WeightAverage | None = None) -> int:
     """Steps from `step` to cfg.train.steps: a batch, an Adam step, a metrics line every
@@ -175,8 +175,10 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
     last_good = resumed_from
     bar = progress_bar(cfg.train.steps, step, log, enabled=world.main)
     metrics = open(run / METRICS, "a") if world.main else None
-    writer = (tensorboard_writer(run, step + 1 if resumed_from else None)
-              if cfg.train.tensorboard and world.main else None)
+    writer = None
+    if cfg.train.tensorboard and world.main:
+        from gns.tensorboard_log import tensorboard_writer
+        writer = tensorboard_writer(run, step + 1 if resumed_from else None)
     stop = StopRequest() if world.size == 1 else contextlib.nullcontext()
     try:
         with stop:
@@ -193,18 +195,17 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
 
 def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim.Optimizer, tracks: ObjectTracks,
            valid: ObjectTracks | None, step: int, rng: np.random.Generator, device: torch.device,
-           world: hardware.World, state: Callable[[int], dict], last_good: Path | None, bar, metrics, writer,
+           world: World, state: Callable[[int], dict], last_good: Path | None, bar, metrics, writer,
            stop, average: WeightAverage | None = None) -> tuple[int, Path | None]:
     """The loop of _train_loop; returns (step reached, last checkpoint). Stops on a signal
     (`stop.asked`) after the step under way, with a checkpoint there. Validation scores the
     weight average when there is one: the weights the checkpoints keep for use."""
-    lo, hi = hardware.share(cfg.train.batch_size, world)
     loss_sum, loss_count, busy = 0.0, 0, 0.0
     t_mark = time.perf_counter()
     while step < cfg.train.steps:
         t0 = time.perf_counter()
         lr = learning_rate(cfg, step)
-        batch, fraction = _next_batch(tracks, rng, cfg, world, lo, hi)
+        batch, fraction = _next_batch(tracks, rng, cfg, world)
         try:
             loss = train_step(sim, optimizer, batch.to(device), lr, cfg.train.grad_clip, fraction, world.size,
                               cfg.train.rigid_loss)
@@ -244,7 +245,7 @@ def _steps(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.optim
 
 
 def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: ModelSpec, step: int,
-                world: hardware.World, resumed_from: Path | None) -> str:
+                world: World, resumed_from: Path | None) -> str:
     """The log's first line: what is trained on what."""
     n_params = sum(p.numel() for p in sim.parameters())
     contact = ""
@@ -263,18 +264,18 @@ def _start_line(cfg: Config, sim: LearnedSimulator, tracks: ObjectTracks, spec: 
             f"node features {list(spec.node_features)}, edge features {list(spec.edge_features)}{precision}")
 
 
-def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, world: hardware.World,
-                lo: int, hi: int) -> tuple[Batch, float]:
-    """The next global batch of windows, augmented, or this process's share [lo, hi) of it, and
-    the fraction of the global batch's nodes that share holds."""
+def _next_batch(tracks: ObjectTracks, rng: np.random.Generator, cfg: Config, world: World) -> tuple[Batch, float]:
+    """The next global batch of windows, augmented, or this process's share of it (gns.processes.share),
+    and the fraction of the global batch's nodes that share holds."""
     batch = tracks.sample(rng, cfg.train.batch_size, cfg.augment.rotate, cfg.augment.noise_std,
                           cfg.augment.vertex_noise, cfg.augment.track_noise,
                           cfg.train.contact_fraction, cfg.augment.mirror,
                           cfg.augment.body_symmetry)
     if world.size == 1:
         return batch, 1.0
+    from gns.processes import share, windows
     nodes = batch.graph.num_nodes
-    batch = batch.windows(lo, hi)
+    batch = windows(batch, *share(cfg.train.batch_size, world))
     return batch, batch.graph.num_nodes / nodes
 
 
@@ -309,7 +310,8 @@ def train_step(sim: LearnedSimulator, optimizer: torch.optim.Optimizer, batch: B
     loss = unrolled_loss(sim, batch, rigid_loss)
     if processes > 1:
         # every process sees the same global loss, so all stop together on a NaN
-        total = hardware.sum_over_processes(loss.detach() * fraction)
+        from gns.processes import sum_over_processes
+        total = sum_over_processes(loss.detach() * fraction)
         loss = loss * (fraction * processes)
     else:
         total = loss

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from plumbing import config_dir, DataError
 from datagen.scenes import load_config as load_scene_config
-from datagen.generate import generate
+from datagen.toss import generate
 from datagen.shards import Dataset
 from gns.config import build_config, config_differences
 from gns.evaluate import write_json
@@ -74,7 +74,7 @@ def finished_dataset(out: Path, key: str, value, what: str) -> Dataset | None:
 def guarded(stages) -> int:
     """Run a pipeline's stages; a user error ends it with one `error:` line and exit status 2."""
     from gns.config import ConfigError
-    from gns.rollout import DivergedError
+    from gns.evaluate import DivergedError
     from gns.train import TrainingError
     try:
         stages()

@@ -40,10 +40,11 @@ from pathlib import Path
 
 from plumbing import DataError, atomic_file, atomic_folder
 from datagen.scenes import load_config
-from datagen.generate import metadata, plan
+from datagen.output import plan
+from datagen.toss import metadata
 from datagen.scenes import get_shape
 from datagen.shards import Dataset, write_metadata, write_shard
-from datagen.simulate import simulate
+from datagen.toss import simulate
 from datagen.tilted import tilted_scene, training_scene
 from gns.checkpoint import checkpoint_of
 from gns.evaluate import write_json

@@ -2,7 +2,7 @@
 
 A learned simulator is scored against one sample of a chaotic system: a beveled cube that lands
 on an edge goes one way or the other on a hair's difference. This re-simulates every scene of a
-datagen split with the generator's own engine, world and parameters (datagen.simulate, the
+datagen split with the generator's own engine, world and parameters (datagen.toss, the
 recorded config), changes one thing by a small amount right after the last frame a GNS is given
 (frame HISTORY - 1 = 2), and scores the result with `gns eval`'s metrics. The unperturbed row
 reproduces the data and must score 0 (a check that the study runs the data's physics). What the
@@ -109,11 +109,11 @@ def _turn(quat_xyzw, axis: np.ndarray, degrees: float):
 
 def perturber(p: Perturbation, rng: np.random.Generator, frame: int, frame_rate: float, objects: list,
               gravity: np.ndarray):
-    """A datagen.simulate `after_frame` hook applying p to every object (datagen.scenes.ObjectSpec)
+    """A datagen.toss `after_frame` hook applying p to every object (datagen.scenes.ObjectSpec)
     once frame `frame` is recorded (the contact kinds: after every later frame a step in contact made)."""
     import torch
 
-    from datagen.simulate import pb
+    from datagen.toss import pb
     from gns.config import TrainConfig
     from gns.data import in_contact
     g_step = torch.as_tensor(np.asarray(gravity, float) / frame_rate ** 2)
@@ -173,7 +173,7 @@ def resimulate(ds: Dataset, scenes: list, p: Perturbation, seed: int, frame: int
     """Every scene simulated again from its recorded spec (datagen.scenes.sample_scene with the
     dataset's config and seed), perturbed by p after `frame`."""
     from datagen.scenes import sample_scene
-    from datagen.simulate import simulate
+    from datagen.toss import simulate
     cfg, data_seed = ds.meta["config"], int(ds.meta["seed"])
     out = []
     for sc in scenes:

@@ -27,8 +27,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from plumbing import DataError
-from gns.evaluate import evaluate_baseline, evaluate_run, write_json
-from gns.checkpoint import export_model, read_checkpoint
+from baselines.toss import evaluate_baseline
+from gns.evaluate import evaluate_run, write_json
+from gns.checkpoint import read_checkpoint
+from gns.zoo import export_model
 from pipelines.common import Costs, done, guarded, say, train_stage
 from pipelines.engine_pretrain import synthetic_stage
 from pipelines.real_cubes_baselines import available_engines, baselines_stage

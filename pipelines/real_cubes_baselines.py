@@ -22,7 +22,8 @@ from baselines import baseline_engine
 from baselines.pybullet import PUBLISHED
 from datagen.shards import Dataset
 from plumbing import DataError
-from gns.evaluate import evaluate_baseline, write_json
+from baselines.toss import evaluate_baseline
+from gns.evaluate import write_json
 from gns.metrics import METRICS
 from pipelines.common import Costs, guarded, say
 from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_split, read_tosses, real_cubes_parser,

@@ -179,14 +179,14 @@ def train_recipe(recipe: Recipe, out: Path, data: Path | None = None, src: Path 
 def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None) -> dict:
     """The exported model scored as each zoo card says (its rollout options, on the recipe's test
     data), or with the default options for a recipe outside the zoo."""
-    from gns import checkpoint
+    from gns import zoo
     from gns.spec import RolloutOptions
-    from gns.checkpoint import export_model
+    from gns.zoo import export_model
     from gns.evaluate import write_json
     model = export_model(ckpt, out / "model.pt", overwrite=True)
     rows = {}
     for name in recipe.zoo or ("",):
-        card = checkpoint.card(name) if name else None
+        card = zoo.card(name) if name else None
         options = card.options if card else RolloutOptions()
         if recipe.data.get("kind") == "tilted_drops":
             from pipelines.diagnostic_45 import run as diagnostic

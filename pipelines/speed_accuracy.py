@@ -24,12 +24,12 @@ import torch
 from datagen.scenes import load_config as scene_config
 from datagen.scenes import sample_scene
 from datagen.shards import Dataset
-from datagen.simulate import simulate
+from datagen.toss import simulate
 from gns.config import build_config
 from gns.data import feature_spec
-from gns.evaluate import checkpoint_of, load_split, write_json
+from gns.checkpoint import checkpoint_of
+from gns.evaluate import load_split, rollout_scenes, split_diverged, write_json
 from gns.metrics import METRICS, evaluate_scenes
-from gns.rollout import rollout_scenes, split_diverged
 from gns.simulator import LearnedSimulator
 from gns.checkpoint import load_model, read_checkpoint
 from plumbing import check_writable
@@ -149,7 +149,7 @@ def sweep_runs(p: dict, out: Path) -> list[tuple[str, Path]]:
 
 
 # the fast rollout options: gns eval --free-flight --autocast auto --compile (and --symmetrize);
-# auto: bf16 where it measures faster on this machine (gns.hardware), else float32; each row says which
+# auto: bf16 where it measures faster on this machine (gns.speedups), else float32; each row says which
 FAST = "free flight + auto precision + compile"
 FAST_SYM = FAST + " + symmetrized"
 MODES = {None: "gns batched", "fast": "gns fast", "fast sym": "gns fast sym"}

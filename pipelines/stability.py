@@ -20,7 +20,8 @@ import torch
 
 from plumbing import check_writable
 from gns.stepping import Sleep
-from gns.evaluate import checkpoint_of, load_split, write_json
+from gns.checkpoint import checkpoint_of
+from gns.evaluate import load_split, write_json
 from gns.stability import REST_DRIFT_PCT, at_rest, extremes, long_rollouts, resting_scene
 from gns.spec import ModelSpec
 from gns.checkpoint import default_options, load_model, read_checkpoint

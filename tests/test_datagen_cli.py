@@ -6,7 +6,7 @@ import h5py
 import numpy as np
 import pytest
 
-from datagen import generate as gen_mod
+from datagen import toss as gen_mod
 from datagen.cli import main
 from datagen.shards import Dataset, Scene, write_shard
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import h5py
 import pytest
 
-from datagen import generate as gen_mod
+from datagen import toss as gen_mod
 from datagen import output as output_mod
 from datagen.cli import main
 from datagen.shards import Dataset, write_shard

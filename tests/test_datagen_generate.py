@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from datagen import generate as gen_mod
+from datagen import toss as gen_mod
 from datagen.cli import main
 from datagen.shards import Dataset
 from plumbing import DataError
@@ -191,7 +191,7 @@ def test_ray_backend_on_a_local_cluster_gives_the_same_bytes(reference, tmp_path
 
 
 def test_keeping_freed_heap_memory_changes_no_byte(reference, tmp_path):
-    """datagen.simulate.keep_freed_memory only changes how the C heap gives memory back; a run
+    """datagen.toss.keep_freed_memory only changes how the C heap gives memory back; a run
     with glibc's defaults (DATAGEN_KEEP_HEAP=0, a fresh process) writes the same dataset."""
     import os
     out = tmp_path / "default_heap"

@@ -5,11 +5,11 @@ import json
 import numpy as np
 import pytest
 
-from datagen.generate import generate
+from datagen.toss import generate
 from datagen.kubric import MATERIAL_LABELS, SHAPE_LABELS, import_kubric
 from datagen.scenes import get_shape, load_config
 from datagen.shards import Dataset
-from datagen.simulate import rotate
+from datagen.toss import rotate
 from plumbing import DataError
 
 

@@ -6,7 +6,7 @@ from datagen.scenes import load_config
 from datagen.inspect import rotate
 from datagen.scenes import sample_scene
 from datagen.scenes import get_shape
-from datagen.simulate import simulate
+from datagen.toss import simulate
 from tests.datagen_helpers import config, one_object
 
 G = 10.0

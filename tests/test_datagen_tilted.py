@@ -8,7 +8,7 @@ import pytest
 from datagen.scenes import load_config
 from datagen.inspect import rotate
 from datagen.scenes import get_shape
-from datagen.simulate import simulate
+from datagen.toss import simulate
 from datagen.tilted import side, tilted_scene, training_scene
 
 

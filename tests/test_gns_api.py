@@ -16,7 +16,8 @@ from plumbing import DataError
 from gns.api import history_poses, matrix_to_quat, quat_to_matrix
 from gns.cli import main as gns_main
 from gns.config import ConfigError, build_config
-from gns.checkpoint import CheckpointError, export_model, read_checkpoint
+from gns.checkpoint import CheckpointError, read_checkpoint
+from gns.zoo import export_model
 from gns.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -327,8 +328,8 @@ def test_symmetrized_images_in_one_call_equal_one_call_per_image(run):
     # scenes of several touching objects: each image keeps its own collision edges
     from dataclasses import replace
 
-    import gns.stepping as symmetry
-    from gns.stepping import FLOOR_SYMMETRIES
+    import gns.symmetry as symmetry
+    from gns.symmetry import FLOOR_SYMMETRIES
     model = gns.load(run / "run", symmetrize="d2")
     sim = model.simulator
     state = model.state(**three_cubes(), warn=False)

@@ -90,7 +90,7 @@ def test_body_frame_averaging_is_exactly_invariant_to_the_body_frame(tmp_path):
 
     from test_gns_train_levers import sim_and_batch
 
-    from gns.graph import with_symmetries
+    from gns.symmetry import with_symmetries
     sim, b = sim_and_batch(tmp_path)
     g = with_symmetries(b.graph)
     assert (g.num_symmetries == 24).all()

@@ -14,7 +14,7 @@ from gns.geometry import quat_from_axis_angle
 from gns.contacts import collision_edges, with_collision_edges
 from gns.graph import MeshLibrary
 from gns.metrics import evaluate_scenes, interpenetration_pct
-from gns.rollout import rollout_scenes
+from gns.evaluate import rollout_scenes
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import load_model

@@ -6,7 +6,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from datagen.generate import generate
+from datagen.toss import generate
 from datagen.scenes import load_config
 from gns.checkpoint import CheckpointError, build_simulator, read_checkpoint
 from gns.data import load_data

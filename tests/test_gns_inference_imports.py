@@ -10,7 +10,7 @@ ROOT = Path(__file__).resolve().parent.parent
 TRAINING = ("gns.train", "gns.fine_tune", "gns.weight_average")
 
 
-@pytest.mark.parametrize("module", ["gns.api", "gns.evaluate", "gns.rollout", "gns"])
+@pytest.mark.parametrize("module", ["gns.api", "gns.evaluate", "gns.rollout_dataset", "gns"])
 def test_an_inference_module_loads_no_training_module(module):
     code = f"import sys, {module}; print(' '.join(m for m in {TRAINING!r} if m in sys.modules))"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)

@@ -9,7 +9,8 @@ import torch
 from gns_fixtures import write_toss_dataset
 
 from datagen.cli import main as datagen_main
-from gns import hardware
+from gns.processes import share, windows
+from gns.run_folder import World
 from gns.config import build_config
 from gns.data import ObjectTracks
 from gns.graph import MeshLibrary
@@ -93,7 +94,7 @@ def test_two_processes_resume_where_they_stopped(runs):
 def test_share_splits_the_global_batch_into_disjoint_contiguous_parts():
     for size in (1, 2, 3):
         for batch in (size, 5, 8):
-            parts = [hardware.share(batch, hardware.World(r, size)) for r in range(size)]
+            parts = [share(batch, World(r, size)) for r in range(size)]
             assert parts[0][0] == 0 and parts[-1][1] == batch
             assert all(a[1] == b[0] for a, b in zip(parts, parts[1:]))
             assert max(hi - lo for lo, hi in parts) - min(hi - lo for lo, hi in parts) <= 1
@@ -103,7 +104,7 @@ def test_a_share_of_a_batch_holds_exactly_its_windows(tmp_path):
     ds = Dataset(write_toss_dataset(tmp_path / "d", train=4, valid=0, frames=8))
     tracks = ObjectTracks(ds.load("train"), MeshLibrary(ds.meshes))
     full = tracks.batch(torch.tensor([0, 5, 9, 3, 7]))
-    lo_part, hi_part = full.windows(0, 2), full.windows(2, 5)
+    lo_part, hi_part = windows(full, 0, 2), windows(full, 2, 5)
     assert lo_part.graph.num_graphs + hi_part.graph.num_graphs == full.graph.num_graphs
     torch.testing.assert_close(torch.cat([lo_part.history, hi_part.history]), full.history, rtol=0, atol=0)
     alone = tracks.batch(torch.tensor([9, 3, 7]))

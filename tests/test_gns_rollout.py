@@ -12,7 +12,8 @@ from gns.config import build_config
 from gns.evaluate import evaluate_run
 from gns.geometry import pose_to_vertices
 from gns.spec import RolloutOptions
-from gns.rollout import rollout_scenes, write_rollouts
+from gns.evaluate import rollout_scenes
+from gns.rollout_dataset import write_rollouts
 from gns.checkpoint import load_model
 from gns.train import train
 
@@ -179,7 +180,7 @@ def test_a_limit_below_one_is_one_line(trained, capsys, limit):
 def test_predicted_scenes_read_each_scenes_spin_off_its_own_poses():
     """Angular velocities come from one call over every track of a batch: a scene's spin is its
     own (a constant spin about its own axis, shorter scenes padded with NaN beside longer ones)."""
-    from gns.rollout import predicted_scenes
+    from gns.evaluate import predicted_scenes
     from scipy.spatial.transform import Rotation
     dt, spins = 0.1, [np.array([0.0, 0.0, 3.0]), np.array([1.0, -2.0, 0.5]), np.array([0.0, 4.0, 0.0])]
     lengths, scenes = [12, 7, 9], []

@@ -224,9 +224,9 @@ def test_per_node_turns_equal_the_matrix_products():
     """The rollout's cheap forms against the plain matrix products they replace:
     each node turned by its graph's rotation, turns about z from cosines and sines, and the
     floor's diagonal maps of the body-frame symmetries."""
-    from gns.graph import mapped_symmetries
+    from gns.symmetry import mapped_symmetries
     from gns.geometry import rotate_nodes
-    from gns.stepping import turn_about_z
+    from gns.symmetry import turn_about_z
     rot = random_rotations(4, seed=1)
     node_graph = torch.tensor([0, 0, 1, 2, 2, 2, 3])
     v = torch.from_numpy(np.random.default_rng(2).normal(size=(7, 3)))

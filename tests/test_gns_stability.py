@@ -237,7 +237,7 @@ def crowded(tmp_path_factory):
 
 @pytest.mark.parametrize("name", sorted(ZOO_SHAPES))
 def test_every_zoo_model_stays_finite_for_10x_the_length_of_scenes_of_3_to_10_objects(name, crowded):
-    from gns.checkpoint import card
+    from gns.zoo import card
     ds = Dataset(crowded / ZOO_SHAPES[name])
     scenes = ds.load("test")
     assert min(sc.num_objects for sc in scenes) >= 3

@@ -141,7 +141,8 @@ def test_resume_tolerates_a_torn_metrics_line(data, tmp_path):
 
 
 def test_an_exported_model_cannot_be_resumed_but_says_why(data, tmp_path):
-    from gns.checkpoint import CheckpointError, export_model
+    from gns.checkpoint import CheckpointError
+    from gns.zoo import export_model
     run = tmp_path / "run"
     train(data, run, tiny("train.steps=5", "train.checkpoint_every=5"), log=quiet)
     export_model(run / "latest.pt", tmp_path / "exported" / "latest.pt")

@@ -162,7 +162,7 @@ def test_d4_symmetrized_predictions_are_exactly_quarter_turn_equivariant(tmp_pat
     sim, b = sim_and_batch(tmp_path)
     from dataclasses import replace
 
-    from gns.stepping import symmetry_group
+    from gns.symmetry import symmetry_group
     quarter = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     diagonal = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
@@ -282,7 +282,7 @@ def test_an_ensemble_member_on_spokes_only_reads_its_own_mesh_edges(tmp_path):
 def test_upsampling_a_strided_rollout_recovers_a_smooth_trajectory_at_every_frame():
     from gns.geometry import quat_from_axis_angle
     from gns.metrics import rotation_error_deg
-    from gns.rollout import upsample_scene
+    from gns.at_data_rate import upsample_scene
     t = np.arange(21) / FRAME_RATE
     x = ballistic(21)
     q = quat_from_axis_angle(np.array([0.3, 0.2, 1.0]), 2.0 * t)    # constant spin

@@ -3,7 +3,8 @@ import pytest
 import torch
 from gns_fixtures import write_toss_dataset
 
-from gns.checkpoint import TRAINED, export_model, load_model
+from gns.checkpoint import TRAINED, load_model
+from gns.zoo import export_model
 from gns.config import ConfigError, build_config
 from gns.checkpoint import read_checkpoint
 from gns.train import train

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from plumbing import config_dir
-from gns import checkpoint
+from gns import zoo
 from gns.checkpoint import checkpoint_of, read_checkpoint
 from gns.cli import main as gns_cli
 from gns.config import build_config, config_differences
@@ -21,15 +21,15 @@ CARD_KEYS = {"file", "purpose", "use", "limits", "data", "recipe", "scores"}
 
 
 def test_the_zoo_is_a_few_models_named_by_purpose_each_with_a_complete_card():
-    names = checkpoint.names()
+    names = zoo.names()
     assert {"movi_a", "movi_a_fast", "real_cubes", "real_cubes_16", "diagnostic_45"} <= set(names)
     assert len(names) <= 6
-    weights = {checkpoint.card(n).file for n in names}
+    weights = {zoo.card(n).file for n in names}
     # nothing ships without a card, and the package stays small
-    assert weights == set(checkpoint.ZOO.glob("*.pt"))
+    assert weights == set(zoo.ZOO.glob("*.pt"))
     assert sum(w.stat().st_size for w in weights) < 15e6
     for name in names:
-        c = checkpoint.card(name)
+        c = zoo.card(name)
         assert CARD_KEYS <= set(c.data), (name, CARD_KEYS - set(c.data))
         assert c.file.is_file() and c.data["limits"] and c.data["scores"]
         for key in ("what", "command", "fingerprint"):
@@ -42,11 +42,11 @@ def test_the_zoo_is_a_few_models_named_by_purpose_each_with_a_complete_card():
         assert c.data["data"]["fingerprint"] == trained_on, name
 
 
-@pytest.mark.parametrize("name", sorted(set(checkpoint.names())))
+@pytest.mark.parametrize("name", sorted(set(zoo.names())))
 def test_each_zoo_model_is_reproduced_by_its_named_recipe(name):
     """The card's recipe exists, lists the model, and its last run trains with exactly the settings
     stored in the shipped weights (bar the bookkeeping that does not change what a run learns)."""
-    c = checkpoint.card(name)
+    c = zoo.card(name)
     recipe_name = c.data["recipe"]["command"].split()[3]
     assert recipe_name in recipe_names()
     recipe = load_recipe(recipe_name)
@@ -73,18 +73,18 @@ def test_a_wrong_name_lists_the_zoo(capsys, tmp_path):
             gns_cli(argv)
         assert stop.value.code == 2
         err = capsys.readouterr().err.strip()
-        assert "\n" not in err and err.startswith("error: ") and all(n in err for n in checkpoint.names())
-    with pytest.raises(checkpoint.ZooError, match="movi_a_fast"):
+        assert "\n" not in err and err.startswith("error: ") and all(n in err for n in zoo.names())
+    with pytest.raises(zoo.ZooError, match="movi_a_fast"):
         checkpoint_of("movi_b")
 
 
 def test_gns_models_lists_and_prints_cards(capsys):
     gns_cli(["models"])
     out = capsys.readouterr().out
-    assert all(f"{n}\n" in out for n in checkpoint.names())
+    assert all(f"{n}\n" in out for n in zoo.names())
     gns_cli(["models", "real_cubes"])
     out = capsys.readouterr().out
-    card = checkpoint.card("real_cubes").data
+    card = zoo.card("real_cubes").data
     assert card["recipe"]["command"] in out and card["scores"][0]["eval_command"] in out
     assert "--symmetrize d2" in out
 
@@ -92,10 +92,10 @@ def test_gns_models_lists_and_prints_cards(capsys):
 def test_the_scored_options_travel_with_the_model():
     import gns
     for name in ("movi_a", "movi_a_fast", "diagnostic_45"):
-        assert gns.load(name).options == checkpoint.card(name).options
-    assert checkpoint.card("movi_a").options.symmetrize == "d1" and checkpoint.card("movi_a").options.free_flight
+        assert gns.load(name).options == zoo.card(name).options
+    assert zoo.card("movi_a").options.symmetrize == "d1" and zoo.card("movi_a").options.free_flight
     # a file or run folder has the defaults; a user's choice replaces the card's
-    assert gns.load(str(checkpoint.card("movi_a").file)).options == RolloutOptions()
+    assert gns.load(str(zoo.card("movi_a").file)).options == RolloutOptions()
     assert gns.load("movi_a", options=RolloutOptions()).options == RolloutOptions()
     assert gns.load("movi_a", symmetrize="d2").options.symmetrize == "d2"
 
@@ -108,7 +108,7 @@ def test_the_movi_a_models_roll_out_fresh_scenes_with_their_card_options(tmp_pat
     for name in ("movi_a", "movi_a_fast"):
         gns_cli(["eval", "--run", name, "--data", str(data), "--json", str(tmp_path / f"{name}.json")])
         results = json.loads((tmp_path / f"{name}.json").read_text())
-        assert results["rollout_options"] == checkpoint.card(name).options.to_dict()
+        assert results["rollout_options"] == zoo.card(name).options.to_dict()
         assert results["num_scenes"] == 6 and not results["outside_training"]
         # 6 scenes of a seed it never saw; a broken or mismatched model is far off (the card: ~11%)
         assert results["position_error_pct"] < 40 and results["penetration_pct"] < 2

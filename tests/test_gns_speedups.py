@@ -1,11 +1,11 @@
-"""--autocast auto: bf16 only where it measures faster (gns.hardware)."""
+"""--autocast auto: bf16 only where it measures faster (gns.speedups)."""
 import warnings
 
 import pytest
 import torch
 
 from gns.config import ConfigError
-from gns.hardware import MARGIN, bf16_speedup, resolve_autocast
+from gns.speedups import MARGIN, bf16_speedup, resolve_autocast
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from test_gns_train import tiny
@@ -39,11 +39,11 @@ def test_the_measurement_is_a_positive_ratio_taken_once():
 
 
 def test_a_simulator_set_to_auto_measures_at_its_latent_width_and_says_what_it_took(monkeypatch):
-    from gns import simulator
+    from gns import speedups
     cfg = tiny()
     sim = LearnedSimulator(cfg.model, cfg.features, ModelSpec(floor=None, materials_vary=False))
     asked = []
-    monkeypatch.setattr(simulator, "resolve_autocast", lambda name, width, device: asked.append(width) or "bf16")
+    monkeypatch.setattr(speedups, "resolve_autocast", lambda name, width, device: asked.append(width) or "bf16")
     sim.set_speed("auto")
     assert asked == [cfg.model.latent_size] and sim.autocast == torch.bfloat16 and sim.autocast_used == "bf16"
     sim.set_speed("none")

@@ -1,0 +1,58 @@
+"""A model trained at every k-th recorded frame scored at every frame of the data (`gns eval
+--at-data-rate`, and the 240hz protocol, which implies it), the instants any other simulator is
+scored at: its rollout interpolated between the frames it predicted. Loaded only when asked for.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from plumbing import DataError
+from datagen.shards import Dataset, Scene, continuous, rotation, wxyz
+from gns.evaluate import angular_velocities
+from gns.metrics import PROTOCOLS
+
+
+def check_protocol(protocol: str, data: str | Path) -> None:
+    """Refuse, in one line, a protocol this code does not know or data it cannot be scored on."""
+    if protocol not in PROTOCOLS:
+        raise DataError(f"unknown protocol {protocol!r}; known: {', '.join(PROTOCOLS)}")
+    rate = Dataset(data).frame_rate
+    if abs(rate - 240) > 1e-9:
+        raise DataError(f"{data}: the 240hz protocol needs scenes recorded at 240 frames a second, these are at "
+                        f"{rate:g} (datagen toss --set scene.frame_rate=240 scene.frames=461 records MOVi-A's 2 s)")
+
+
+def upsample_scene(pred: Scene, stride: int, true: Scene, frame_rate: float) -> tuple[Scene, Scene]:
+    """A rollout made at every `stride`-th frame, interpolated to every frame of the full-rate
+    truth it covers: centres by a cubic spline (exact for free flight's parabolas; a bounce's
+    kink rings by a small fraction of one coarse step's motion), rotations by slerp. Returns (predicted, true), both cut to the frames up to the last predicted one, so a
+    model with a coarser time step is scored at the same instants as one at the data's rate.
+    frame_rate is the truth's (fine) rate."""
+    from scipy.interpolate import CubicSpline
+    from scipy.spatial.transform import Slerp
+
+    coarse = np.arange(pred.num_frames) * stride
+    fine = np.arange(coarse[-1] + 1)
+    positions = CubicSpline(coarse, pred.positions, axis=0)(fine) if len(coarse) > 2 else \
+        np.stack([np.interp(fine, coarse, c) for c in pred.positions.reshape(len(coarse), -1).T], -1).reshape(
+            len(fine), *pred.positions.shape[1:])
+    quaternions = np.empty((len(fine), pred.num_objects, 4))
+    for n in range(pred.num_objects):
+        slerp = Slerp(coarse, rotation(pred.quaternions[:, n]))
+        quaternions[:, n] = continuous(wxyz(slerp(fine).as_quat()))
+    dt = 1.0 / frame_rate
+    velocities = np.zeros_like(positions)
+    velocities[1:] = (positions[1:] - positions[:-1]) / dt
+    velocities[0] = true.velocities[0]
+    cut = len(fine)
+    upsampled = Scene(positions=positions, quaternions=quaternions, velocities=velocities,
+                      angular_velocities=angular_velocities(quaternions, dt), shape=list(pred.shape),
+                      material=list(pred.material), scale=pred.scale.copy(), mass=pred.mass.copy(),
+                      friction=pred.friction.copy(), restitution=pred.restitution.copy(),
+                      attrs={**pred.attrs, "upsampled_from_stride": stride})
+    truth = Scene(*(getattr(true, k)[:cut] for k in ("positions", "quaternions", "velocities", "angular_velocities")),
+                  list(true.shape), list(true.material), true.scale, true.mass, true.friction, true.restitution,
+                  dict(true.attrs))
+    return upsampled, truth
