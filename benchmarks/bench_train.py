@@ -1,9 +1,10 @@
 """Training speed of the GNS presets: steps/s, graphs/s, and achieved FLOP rate vs matmul peak.
 
-The FLOPs are those of the Linear layers (2 per multiply-add), counted analytically from the
-batch's node and edge counts; a training step is taken as 3x the forward pass (backward ~2x).
-Peak is this machine's measured float32 rate for a 1024 x 1024 matmul with the same threads,
-timed in the same run, so the fraction says how well the small MLPs use the hardware.
+Presets (configs/gns_<name>.toml): the FLOPs are those of the Linear layers (2 per multiply-add),
+counted analytically from the batch's node and edge counts; a training step is taken as 3x the
+forward pass (backward ~2x). Peak is this machine's measured float32 rate for a 1024 x 1024
+matmul with the same threads, timed in the same run, so the fraction says how well the small
+MLPs use the hardware.
 
     python benchmarks/bench_train.py                      # synthetic MOVi-like tosses
     python benchmarks/bench_train.py --data data/movi_a   # a real dataset's train split
@@ -14,6 +15,8 @@ A variant joins with "+": bf16 (the network under bfloat16 autocast, train.autoc
 compile (the network through torch.compile, compiled during the untimed warm-up steps). Each
 row's achieved rate is also given against the matmul peak of its own dtype (bf16 rows: a
 bfloat16 1024^3 matmul), so a faster number type does not pass for better use of the hardware.
+
+The shipped recipes, as they train: benchmarks/bench_train_recipes.py.
 """
 from __future__ import annotations
 
@@ -38,12 +41,13 @@ from gns.train import learning_rate, train_step
 CONFIGS = config_dir()
 SHAPES = ("beveled_cube", "cylinder", "sphere")  # MOVi-A's shapes: 51-64 vertices each
 SYNTHETIC_SPEC = {"floor": {"z": 0.0}, "materials_vary": True}
+CPU_FEATURES = ("avx512f", "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16")
 
 
-def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0) -> tuple[ObjectTracks, dict]:
-    """Ballistic spinning tosses of the MOVi-A shapes; speed depends on graph sizes, not physics."""
+def synthetic_scenes(shapes=SHAPES, scenes: int = 64, frames: int = 24, seed: int = 0,
+                     materials_vary: bool = True) -> list[Scene]:
+    """Ballistic spinning tosses; speed depends on graph sizes, not physics."""
     rng = np.random.default_rng(seed)
-    meshes = {name: (get_shape(name).vertices, get_shape(name).faces) for name in SHAPES}
     t = np.arange(frames) / 12.0
     out = []
     for i in range(scenes):
@@ -51,10 +55,34 @@ def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0) -> tuple
         q = quat_from_axis_angle(rng.normal(size=3), rng.uniform(0, 3) * t)
         zero = np.zeros((frames, 1, 3))
         out.append(Scene(positions=p[:, None], quaternions=q[:, None], velocities=zero, angular_velocities=zero,
-                         shape=[SHAPES[i % 3]], material=["metal"], scale=np.array([rng.choice([0.7, 1.4])]),
-                         mass=np.ones(1), friction=np.array([rng.choice([0.4, 0.8])]),
-                         restitution=np.array([rng.choice([0.3, 0.7])])))
-    return ObjectTracks(out, MeshLibrary(meshes)), SYNTHETIC_SPEC
+                         shape=[shapes[i % len(shapes)]], material=["metal"],
+                         scale=np.array([rng.choice([0.7, 1.4]) if materials_vary else 1.0]), mass=np.ones(1),
+                         friction=np.array([rng.choice([0.4, 0.8]) if materials_vary else 0.4]),
+                         restitution=np.array([rng.choice([0.3, 0.7]) if materials_vary else 0.3])))
+    return out
+
+
+def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0) -> tuple[ObjectTracks, dict]:
+    """Ballistic spinning tosses of the MOVi-A shapes."""
+    meshes = {name: (get_shape(name).vertices, get_shape(name).faces) for name in SHAPES}
+    return ObjectTracks(synthetic_scenes(SHAPES, scenes, frames, seed), MeshLibrary(meshes)), SYNTHETIC_SPEC
+
+
+def cpu_line() -> str:
+    """The CPU's model, the features that decide bf16's speed, and torch's view of them."""
+    first: dict[str, str] = {}   # every core repeats its block: the first one's fields
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            first.setdefault(key.strip(), value.strip())
+    except OSError:
+        pass
+    model, flags = first.get("model name", "unknown CPU"), set(first.get("flags", "").split())
+    have = [f for f in CPU_FEATURES if f in flags]
+    bf16 = torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    return (f"processor: {model}, {os.cpu_count()} cores; {', '.join(have) if have else 'no avx512/amx flags'}; "
+            f"torch {torch.__version__} (capability {torch.backends.cpu.get_cpu_capability()}, oneDNN bf16 "
+            f"{'yes' if bf16 else 'no'})")
 
 
 def matmul_gflops(size: int = 1024, seconds: float = 1.0, dtype=torch.float32) -> float:
@@ -108,7 +136,7 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", help="dataset folder (default: synthetic MOVi-like tosses in memory)")
-    p.add_argument("--presets", default="tiny,cpu,paper", help="comma list of configs/gns_<name>.toml")
+    p.add_argument("--presets", help="comma list of configs/gns_<name>.toml (default tiny,cpu,paper)")
     p.add_argument("--steps", type=int, default=20, help="timed steps per preset")
     p.add_argument("--warmup", type=int, default=3, help="untimed steps per preset")
     p.add_argument("--threads", type=int, help="torch threads for every preset (default: the preset's)")
@@ -118,9 +146,12 @@ def main(argv=None) -> None:
                                       "--autocast = fp32,bf16)")
     p.add_argument("--batch", type=int, help="training batch size for every preset (default: the preset's)")
     p.add_argument("--rounds", type=int, default=1,
-                   help="with several variants: alternate them this many times and keep each one's best")
-    args = p.parse_args(argv)
+                   help="alternate the variants this many times and keep each one's best")
+    bench_presets(p.parse_args(argv))
 
+
+def bench_presets(args) -> None:
+    presets = args.presets or "tiny,cpu,paper"
     variants = (args.variants or ("fp32,bf16" if args.autocast else "fp32")).split(",")
     for v in variants:
         for part in v.split("+"):
@@ -136,6 +167,7 @@ def main(argv=None) -> None:
         tracks = synthetic_tracks()[0]
         spec = SYNTHETIC_SPEC
         source = "synthetic tosses of " + ", ".join(SHAPES)
+    print(cpu_line())
     print(f"data: {source}; load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
     header = (f"{'preset':<26}{'threads':>8}{'LxK':>6}{'latent':>7}{'batch':>6}{'nodes':>7}{'edges':>7}{'steps/s':>9}"
               f"{'graphs/s':>10}{'GFLOP/step':>11}{'GFLOP/s':>9}{'matmul':>8}{'of peak':>9}")
@@ -143,7 +175,7 @@ def main(argv=None) -> None:
     print("-" * len(header))
     peaks = {}
     rows = []
-    for name in args.presets.split(","):
+    for name in presets.split(","):
         # alternated, so that a change of the machine's load hits all alike
         best = {}
         for _ in range(args.rounds):
@@ -165,11 +197,12 @@ def main(argv=None) -> None:
               f"{r['gflops']:>9.2f}{peak:>8.1f}{r['gflops'] / peak:>9.1%}")
     print("\nGFLOP counts Linear layers only, training step = 3x forward; matmul = measured 1024^3 "
           "GFLOP/s of the row's dtype (float32, or bfloat16 for bf16 rows) with the same threads.")
-    for name in args.presets.split(","):
+    for name in presets.split(","):
         base = next(r for r in rows if r["preset"] == name.strip() or r["preset"].startswith(name.strip() + "+"))
         for r in rows:
             if r is not base and r["preset"].split("+")[0] == name.strip():
                 print(f"{r['preset']}: {r['steps_per_sec'] / base['steps_per_sec']:.2f}x the steps/s of {base['preset']}")
+    print(f"load average after: {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

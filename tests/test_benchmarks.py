@@ -65,6 +65,34 @@ def test_bench_train_times_float32_against_bf16_autocast(capsys):
     assert abs(ratio - float(rows[1][7]) / float(rows[0][7])) < 0.02   # the ratio of the rows printed
 
 
+def test_bench_train_times_a_recipe_against_the_matmul_rate_of_its_own_shapes(tmp_path, capsys):
+    spec = importlib.util.spec_from_file_location("bench_train_recipes", BENCH.parent / "bench_train_recipes.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    bench.main(["--recipe", "tiny", "--steps", "2", "--warmup", "1", "--scenes", "3", "--cache", str(tmp_path)])
+    out = capsys.readouterr().out
+    [row] = [line.split() for line in out.splitlines() if line.startswith("tiny ")]
+    assert row[1:4] == ["fp32", "1", "4"]     # the recipe's dtype, threads and batch size
+    nodes, edges, steps_per_sec, gflop_per_step = float(row[4]), float(row[5]), float(row[7]), float(row[9])
+    assert nodes > 0 and edges > 0 and steps_per_sec > 0 and gflop_per_step > 0
+    of_shapes, of_peak = float(row[12].rstrip("%")), float(row[14].rstrip("%"))
+    # a step does more than its products, and small products run slower than a 1024^3 one
+    assert 0 < of_peak < of_shapes < 100
+    assert row[-2:] == ["datagen", "3"] and "the first 3 of its 6 training scenes" in out
+    assert "processor:" in out and "load average after" in out
+
+    # the products a step runs, counted on a replay: forward, and backward without the input
+    # layers' gradients with respect to the data
+    run = bench.RecipeRun("tiny", None, None, 3, None, tmp_path, False)
+    batch, _ = run.step()
+    run.calls.clear()
+    flops = sum(p.flops for p in run.products(batch))
+    [(n, e, c, grad)] = run.calls
+    forward = run.sim.network.forward_flops(n, e, c)
+    assert grad
+    assert 2.5 * forward < flops < 3 * forward
+
+
 def test_bench_learned_vs_physics_times_pybullet_and_each_variant_on_the_same_scenes(tmp_path, capsys):
     import json
 
