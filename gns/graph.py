@@ -262,6 +262,13 @@ def select_nodes(graph: GraphBatch, node_keep: torch.Tensor) -> tuple[GraphBatch
     return _subgraph(graph, node_keep, None)
 
 
+def select_graph_nodes(graph: GraphBatch, node_keep: torch.Tensor, keep: torch.Tensor) -> tuple[GraphBatch, torch.Tensor]:
+    """select_graphs(graph, keep) and then select_nodes of it, in one cut: the graphs with keep (G,)
+    True and of their nodes those with node_keep (N,) (False outside them; each kept graph must
+    keep a node), and those nodes' indices in `graph`."""
+    return _subgraph(graph, node_keep, keep)
+
+
 def _subgraph(graph: GraphBatch, node_keep: torch.Tensor, keep: torch.Tensor | None) -> tuple[GraphBatch, torch.Tensor]:
     """`keep` (G,) the graphs kept, None for all (their per-graph fields are then not copied)."""
     nodes = node_keep.nonzero()[:, 0]
