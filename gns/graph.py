@@ -226,6 +226,11 @@ class MeshLibrary:
                           symmetries=self._symmetries[ids].to(rest), num_symmetries=self.num_symmetries[ids].to(rest.device))
 
 
+def alone_in_scenes(graph: GraphBatch) -> bool:
+    """Whether no scene of the batch holds two of its graphs (always, without `graph_scene`)."""
+    return graph.graph_scene is None or len(torch.unique(graph.graph_scene)) == graph.num_graphs
+
+
 def per_graph(values: torch.Tensor, graph: GraphBatch, reduce: str, owner: torch.Tensor | None = None) -> torch.Tensor:
     """Node values (N, ...) reduced over each graph's nodes -> (G, ...); reduce is "amax",
     "amin" or "sum". Values of other items (edges) need their `owner` graph (len(values),)."""
