@@ -290,13 +290,16 @@ def _subgraph(graph: GraphBatch, node_keep: torch.Tensor, keep: torch.Tensor | N
     def edges(e: EdgeSet | None) -> EdgeSet | None:
         if e is None:
             return None
-        ok = node_keep[e.senders] & node_keep[e.receivers]
-        return EdgeSet(new_node[e.senders[ok]], new_node[e.receivers[ok]],
-                       None if e.vectors is None else e.vectors[ok], None if e.signed is None else e.signed[ok])
+        # index_select at the kept positions: indexing with the boolean mask costs ~3x as much
+        ok = (node_keep.index_select(0, e.senders) & node_keep.index_select(0, e.receivers)).nonzero()[:, 0]
+        pick = lambda t: None if t is None else t.index_select(0, ok)  # noqa: E731
+        return EdgeSet(new_node.index_select(0, pick(e.senders)), new_node.index_select(0, pick(e.receivers)),
+                       pick(e.vectors), pick(e.signed))
 
     faces = None
     if graph.faces is not None:
-        faces = new_node[graph.faces[node_keep[graph.faces].all(dim=1)]]
+        whole = node_keep.index_select(0, graph.faces.reshape(-1)).view(-1, 3).all(dim=1).nonzero()[:, 0]
+        faces = new_node.index_select(0, graph.faces.index_select(0, whole).view(-1)).view(-1, 3)
     return replace(graph, mesh_edges=edges(graph.mesh_edges), rest=graph.rest.index_select(0, nodes),
                    material=graph.material.index_select(0, nodes), node_graph=node_graph, num_graphs=num_graphs,
                    graph_scene=None if graph.graph_scene is None else per(graph.graph_scene),
