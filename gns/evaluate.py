@@ -52,7 +52,7 @@ def angular_velocities(quat: np.ndarray, dt: float) -> np.ndarray:
     return out
 
 
-@torch.no_grad()
+@torch.inference_mode()   # ~2-4% off a MOVi-A rollout against no_grad; only numpy leaves it
 def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Tensor,
                    length: int) -> tuple[np.ndarray, np.ndarray]:
     """Roll out tracks `which` (B,), all `length` frames long, as sim.options ask. Tracks of one
