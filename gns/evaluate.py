@@ -157,20 +157,24 @@ def predicted_scenes(scenes: list[Scene], positions: np.ndarray, quaternions: np
     finite differences (the given frames' own), and `diverged_at_frame` where a pose is not finite."""
     out, first = [], 0
     # one call over every track, not one a scene: scipy's per-call overhead was ~5% of a batched
-    # MOVi-A rollout's time (frames past a scene's end are NaN and stay out of its slice)
+    # MOVi-A rollout's time (frames past a scene's end are NaN and stay out of its slice); the
+    # velocities and which frames are finite likewise, sliced per scene below
     spin = angular_velocities(quaternions, dt)
+    velocity = np.empty_like(positions)
+    velocity[1:] = (positions[1:] - positions[:-1]) / dt
+    ok = np.isfinite(positions).all(-1) & np.isfinite(quaternions).all(-1)   # (T_max, tracks)
     for sc in scenes:
         T, N = sc.num_frames, sc.num_objects
         pos, quat = positions[:T, first:first + N], quaternions[:T, first:first + N]
-        vel = np.zeros_like(pos)
-        vel[1:] = (pos[1:] - pos[:-1]) / dt
+        vel = velocity[:T, first:first + N].copy()
         vel[:HISTORY] = sc.velocities[:HISTORY]
-        finite = np.isfinite(pos).all() and np.isfinite(quat).all()
+        frame_ok = ok[:T, first:first + N].all(-1)
+        finite = bool(frame_ok.all())
         ang = spin[:T, first:first + N].copy() if finite else np.full_like(pos, np.nan)
         ang[:HISTORY] = sc.angular_velocities[:HISTORY]
         attrs = {**sc.attrs, "rollout": True}
         if not finite:
-            attrs["diverged_at_frame"] = int(np.argmax(~(np.isfinite(pos).all((-1, -2)) & np.isfinite(quat).all((-1, -2)))))
+            attrs["diverged_at_frame"] = int(np.argmax(~frame_ok))
         out.append(Scene(positions=pos, quaternions=quat, velocities=vel, angular_velocities=ang,
                          shape=list(sc.shape), material=list(sc.material), scale=sc.scale.copy(),
                          mass=sc.mass.copy(), friction=sc.friction.copy(), restitution=sc.restitution.copy(),
