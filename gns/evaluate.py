@@ -26,6 +26,7 @@ from datagen.shards import Dataset, Scene, continuous, rotation
 from gns.checkpoint import checkpoint_of, default_options, load_simulator, parse_device
 from gns.data import ObjectTracks, feature_spec
 from gns.geometry import matrix_to_quat
+from gns.graph import ragged_arange
 from gns.metrics import DEFAULT_HORIZONS, PROTOCOLS, evaluate_scenes, per_scene_means, scene_errors
 from gns.network import HISTORY
 from gns.simulator import LearnedSimulator
@@ -96,8 +97,9 @@ def rollout_scenes(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fra
     bar = tqdm(total=B, unit="track", desc="rollout", disable=not progress)
     counts: dict[str, int] = {}
     for batch_scenes in scene_batches(scenes, sim.options.batch):
-        ids = torch.cat([tracks.scene_first_track[i] + torch.arange(int(tracks.scene_num_tracks[i]))
-                         for i in batch_scenes])
+        batch = torch.tensor(batch_scenes)
+        owner, k = ragged_arange(tracks.scene_num_tracks[batch])   # each scene's tracks, in order
+        ids = tracks.scene_first_track[batch][owner] + k
         lengths = tracks.length[ids].tolist()
         p, q = rollout_tracks(sim, tracks, ids, max(lengths))
         for key, value in sim.rollout_counts.items():
