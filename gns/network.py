@@ -248,7 +248,7 @@ class Normalizer(nn.Module):
     def _stats(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """mean and std in `dtype`, made again only when the statistics changed (other buffers, or
         written in place: their version counters): a rollout step reads a dozen normalisers, and
-        making them each time cost ~1 ms of a MOVi-A step."""
+        making them each time cost ~0.5 ms of a MOVi-A step (of ~25)."""
         state = (self.count, self.sum, self.sum_squared)
         versions = tuple(t._version for t in state)
         cache = self.__dict__.setdefault("_stats_cache", {})

@@ -145,7 +145,7 @@ class Stepping:
         which shape matching the positions would find (the pose fitted to the network's nodes,
         the ballistic one, the one kept), if rigid frames were given, and returns None: the
         caller (a rollout, which shape-matches every frame) poses the vertices; placing them
-        here too cost a tenth of a MOVi-A rollout's step."""
+        here too cost ~5% of a MOVi-A rollout's step."""
         sleep, free_flight = self.sleep, self.options.free_flight
         counts = {} if counts is None else counts
         for key in ("object_steps", "network", "free_flight", "asleep"):
@@ -239,7 +239,7 @@ class Stepping:
         shape_matching, sleep, free_flight = self.options.shape_matching, self.sleep, self.options.free_flight
         if graph.graph_scene is not None and graph.num_graphs > 1 and alone_in_scenes(graph):
             # every object alone in its scene is what no grouping means: no collision edge, swept
-            # box or overlap to look for at each step (a third of a multi-object model's step on
+            # box or overlap to look for at each step (a fifth of a multi-object model's step on
             # single-object scenes went to finding none)
             graph = replace(graph, graph_scene=None)
         keep_apart = self.options.keep_apart and graph.graph_scene is not None and graph.num_graphs > 1
