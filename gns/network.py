@@ -245,13 +245,29 @@ class Normalizer(nn.Module):
         var = self.sum_squared / self.count.clamp(min=1.0) - self.mean ** 2
         return var.clamp(min=0.0).sqrt().clamp(min=STD_EPSILON)
 
+    def _stats(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """mean and std in `dtype`, made again only when the statistics changed (other buffers, or
+        written in place: their version counters): a rollout step reads a dozen normalisers, and
+        making them each time cost ~0.5 ms of a MOVi-A step (of ~25)."""
+        state = (self.count, self.sum, self.sum_squared)
+        versions = tuple(t._version for t in state)
+        cache = self.__dict__.setdefault("_stats_cache", {})
+        # made under inference mode they could not enter a graph autograd records: kept apart
+        key = (dtype, torch.is_inference_mode_enabled())
+        kept = cache.get(key)
+        if kept is None or kept[1] != versions or any(a is not b for a, b in zip(kept[0], state)):
+            kept = cache[key] = (state, versions, self.mean.to(dtype), self.std.to(dtype))
+        return kept[2], kept[3]
+
     def forward(self, x: torch.Tensor, accumulate: bool = False) -> torch.Tensor:
         if accumulate:
             self.accumulate(x)
-        return ((x - self.mean.to(x.dtype)) / self.std.to(x.dtype))
+        mean, std = self._stats(x.dtype)
+        return (x - mean) / std
 
     def inverse(self, y: torch.Tensor) -> torch.Tensor:
-        return y * self.std.to(y.dtype) + self.mean.to(y.dtype)
+        mean, std = self._stats(y.dtype)
+        return y * std + mean
 
 
 @dataclass(frozen=True)
@@ -345,12 +361,13 @@ def raw_edge_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
     s, r = graph.mesh_edges.senders, graph.mesh_edges.receivers
     out = {}
     names = {name for name, _ in layout.edge_groups}
+    # gathers by index_select: half the cost of indexing x[r] (every rollout step builds these)
     if "relative" in names:
         x_t = history[:, -1]
-        d = x_t[r] - x_t[s]
+        d = x_t.index_select(0, r) - x_t.index_select(0, s)
         out["relative"], out["relative_norm"] = d, d.norm(dim=-1, keepdim=True)
     if "rest_relative_norm" in names:
-        d = graph.rest[r] - graph.rest[s]
+        d = graph.rest.index_select(0, r) - graph.rest.index_select(0, s)
         out["rest_relative_norm"] = d.norm(dim=-1, keepdim=True)
         if "rest_relative" in names:
             out["rest_relative"] = d

@@ -18,10 +18,10 @@ from torch import nn
 
 from gns.network import FeatureLayout, Normalizer, make_layout, raw_collision_features, raw_edge_features, raw_node_features
 from gns.config import ConfigError
-from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes, select_nodes
+from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes, select_graph_nodes, select_nodes
 from gns.network import EncodeProcessDecode
 from gns.spec import OptionsError, RolloutOptions
-from gns.geometry import acceleration_of, integrate, posed, shape_match_packed
+from gns.geometry import acceleration_of, fit_packed, integrate, posed, shape_match_packed
 from gns.spec import ModelSpec
 from gns.stepping import Stepping
 
@@ -276,41 +276,70 @@ class LearnedSimulator(Stepping, nn.Module):
         from gns.symmetry import averaged_over_images
         return averaged_over_images(self, history, graph, symmetrize, body_frames)
 
-    def network_nodes(self, x_t: torch.Tensor, graph: GraphBatch) -> tuple[GraphBatch, torch.Tensor] | None:
+    def network_nodes(self, x_t: torch.Tensor, graph: GraphBatch,
+                      graphs: torch.Tensor | None = None) -> tuple[GraphBatch, torch.Tensor] | None:
         """With features.lowest_vertices = k: the graph of each object's k vertices nearest the floor
         at x_t (N, 3) (and its features.highest_vertices highest), its centre and, with collision
         edges, every vertex that has one, and those nodes' indices; None where the network sees
         every node. The cut graph carries the collision edges of the whole one (built there, where
         every face is: surface edges need the other object's triangles): both ends of each are
-        kept, so the network sees every contact between objects, however high it is."""
+        kept, so the network sees every contact between objects, however high it is.
+
+        `graphs` (G,) bool: of those graphs only, in one cut, exactly as this on their graph alone
+        (gns.graph.select_graphs; its collision edges those between them): a rollout step whose
+        network skips some objects. Faces are cut only for an ensemble member that rebuilds its
+        mesh edges from them (gns.ensemble.with_surface_edges): nothing else reads them there."""
         if not self.lowest_vertices:
             return None
         keep = lowest_nodes(x_t[:, 2], graph, self.lowest_vertices, self.highest_vertices)
         if self.layout.collisions:
             contacts = self.collision_edges(x_t, graph)
+            if graphs is not None and len(contacts.senders):
+                own = graph.node_graph
+                within = graphs.index_select(0, own.index_select(0, contacts.senders)) & \
+                    graphs.index_select(0, own.index_select(0, contacts.receivers))
+                contacts = EdgeSet(*(None if e is None else e[within] for e in
+                                     (contacts.senders, contacts.receivers, contacts.vectors, contacts.signed)))
             # both ends: a surface edge's sender is a vertex of the other object's nearest triangle
             keep = keep.index_fill(0, contacts.senders, True).index_fill(0, contacts.receivers, True)
             graph = replace(graph, collision_edges=contacts)
-        return None if bool(keep.all()) else select_nodes(graph, keep)
+        if graph.faces is not None and not self.members:
+            graph = replace(graph, faces=None)
+        if graphs is None:
+            return None if bool(keep.all()) else select_nodes(graph, keep)
+        inside = graphs.index_select(0, graph.node_graph)
+        keep = keep & inside
+        return None if bool(keep.sum() == inside.sum()) else select_graph_nodes(graph, keep, graphs)
 
-    def predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch,
-                     fitted: list | None = None) -> torch.Tensor:
+    def predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor,
+                     graph: GraphBatch) -> torch.Tensor:
         """Vertex positions (N, 3) float64 at t-2, t-1, t -> positions at t+1 (N, 3) float64.
 
         With features.lowest_vertices the network moves the nodes it sees (network_nodes) and every
-        other vertex takes the pose shape matching fits to those: a rollout's shape matching of
-        all of them then finds that same pose, which is appended to `fitted` (if given) as
-        (R (G, 3, 3), t (G, 3)) so that a rollout need not fit it again."""
+        other vertex takes the pose shape matching fits to those (`fitted_poses`): a rollout's
+        shape matching of all of them then finds that same pose."""
         seen = self.network_nodes(x_t, graph)
         if seen is None:
             return self._predict_next(x_tm2, x_tm1, x_t, graph)
         sub, nodes = seen
         part = self._predict_next(*(f.index_select(0, nodes) for f in (x_tm2, x_tm1, x_t)), sub)
-        rot, t, _ = shape_match_packed(part, sub.rest, sub.node_graph, sub.num_graphs)
-        if fitted is not None:
-            fitted.append((rot, t))
+        rot, t = fit_packed(part, sub.rest, sub.node_graph, sub.num_graphs)
         x = posed(rot, t, graph.node_graph, graph.rest)
         return x.index_put((nodes,), part)
+
+    def fitted_poses(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch,
+                     graphs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The pose at t+1 that predict_next gives each object, rotations (g, 3, 3) and translations
+        (g, 3), of the graphs `graphs` (G,) bool (None: all; as on their graph alone, see
+        network_nodes), without placing the vertices the network does not see: a rollout that
+        shape-matches every frame poses them itself. None where the network sees every node (the
+        positions are then the network's own, not rigid: predict_next)."""
+        seen = self.network_nodes(x_t, graph, graphs)
+        if seen is None:
+            return None
+        sub, nodes = seen
+        part = self._predict_next(*(f.index_select(0, nodes) for f in (x_tm2, x_tm1, x_t)), sub)
+        return fit_packed(part, sub.rest, sub.node_graph, sub.num_graphs)
 
     def _predict_next(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         history = torch.stack([x_tm2, x_tm1, x_t], dim=1)

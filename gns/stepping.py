@@ -13,8 +13,8 @@ from dataclasses import dataclass, replace
 import torch
 
 from gns.network import HISTORY
-from gns.geometry import posed, shape_match_packed
-from gns.graph import EdgeSet, GraphBatch, per_graph, select_graphs
+from gns.geometry import fit_packed, posed, posed_heights, shape_match_packed
+from gns.graph import EdgeSet, GraphBatch, alone_in_scenes, per_graph, select_graphs
 
 
 @dataclass(frozen=True)
@@ -94,7 +94,8 @@ class Stepping:
                        contacts: EdgeSet | None) -> torch.Tensor:
         """(G,) objects out of reach of the floor and of every other object for the whole step:
         every vertex at least the floor feature's clip above the floor both now and after the
-        ballistic step (`ballistic`, (N, 3) at t+1), so the network sees no floor; no collision
+        ballistic step (`ballistic`, (N, 3) at t+1; its heights (N,) do without other objects in
+        its scenes), so the network sees no floor; no collision
         edge now; and no other object's box, swept over the last and the next step, within the
         collision radius of its own swept box, so none can appear. The network's answer for such
         an object depends on its own motion only: its learned free flight, which the exact
@@ -105,7 +106,8 @@ class Stepping:
         free = torch.ones(graph.num_graphs, dtype=torch.bool, device=x.device)
         if self.layout.floor_z is not None:
             clear = self.layout.floor_z + self.free_flight_clip
-            free &= (per_graph(x[:, 2], graph, "amin") >= clear) & (per_graph(ballistic[:, 2], graph, "amin") >= clear)
+            heights = ballistic if ballistic.dim() == 1 else ballistic[:, 2]
+            free &= (per_graph(x[:, 2], graph, "amin") >= clear) & (per_graph(heights, graph, "amin") >= clear)
         if self.layout.collisions:
             if contacts is not None and len(contacts.senders):
                 free[graph.node_graph[contacts.senders]] = False
@@ -133,21 +135,23 @@ class Stepping:
         return r1 @ r0.transpose(1, 2) @ r1, 2 * t1 - t0 + self.gravity_per_frame.to(t1)
 
     def advance(self, frames: list[torch.Tensor], graph: GraphBatch, pose: list | None = None,
-                counts: dict | None = None, fitted: list | None = None) -> torch.Tensor:
+                counts: dict | None = None, fitted: list | None = None) -> torch.Tensor | None:
         """One rollout step: positions (N, 3) at t+1 from frames [..., x_{t-2}, x_{t-1}, x_t], before
         shape matching. Sleeping objects keep x_t, free ones (options.free_flight; `pose` holds the
         (R, t) of the last two frames) take the inertial update, the rest the network's answer.
         `counts` (if given) adds this step's object-steps: in the network, free, asleep. With
-        `fitted` (a list) and free flight, a model with features.lowest_vertices appends every
-        object's pose at t+1, (R (G, 3, 3), t (G, 3)), which shape matching the returned
-        positions would find (the pose fitted to the network's nodes, the ballistic one, the one
-        kept), if rigid frames were given."""
+        `fitted` (a list) and free flight, a model with features.lowest_vertices whose network
+        sees a cut of the graph appends every object's pose at t+1, (R (G, 3, 3), t (G, 3)),
+        which shape matching the positions would find (the pose fitted to the network's nodes,
+        the ballistic one, the one kept), if rigid frames were given, and returns None: the
+        caller (a rollout, which shape-matches every frame) poses the vertices; placing them
+        here too cost ~5% of a MOVi-A rollout's step."""
         sleep, free_flight = self.sleep, self.options.free_flight
         counts = {} if counts is None else counts
         for key in ("object_steps", "network", "free_flight", "asleep"):
             counts.setdefault(key, 0)
         if free_flight and pose is None:
-            pose = [shape_match_packed(f, graph.rest, graph.node_graph, graph.num_graphs)[:2] for f in frames[-2:]]
+            pose = [fit_packed(f, graph.rest, graph.node_graph, graph.num_graphs) for f in frames[-2:]]
         step_graph, contacts = graph, None
         if self.layout.collisions and (sleep is not None or free_flight):
             # built once from x_t: the network, the wake-up and the free-flight tests share them
@@ -158,29 +162,21 @@ class Stepping:
             sleeping = sleep.asleep_graphs(frames, graph, self.gravity_step, self.layout.floor_z, contacts)
             counts["asleep"] += int(sleeping.sum())
             skip |= sleeping
+        poses_only = fitted is not None and free_flight and bool(self.lowest_vertices)
         if free_flight:
             flight = self.inertial_pose(*pose)
-            ballistic = posed(*flight, graph.node_graph, graph.rest)
+            # handing over poses, the free-flight test reads the ballistic heights alone, unless
+            # other objects' boxes are swept too (in_free_flight)
+            heights = poses_only and not (self.layout.collisions and graph.graph_scene is not None
+                                          and graph.num_graphs > 1)
+            ballistic = (posed_heights if heights else posed)(*flight, graph.node_graph, graph.rest)
             free = self.in_free_flight(frames, ballistic, graph, contacts) & ~skip
             counts["free_flight"] += int(free.sum())
             skip |= free
+        counts["object_steps"] += graph.num_graphs
         skip_node = skip[graph.node_graph]
-        # where a skipped object goes: free ones fly, sleeping ones keep their pose
-        held = torch.where(free[graph.node_graph, None], ballistic, frames[-1]) if free_flight else frames[-1]
-        fit = [] if fitted is not None and free_flight else None
-        if fit is not None:   # the poses of `held`: the ballistic one, or the one at t
-            held_pose = _pose_where(free, flight, pose[1])
-        if int(skip_node.sum()) < SUBGRAPH_MIN_SHARE * graph.num_nodes:
-            # few to leave out: one call on everything is cheaper than cutting the graph, and
-            # the others' answers are the same (a skipped object shares no edge with them)
-            x = self.predict_next(*frames[-HISTORY:], step_graph, fit)
-            counts["network"] += graph.num_graphs
-            if skip.any():
-                x = torch.where(skip_node[:, None], held, x)
-            if fit:
-                fitted.append(_pose_where(skip, held_pose, fit[0]))
-        else:
-            x = held
+        needed = None   # the graphs of the network call; None: all
+        if int(skip_node.sum()) >= SUBGRAPH_MIN_SHARE * graph.num_nodes:
             needed = ~skip
             if contacts is not None and len(contacts.senders):
                 # a skipped object whose vertices an active one feels (a sleeper touching a
@@ -188,19 +184,40 @@ class Stepping:
                 feeds = needed[graph.node_graph[contacts.receivers]]
                 needed = needed.clone()
                 needed[graph.node_graph[contacts.senders[feeds]]] = True
-            if needed.any():
-                sub, nodes = select_graphs(step_graph, needed)
-                pred = self.predict_next(*(f[nodes] for f in frames[-HISTORY:]), sub, fit)
-                use = ~skip[graph.node_graph[nodes]]
-                x = x.index_put((nodes[use],), pred[use])  # out of place: gradients pass
-                counts["network"] += int(needed.sum())
-                if fit:
+        # else few to leave out: one call on everything is cheaper than cutting the graph, and
+        # the others' answers are the same (a skipped object shares no edge with them)
+        if poses_only:
+            held_pose = _pose_where(free, flight, pose[1])   # the ballistic one, or the one at t
+            if needed is not None and not needed.any():
+                fitted.append(held_pose)
+                return None
+            fit = self.fitted_poses(*frames[-HISTORY:], step_graph, needed)
+            if fit is not None:
+                counts["network"] += graph.num_graphs if needed is None else int(needed.sum())
+                if needed is None:
+                    fitted.append(_pose_where(skip, held_pose, fit))
+                else:
                     graphs = needed.nonzero()[:, 0]
                     kept = ~skip[graphs]
-                    fitted.append(tuple(h.index_put((graphs[kept],), a[kept]) for a, h in zip(fit[0], held_pose)))
-            elif fit is not None:
-                fitted.append(held_pose)
-        counts["object_steps"] += graph.num_graphs
+                    fitted.append(tuple(h.index_put((graphs[kept],), a[kept]) for a, h in zip(fit, held_pose)))
+                return None
+            if heights:   # the network sees every node: its positions, not a pose (predict_next)
+                ballistic = posed(*flight, graph.node_graph, graph.rest)
+        # where a skipped object goes: free ones fly, sleeping ones keep their pose
+        held = torch.where(free[graph.node_graph, None], ballistic, frames[-1]) if free_flight else frames[-1]
+        if needed is None:
+            x = self.predict_next(*frames[-HISTORY:], step_graph)
+            counts["network"] += graph.num_graphs
+            if skip.any():
+                x = torch.where(skip_node[:, None], held, x)
+            return x
+        x = held
+        if needed.any():
+            sub, nodes = select_graphs(step_graph, needed)
+            pred = self.predict_next(*(f[nodes] for f in frames[-HISTORY:]), sub)
+            use = ~skip[graph.node_graph[nodes]]
+            x = x.index_put((nodes[use],), pred[use])  # out of place: gradients pass
+            counts["network"] += int(needed.sum())
         return x
 
     @torch.no_grad()
@@ -220,6 +237,11 @@ class Stepping:
         shape matching, rotations (steps, G, 3, 3) and translations (steps, G, 3).
         """
         shape_matching, sleep, free_flight = self.options.shape_matching, self.sleep, self.options.free_flight
+        if graph.graph_scene is not None and graph.num_graphs > 1 and alone_in_scenes(graph):
+            # every object alone in its scene is what no grouping means: no collision edge, swept
+            # box or overlap to look for at each step (a fifth of a multi-object model's step on
+            # single-object scenes went to finding none)
+            graph = replace(graph, graph_scene=None)
         keep_apart = self.options.keep_apart and graph.graph_scene is not None and graph.num_graphs > 1
         if sleep is not None and not self.gravity_step:
             raise ValueError("sleeping needs the model's gravity and frame rate (spec)")
@@ -231,7 +253,7 @@ class Stepping:
         if keep_apart:
             from gns.contacts import separation
         frames = list(history.unbind(1))
-        pose = [shape_match_packed(f, graph.rest, graph.node_graph, graph.num_graphs)[:2] for f in frames[-2:]] \
+        pose = [fit_packed(f, graph.rest, graph.node_graph, graph.num_graphs) for f in frames[-2:]] \
             if free_flight else None
         out, rots, trans = [], [], []
         counts = {"object_steps": 0, "network": 0, "free_flight": 0, "asleep": 0}

@@ -274,3 +274,30 @@ def test_surface_edges_on_low_graphs_are_those_of_the_whole_graph_and_mirror_exa
         xm = sim.predict_next(*(f @ g.T for f in frames), replace(graph, rest=graph.rest @ g.T))
     assert float((m - a @ g.T).abs().max() / a.abs().max()) < 1e-5
     torch.testing.assert_close(xm, x @ g.T, rtol=0, atol=1e-6)
+
+
+def test_objects_alone_in_their_scenes_roll_out_as_when_each_step_looks_for_contacts(monkeypatch):
+    """A batch whose scenes hold one object each (single-object scenes rolled out by a model of
+    several) has no collision edge, swept box or overlap to find: the rollout drops the grouping
+    and no step looks for them, with the same frames and poses to the last bit as when every
+    step does. The objects overlap in space: scenes apart never meet either way."""
+    import gns.contacts
+    import gns.stepping
+    sim = _simulator(6, collisions=True).eval()
+    graph = replace(_graph(), graph_scene=torch.arange(3))
+    x_t = _turned(graph, 4)
+    lift = torch.tensor([0.4, 3.0, 0.45], dtype=torch.float64) - torch.zeros(3, dtype=torch.float64).index_add_(
+        0, graph.node_graph, x_t[:, 2]) / torch.bincount(graph.node_graph)
+    x_t[:, 2] += lift[graph.node_graph]
+    history = torch.stack([x_t + torch.tensor([0.0, 0.01, 0.02 * k], dtype=torch.float64) for k in (2, 1, 0)], 1)
+    searches = []
+    pairs = gns.contacts.candidate_pairs   # where every search (edges, swept boxes, overlaps) starts
+    monkeypatch.setattr(gns.contacts, "candidate_pairs", lambda g: searches.append(1) or pairs(g))
+    options = dict(free_flight=True, keep_apart=True, poses=True)
+    skipped = rolled_out(sim, history, graph, 5, **options)
+    assert not searches and sim.rollout_counts["network"] > 0 and sim.rollout_counts["free_flight"] > 0
+    monkeypatch.setattr(gns.stepping, "alone_in_scenes", lambda g: False)
+    searched = rolled_out(sim, history, graph, 5, **options)
+    assert searches
+    for a, b in zip(skipped, searched):
+        assert torch.equal(a, b)
