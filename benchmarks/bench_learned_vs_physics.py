@@ -197,9 +197,8 @@ def plot_rows(rows: list[dict], runs: list[str], path: str) -> Path:
     joined (the trade's front) and named, PyBullet's throughput drawn as the line to reach.
     Lower right is better."""
     from matplotlib.lines import Line2D
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    from gns.charts import label_points
+    from gns.charts import label_points, log_x_axis
     from gns.plots import new_figure, save_figure
     fig = new_figure((11, 5.2))
     learned = [r for r in rows if r["variant"].startswith("GNS ")]
@@ -223,10 +222,7 @@ def plot_rows(rows: list[dict], runs: list[str], path: str) -> Path:
         fx, fy = [xs[i] for i in front], [ys[i] for i in front]
         ax.step(fx, fy, where="post", color="0.5", lw=0.9, zorder=1)
         ax.axvline(1.0, color="0.3", ls="--", lw=0.8)
-        ax.set_xscale("log")
-        ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
-        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}x"))
-        ax.xaxis.set_minor_formatter(NullFormatter())
+        log_x_axis(ax, "x")
         ax.set_xlabel("throughput, x PyBullet (batched, one thread; right is faster)")
         ax.set_ylabel(what)
         ax.grid(alpha=0.3, which="both")

@@ -171,9 +171,7 @@ def print_table(result: dict) -> None:
 def plot(results: list[dict], path: str) -> Path:
     """One row a dataset, position and rotation error against cost (log), PyBullet's fresh and
     reused client as two fronts, the learned points labelled and their front drawn."""
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
-
-    from gns.charts import label_points
+    from gns.charts import label_points, log_x_axis
     from gns.plots import new_figure, save_figure
     fig = new_figure((11, 4.6 * len(results) + 0.4))
     axes = np.atleast_2d(fig.subplots(len(results), 2, squeeze=False))
@@ -205,10 +203,7 @@ def plot(results: list[dict], path: str) -> Path:
                 else:
                     continue
                 fronts.append((ax, fx, fy, names, 6 if family == "learned" else 5.5))
-            ax.set_xscale("log")
-            ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
-            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-            ax.xaxis.set_minor_formatter(NullFormatter())
+            log_x_axis(ax)
             ax.set_xlabel("ms per simulated second per scene (one thread; left is cheaper)")
             ax.set_ylabel(what)
             ax.set_title(f"{res['scenes']} scenes of {lo}-{hi} objects" if lo != hi else

@@ -200,3 +200,13 @@ def label_points(ax, xs: Sequence[float], ys: Sequence[float], labels: Sequence[
         placed.append(best[2])
         texts.append(best[1])
     return texts
+
+
+def log_x_axis(ax, suffix: str = "") -> None:
+    """A log x axis ticked at 1, 2 and 5 of each decade, written as plain numbers (+ suffix): cost
+    and speed ratios span one or two decades, where matplotlib's powers of ten say little."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+    ax.set_xscale("log")
+    ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}{suffix}"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
