@@ -36,12 +36,12 @@ from gns.data import ObjectTracks, feature_spec
 from gns.geometry import quat_from_axis_angle
 from gns.graph import MeshLibrary
 from gns.checkpoint import build_simulator
+from gns.speedups import cpu_line
 from gns.train import learning_rate, train_step
 
 CONFIGS = config_dir()
 SHAPES = ("beveled_cube", "cylinder", "sphere")  # MOVi-A's shapes: 51-64 vertices each
 SYNTHETIC_SPEC = {"floor": {"z": 0.0}, "materials_vary": True}
-CPU_FEATURES = ("avx512f", "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16")
 
 
 def synthetic_scenes(shapes=SHAPES, scenes: int = 64, frames: int = 24, seed: int = 0,
@@ -66,23 +66,6 @@ def synthetic_tracks(scenes: int = 64, frames: int = 24, seed: int = 0) -> tuple
     """Ballistic spinning tosses of the MOVi-A shapes."""
     meshes = {name: (get_shape(name).vertices, get_shape(name).faces) for name in SHAPES}
     return ObjectTracks(synthetic_scenes(SHAPES, scenes, frames, seed), MeshLibrary(meshes)), SYNTHETIC_SPEC
-
-
-def cpu_line() -> str:
-    """The CPU's model, the features that decide bf16's speed, and torch's view of them."""
-    first: dict[str, str] = {}   # every core repeats its block: the first one's fields
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            key, _, value = line.partition(":")
-            first.setdefault(key.strip(), value.strip())
-    except OSError:
-        pass
-    model, flags = first.get("model name", "unknown CPU"), set(first.get("flags", "").split())
-    have = [f for f in CPU_FEATURES if f in flags]
-    bf16 = torch.ops.mkldnn._is_mkldnn_bf16_supported()
-    return (f"processor: {model}, {os.cpu_count()} cores; {', '.join(have) if have else 'no avx512/amx flags'}; "
-            f"torch {torch.__version__} (capability {torch.backends.cpu.get_cpu_capability()}, oneDNN bf16 "
-            f"{'yes' if bf16 else 'no'})")
 
 
 def matmul_gflops(size: int = 1024, seconds: float = 1.0, dtype=torch.float32) -> float:

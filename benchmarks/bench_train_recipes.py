@@ -51,12 +51,13 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path[:0] = [str(Path(__file__).resolve().parent.parent), str(Path(__file__).resolve().parent)]
 
-from bench_train import CONFIGS, SHAPES, cpu_line, matmul_gflops, synthetic_scenes  # noqa: E402
+from bench_train import CONFIGS, SHAPES, matmul_gflops, synthetic_scenes  # noqa: E402
 from datagen.scenes import get_shape  # noqa: E402
 from gns.config import build_config  # noqa: E402
 from gns.data import ObjectTracks  # noqa: E402
 from gns.graph import MeshLibrary, graph_settings  # noqa: E402
 from gns.run_folder import World  # noqa: E402
+from gns.speedups import cpu_line  # noqa: E402
 from gns.train import learning_rate, train_step, unrolled_loss  # noqa: E402
 
 

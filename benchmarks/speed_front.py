@@ -38,7 +38,7 @@ from bench_learned_vs_physics import pareto_front, pybullet_specs  # noqa: E402
 from datagen.toss import simulate  # noqa: E402
 from gns.checkpoint import default_options, load_simulator  # noqa: E402
 from gns.evaluate import load_split, rollout_scenes  # noqa: E402
-from gns.speedups import bf16_speedup, resolve_autocast  # noqa: E402
+from gns.speedups import MARGIN, bf16_speedup, cpu_line, resolve_autocast  # noqa: E402
 from gns.metrics import evaluate_scenes  # noqa: E402
 
 RATES = (24, 36, 60, 120, 240, 480, 960)      # physics steps per second; multiples of MOVi-A's 12 fps
@@ -46,20 +46,6 @@ ITERATIONS = (5, 10, 20, 50)
 PRECISIONS = {"f32": "none", "bf16": "bf16"}
 SINGLE_RUNS = ("movi_a", "movi_a_fast", "movi_a_multi")
 MULTI_RUNS = ("movi_a_multi", "movi_a_fast")   # the single-object model beside the one made for crowds
-FEATURES = ("avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile")
-
-
-def cpu_line() -> str:
-    """The CPU's model and the features that decide the network's speed (Linux; else the platform)."""
-    try:
-        info = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        import platform
-        return platform.processor() or platform.machine()
-    model = next((ln.split(":", 1)[1].strip() for ln in info.splitlines() if ln.startswith("model name")), "?")
-    flags = set(next((ln.split(":", 1)[1].split() for ln in info.splitlines() if ln.startswith("flags")), []))
-    have = [f for f in FEATURES if f in flags]
-    return f"{model}, {os.cpu_count()} cores; features: {', '.join(have) or 'none of ' + ', '.join(FEATURES)}"
 
 
 def load_line() -> str:
@@ -256,9 +242,9 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     header = {"cpu": cpu_line(), "load_before": load_line(), "threads": 1,
               "bf16_matmul_speedup": bf16_speedup(128)}
-    print(f"CPU: {header['cpu']}\n{header['load_before']}; one thread\n"
+    print(f"{header['cpu']}\n{header['load_before']}; one thread\n"
           f"bf16 matrix product of a width-128 network layer: {header['bf16_matmul_speedup']:.2f}x float32's speed "
-          "(--autocast auto takes bf16 at >= 1.15x; each model's choice in its rows)")
+          f"(--autocast auto takes bf16 at >= {MARGIN}x; each model's choice in its rows)")
     results = [dataset_rows(d, a) for d in a.data]
     header["load_after"] = load_line()
     print(header["load_after"])

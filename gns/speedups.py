@@ -10,9 +10,11 @@ faster. Off a CPU (CUDA) `auto` takes bf16 where the device supports it.
 """
 from __future__ import annotations
 
+import os
 import time
 import types
 import warnings
+from pathlib import Path
 
 import torch
 from torch import nn
@@ -25,6 +27,34 @@ MARGIN = 1.15
 # would have kept float32
 SLOW = 0.5
 _cache: dict[tuple, float] = {}
+# the instruction-set features a speed figure must name: bf16 runs natively only with avx512_bf16
+# or AMX, and float32's speed follows the vector width
+CPU_FEATURES = ("avx2", "avx512f", "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16")
+
+
+def cpu_info() -> dict:
+    """This CPU's model, cores and which of CPU_FEATURES it has (Linux's /proc/cpuinfo; elsewhere
+    the platform's name and no features)."""
+    first: dict[str, str] = {}   # every core repeats its block: the first one's fields
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            first.setdefault(key.strip(), value.strip())
+    except OSError:
+        import platform
+        first["model name"] = platform.processor() or platform.machine()
+    flags = set(first.get("flags", "").split())
+    return {"cpu": first.get("model name", "unknown CPU"), "cores": os.cpu_count(),
+            "features": [f for f in CPU_FEATURES if f in flags]}
+
+
+def cpu_line() -> str:
+    """One line for a benchmark's head: the CPU, its features and torch's view of them."""
+    c = cpu_info()
+    bf16 = torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    return (f"processor: {c['cpu']}, {c['cores']} cores; features: {', '.join(c['features']) or 'none of ' + ', '.join(CPU_FEATURES)}; "
+            f"torch {torch.__version__} (capability {torch.backends.cpu.get_cpu_capability()}, oneDNN bf16 "
+            f"{'yes' if bf16 else 'no'})")
 
 
 def bf16_speedup(width: int, rows: int = 4096, repeats: int = 5, device: str | torch.device = "cpu") -> float:

@@ -245,12 +245,8 @@ def commands(preset: str, out: Path, p: dict, seed: int) -> list[str]:
 
 
 def machine() -> dict:
-    name = platform.processor() or platform.machine()
-    try:
-        name = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return {"cpu": name, "cores": os.cpu_count(), "load_at_report": os.getloadavg(), "python": platform.python_version()}
+    from gns.speedups import cpu_info
+    return {**cpu_info(), "load_at_report": os.getloadavg(), "python": platform.python_version()}
 
 
 def report(out: Path, results: dict) -> Path:
@@ -285,7 +281,8 @@ def report(out: Path, results: dict) -> Path:
               f"- rollout_options, this run's model: `{model['rollout_options']}`"]
     if zoo:
         lines.append(f"- rollout_options, zoo `{zoo['model']}`: `{zoo['rollout_options']}`")
-    lines += [f"- Machine: {m['cpu']}, {m['cores']} cores; load average (1, 5, 15 min) while scoring: this run's model "
+    features = ", ".join(m.get("features") or []) or "none named"
+    lines += [f"- Machine: {m['cpu']}, {m['cores']} cores (features: {features}); load average (1, 5, 15 min) while scoring: this run's model "
               f"{_load(model)}" + (f", zoo {_load(zoo)}" if zoo else "") + ", PyBullet "
               + ", ".join(f"{r['rate']} Hz {_load(r)}" for r in results["pybullet"]) + f"; at the report {_load(m, 'load_at_report')}.",
               "- Commands (the first runs all; the others are its stages one by one):", "", "```",
