@@ -5,9 +5,16 @@ within the radius) or touching in a row (each neighbour pair in contact), times
 gns.contacts.collision_edges (broad phase on object bounds, then only vertices near a contact)
 against the brute force (all vertex pairs of different objects, one cdist), both in the same
 run, and checks that both find the same edges. The last columns time vertex-to-surface edges
-(gns.contacts, `features.collision_mode = "surface"`) on the same scenes.
+(gns.contacts, `features.collision_mode = "surface"`) and face-face edges (gns.face_contacts,
+`"face"`) on the same scenes.
+
+With --data DIR (a dataset of several objects a scene, e.g. `datagen toss --objects 3-10`), every
+recorded frame of its test scenes instead: per number of objects, the object pairs in contact
+(closer than the radius), the edges each mode builds and its build time per frame, all modes on
+the same frames; and how many of the pairs in contact each mode sees (some edge joins them).
 
     python benchmarks/bench_collision_edges.py [--objects 3,10,30,100]
+    python benchmarks/bench_collision_edges.py --data data/multi_test [--radius 0.25] [--limit 100]
 """
 from __future__ import annotations
 
@@ -17,9 +24,11 @@ import time
 import torch
 
 from datagen.scenes import get_shape
-from gns.contacts import surface_edges
-from gns.contacts import collision_edges
+from gns.contacts import collision_edges, surface_edges
+from gns.face_contacts import face_edges
 from gns.graph import MeshLibrary
+
+MODES = {"vertex": collision_edges, "surface": surface_edges, "face": face_edges}
 
 RADIUS = 0.15
 
@@ -58,10 +67,15 @@ def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--objects", default="3,10,30,100", help="comma list of object counts")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--data", help="a dataset of several objects a scene: time every mode on its test frames")
+    ap.add_argument("--radius", type=float, default=0.25, help="with --data: the collision radius (movi_a_multi's 0.25)")
+    ap.add_argument("--limit", type=int, default=100, help="with --data: at most this many test scenes")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if a.data:
+        return on_dataset(a.data, a.radius, a.limit)
     header = (f"{'objects':>8}{'vertices':>10}{'layout':>10}{'edges':>8}{'ours ms':>10}{'brute ms':>10}{'brute/ours':>12}"
-              f"{'surface edges':>15}{'surface ms':>12}")
+              f"{'surface edges':>15}{'surface ms':>12}{'face edges':>12}{'face ms':>10}")
     print(header)
     print("-" * len(header))
     rows = []
@@ -76,13 +90,74 @@ def main(argv=None) -> list[dict]:
             t_ours = best_ms(lambda: collision_edges(x, graph, RADIUS), a.repeats)
             t_brute = best_ms(lambda: brute_force(x, graph, RADIUS), a.repeats)
             t_surface = best_ms(lambda: surface_edges(x, graph, RADIUS), a.repeats)
+            t_face = best_ms(lambda: face_edges(x, graph, RADIUS), a.repeats)
             row = {"objects": n, "vertices": graph.num_nodes, "layout": "touching" if touching else "apart",
                    "edges": len(ours.senders), "ours_ms": t_ours, "brute_ms": t_brute,
-                   "surface_edges": len(surface_edges(x, graph, RADIUS).senders), "surface_ms": t_surface}
+                   "surface_edges": len(surface_edges(x, graph, RADIUS).senders), "surface_ms": t_surface,
+                   "face_edges": len(face_edges(x, graph, RADIUS).senders), "face_ms": t_face}
             rows.append(row)
             print(f"{n:>8}{graph.num_nodes:>10}{row['layout']:>10}{row['edges']:>8}{t_ours:>10.2f}{t_brute:>10.2f}"
-                  f"{t_brute / t_ours:>11.1f}x{row['surface_edges']:>15}{t_surface:>12.2f}")
+                  f"{t_brute / t_ours:>11.1f}x{row['surface_edges']:>15}{t_surface:>12.2f}"
+                  f"{row['face_edges']:>12}{t_face:>10.2f}")
     print(f"\nradius {RADIUS}; best of {a.repeats}; 1 thread; edges identical to the brute force in every row")
+    return rows
+
+
+def pairs_in_contact(x, graph, radius: float) -> set[tuple[int, int]]:
+    """Object pairs (a < b) whose meshes come within `radius`: the closest triangle pair of each
+    near pair, by the exact distance (every face edge is such a pair, so this is the face mode's
+    own test, taken as the reference for what the other modes see)."""
+    e = face_edges(x, graph, radius)
+    a, b = graph.node_graph[e.senders], graph.node_graph[e.receivers]
+    return {(int(min(i, j)), int(max(i, j))) for i, j in zip(a, b)}
+
+
+def on_dataset(data: str, radius: float, limit: int) -> list[dict]:
+    from datagen.shards import Dataset
+    from gns.data import vertices_from_poses
+    from datagen.shards import rotation
+    ds = Dataset(data)
+    lib = MeshLibrary(ds.meshes)
+    scenes = ds.load("test")[:limit]
+    totals: dict[int, dict] = {}
+    for sc in scenes:
+        n = sc.num_objects
+        graph = lib.pack(lib.shape_ids(sc.shape), torch.from_numpy(sc.scale), torch.from_numpy(sc.friction),
+                         torch.from_numpy(sc.restitution), torch.zeros(n, dtype=torch.int64))
+        rot = torch.from_numpy(rotation(sc.quaternions.reshape(-1, 4)).as_matrix()).view(sc.num_frames, n, 3, 3)
+        frames = vertices_from_poses(graph, torch.from_numpy(sc.positions).transpose(0, 1), rot.transpose(0, 1))
+        t = totals.setdefault(n, {"frames": 0, "contacts": 0, **{f"{m}_{k}": 0.0 for m in MODES for k in ("edges", "ms", "seen")}})
+        for f in range(sc.num_frames):
+            x = frames[:, f].contiguous()
+            contact = pairs_in_contact(x, graph, radius)
+            t["frames"] += 1
+            t["contacts"] += len(contact)
+            for mode, build in MODES.items():
+                start = time.perf_counter()
+                e = build(x, graph, radius)
+                t[f"{mode}_ms"] += (time.perf_counter() - start) * 1e3
+                t[f"{mode}_edges"] += len(e.senders)
+                joined = {(int(min(i, j)), int(max(i, j))) for i, j in zip(graph.node_graph[e.senders], graph.node_graph[e.receivers])}
+                t[f"{mode}_seen"] += len(contact & joined)
+    header = f"{'objects':>8}{'frames':>8}{'pairs in contact':>18}" + "".join(
+        f"{mode + ' edges':>15}{'ms':>7}{'sees':>7}" for mode in MODES)
+    print(f"{ds.root}: {len(scenes)} test scenes, every frame; radius {radius}; 1 thread; per frame")
+    print(header)
+    print("-" * len(header))
+    rows = []
+    for n in sorted(totals):
+        t = totals[n]
+        row = {"objects": n, "frames": t["frames"], "contacts_per_frame": t["contacts"] / t["frames"]}
+        line = f"{n:>8}{t['frames']:>8}{row['contacts_per_frame']:>18.2f}"
+        for mode in MODES:
+            row[f"{mode}_edges"] = t[f"{mode}_edges"] / t["frames"]
+            row[f"{mode}_ms"] = t[f"{mode}_ms"] / t["frames"]
+            row[f"{mode}_sees"] = t[f"{mode}_seen"] / max(t["contacts"], 1)
+            line += f"{row[f'{mode}_edges']:>15.1f}{row[f'{mode}_ms']:>7.2f}{row[f'{mode}_sees']:>6.0%} "
+        rows.append(row)
+        print(line)
+    print("pairs in contact: object pairs closer than the radius (exact triangle distance); sees: the share of "
+          "them some edge of the mode joins")
     return rows
 
 

@@ -44,7 +44,8 @@ class FeatureConfig:
     body_frame_free: bool = False
     normalizer_steps: int = 1000       # training steps during which normalisers accumulate
     collision_radius: float = 0.15     # collision edges between objects closer than this, scene units
-    collision_mode: str = "vertex"     # collision edges vertex-vertex, or vertex-to-surface (gns.contacts)
+    # collision edges vertex-vertex or vertex-to-surface (gns.contacts), or face-face (gns.face_contacts)
+    collision_mode: str = "vertex"
     frame_stride: int = 1              # train on every k-th recorded frame: the time step is k / frame_rate
     # a node at each object's centre of mass joined to all its vertices (gns.graph.centre_spokes):
     # every vertex two message-passing steps from every other, whatever the mesh
@@ -262,7 +263,8 @@ def validate(cfg: Config) -> None:
          "model.message_passing_steps and model.processor_repeats must be >= 1"),
         (cfg.features.floor_clip > 0, "features.floor_clip must be > 0"),
         (cfg.features.collision_radius > 0, "features.collision_radius must be > 0"),
-        (cfg.features.collision_mode in ("vertex", "surface"), "features.collision_mode must be 'vertex' or 'surface'"),
+        (cfg.features.collision_mode in ("vertex", "surface", "face"),
+         "features.collision_mode must be 'vertex', 'surface' or 'face'"),
         (cfg.features.frame_stride >= 1, "features.frame_stride must be >= 1"),
         (cfg.features.lowest_vertices == 0 or cfg.features.lowest_vertices >= 3,
          "features.lowest_vertices must be 0 (every vertex) or >= 3 (with the centre, a pose)"),

@@ -22,15 +22,27 @@ from dataclasses import replace
 from gns.graph import EdgeSet, GraphBatch, graph_centres, per_graph, ragged_arange
 
 
-def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+def row_dot(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """(u * v).sum(-1) of (M, 3) rows by einsum: ~2.5x faster on CPU, rounded differently."""
+    return torch.einsum("mi,mi->m", u, v)
+
+
+def _sum_dot(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return (u * v).sum(-1)
+
+
+def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor,
+                              dot=_sum_dot) -> torch.Tensor:
     """Closest points (M, 3) of triangles (a, b, c) to points p, all (M, 3): the Voronoi-region
-    test of Ericson, Real-Time Collision Detection, 5.1.5, vectorised with where."""
+    test of Ericson, Real-Time Collision Detection, 5.1.5, vectorised with where. `dot`: row_dot
+    for new callers; surface edges keep the plain sum, so that the shipped model's rollouts keep
+    their bits."""
     ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    d1, d2 = dot(ab, ap), dot(ac, ap)
     bp = p - b
-    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    d3, d4 = dot(ab, bp), dot(ac, bp)
     cp = p - c
-    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    d5, d6 = dot(ab, cp), dot(ac, cp)
     va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
     tiny = torch.finfo(p.dtype).tiny
     # inside the face, by barycentric coordinates

@@ -329,7 +329,11 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, colli
             edge += [("rest_relative_norm", 1)] if free else [("rest_relative", 3), ("rest_relative_norm", 1)]
     if not node:
         raise ConfigError("no node features are on: switch on features.velocity or features.rest_position")
-    collision = (("collision_relative", 3), ("collision_relative_norm", 1)) if collisions else ()
+    collision = ()
+    if collisions:
+        collision = (("collision_relative", 3), ("collision_relative_norm", 1))
+        if f.collision_mode == "face":
+            collision += (("collision_anchor", 3),)
     return FeatureLayout(tuple(node), tuple(edge), floor_z if f.floor_distance else None, f.floor_clip,
                          collision, float(f.collision_radius), bool(f.floor_signed))
 
@@ -374,13 +378,20 @@ def raw_edge_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
     return {k: v.to(torch.float32) for k, v in out.items()}
 
 
+# the collision edge groups that are vectors in the world: turned with the receiving object's heading
+COLLISION_VECTORS = frozenset({"collision_relative", "collision_anchor"})
+
+
 def raw_collision_features(history: torch.Tensor, edges) -> dict[str, torch.Tensor]:
     """history (N, 3, 3) float64, collision edges s -> r (a gns.graph.EdgeSet) -> {group:
     (C, width) float32}: d = x_r - x_s and |d|, or for surface edges (gns.contacts) the vertex
-    minus its closest surface point and the signed distance, in the same two groups."""
+    minus its closest surface point and the signed distance, in the same two groups; face edges
+    (gns.face_contacts) add the receiver minus its contact point."""
     if edges.vectors is not None:
-        return {"collision_relative": edges.vectors.to(torch.float32),
-                "collision_relative_norm": edges.signed.to(torch.float32)}
+        out = {"collision_relative": edges.vectors[:, :3], "collision_relative_norm": edges.signed}
+        if edges.vectors.shape[1] == 6:   # face edges: the receiver from its contact point too
+            out["collision_anchor"] = edges.vectors[:, 3:]
+        return {k: v.to(torch.float32) for k, v in out.items()}
     x_t = history[:, -1]
     d = x_t[edges.receivers] - x_t[edges.senders]
     return {"collision_relative": d.to(torch.float32),

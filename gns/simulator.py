@@ -16,7 +16,8 @@ from dataclasses import replace
 import torch
 from torch import nn
 
-from gns.network import FeatureLayout, Normalizer, make_layout, raw_collision_features, raw_edge_features, raw_node_features
+from gns.network import (COLLISION_VECTORS, FeatureLayout, Normalizer, make_layout, raw_collision_features, raw_edge_features,
+                         raw_node_features)
 from gns.config import ConfigError
 from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes, select_graph_nodes, select_nodes
 from gns.network import EncodeProcessDecode
@@ -45,7 +46,7 @@ class LearnedSimulator(Stepping, nn.Module):
         self.gravity_step = spec.gravity_step
         # the same as a vector: the centre's second difference in free flight (units per frame^2)
         self.gravity_per_frame = spec.gravity_per_frame
-        self.collision_mode = features_cfg.collision_mode  # "vertex" or "surface", checked by gns.config
+        self.collision_mode = features_cfg.collision_mode  # "vertex", "surface" or "face", checked by gns.config
         # the graphs this model reads: self.mesh_library(meshes)
         self._graph_settings = graph_settings(features_cfg)
         self.canonical_heading = bool(getattr(features_cfg, "canonical_heading", False))
@@ -170,6 +171,9 @@ class LearnedSimulator(Stepping, nn.Module):
         from gns.contacts import collision_edges, surface_edges
         if self.collision_mode == "surface":
             return surface_edges(x, graph, self.layout.collision_radius)
+        if self.collision_mode == "face":
+            from gns.face_contacts import face_edges
+            return face_edges(x, graph, self.layout.collision_radius)
         return collision_edges(x, graph, self.layout.collision_radius)
 
     def _inputs(self, history: torch.Tensor, graph: GraphBatch, world: torch.Tensor | None = None,
@@ -199,8 +203,8 @@ class LearnedSimulator(Stepping, nn.Module):
             raw = raw_collision_features(world, c)
             if turn is not None:
                 from gns.symmetry import turn_about_z
-                raw["collision_relative"] = turn_about_z(raw["collision_relative"], turn[0][c.receivers],
-                                                         turn[1][c.receivers]).to(torch.float32)
+                for name in COLLISION_VECTORS.intersection(raw):
+                    raw[name] = turn_about_z(raw[name], turn[0][c.receivers], turn[1][c.receivers]).to(torch.float32)
             features = torch.cat([self.collision_normalizers[n](raw[n], acc) for n, _ in self.layout.collision_groups], -1)
             edge_sets.append((features, c.senders, c.receivers))
         return nodes, edge_sets

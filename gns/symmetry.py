@@ -124,7 +124,8 @@ def _mapped_edges(edges, g: torch.Tensor):
     are kept), their vectors mapped, their signed distances kept; None stays None (built there)."""
     if edges is None or edges.vectors is None:
         return edges
-    return replace(edges, vectors=edges.vectors @ g.T.to(edges.vectors.dtype))
+    v = edges.vectors.view(len(edges.vectors), -1, 3)   # face edges carry two vectors
+    return replace(edges, vectors=(v @ g.T.to(v.dtype)).reshape(edges.vectors.shape))
 
 
 def averaged_over_images(model, history: torch.Tensor, graph: GraphBatch, symmetrize, body_frames: bool) -> torch.Tensor:

@@ -1,0 +1,191 @@
+"""Face-face collision edges (`features.collision_mode = "face"`): FIGNet's contacts between the
+triangles of two objects, carried by a vertex graph.
+
+Vertex-to-surface edges (gns.contacts.surface_edges) see a contact only near a vertex: two coarse
+meshes touching edge on edge, or a large face met by another object's edge in its middle, give
+none until a vertex comes close. FIGNet (Allen et al., ICLR 2023) joins *faces*: for every pair of
+triangles of two objects closer than the radius it takes the two closest points, p_r on the
+receiving triangle and p_s on the sending one, and sends the contact to all three vertices of the
+receiving triangle, so the corners of a large face hear of a contact in its middle.
+
+Here each such face pair becomes an edge to each vertex v of the receiving triangle, from the
+sending triangle's vertex nearest p_s (a node, whose latent sends the message), with the vectors
+[p_r - p_s, v - p_r] and the signed distance |p_r - p_s| (negative when p_r lies behind the
+sending face; 0 where the triangles cross, as in FIGNet: how deep objects overlap is the
+business of the keep_apart projection, not of these edges). A contact on a mesh edge is as near to both triangles that share it, so which pair
+wins is rounding's choice; these features are the same for either (a face normal, which is not,
+is left out: d is along the normal wherever one is defined). Of the face pairs that reach a vertex
+from one other object only the closest is kept, so a vertex has at most one edge from each object
+and the edge count stays that of the vertices near contacts, as with surface edges.
+
+Phases: object pairs whose bounds, one expanded by the radius, overlap (gns.contacts.near_pairs);
+per pair, the triangles of each inside the other's expanded bounds; per pair, every such triangle
+of one against every such triangle of the other whose expanded boxes overlap; then the exact
+triangle-triangle distance (the 6 vertex-triangle and 9 edge-edge closest points, and where an
+edge passes through the other triangle). Which edges is
+decided without gradient; the geometry is computed again from x for the chosen triangles, so a
+differentiable rollout's gradient flows through the contact features too.
+"""
+from __future__ import annotations
+
+import torch
+
+from gns.contacts import closest_point_on_triangle, near_pairs, row_dot, smallest_per_group
+from gns.graph import EdgeSet, GraphBatch, graph_centres, ragged_arange
+
+VECTORS = 6   # the width of a face edge's vectors: p_r - p_s, v - p_r
+
+
+def closest_points_on_segments(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor,
+                               q2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closest points of segments p1q1 and p2q2, all (M, 3): Ericson, Real-Time Collision
+    Detection, 5.1.9, vectorised; parallel segments take s = 0 (any point of the overlap is as near)."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e = row_dot(d1, d1), row_dot(d2, d2)
+    b, c, f = row_dot(d1, d2), row_dot(d1, r), row_dot(d2, r)
+    tiny = torch.finfo(p1.dtype).tiny
+    denom = a * e - b * b
+    s = torch.where(denom > 1e-12 * a * e, ((b * f - c * e) / denom.clamp(min=tiny)).clamp(0, 1), torch.zeros_like(a))
+    t = (b * s + f) / e.clamp(min=tiny)
+    # t outside [0, 1]: clamp it and recompute s for that end of the second segment
+    s = torch.where(t < 0, (-c / a.clamp(min=tiny)).clamp(0, 1), torch.where(t > 1, ((b - c) / a.clamp(min=tiny)).clamp(0, 1), s))
+    t = t.clamp(0, 1)
+    return p1 + d1 * s[:, None], p2 + d2 * t[:, None]
+
+
+def segment_through_triangle(p: torch.Tensor, q: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where segments pq (M, 3) pass through triangles t (M, 3, 3): the points (M, 3) and whether
+    they do (M,) bool."""
+    a, b, c = t[:, 0], t[:, 1], t[:, 2]
+    n = torch.linalg.cross(b - a, c - a)
+    denom = row_dot(n, q - p)
+    s = row_dot(n, a - p) / torch.where(denom == 0, torch.ones_like(denom), denom)
+    point = p + s[:, None] * (q - p)
+    inside = (denom != 0) & (s >= 0) & (s <= 1)
+    for u, v in ((a, b), (b, c), (c, a)):   # on the inner side of every edge
+        inside &= row_dot(torch.linalg.cross(v - u, point - u), n) >= 0
+    return point, inside
+
+
+def closest_points_on_triangles(t1: torch.Tensor, t2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closest points (M, 3) on triangles t1 and t2 (M, 3, 3): the nearest of each vertex against
+    the other triangle and each edge against each edge; triangles that cross, where an edge of one
+    passes through the other, meet there (distance 0)."""
+    m = len(t1)
+    # each kind of candidate in one batched call (21 small calls cost ~3x as much on CPU):
+    # rows k*m .. (k+1)*m - 1 are candidate k of every pair
+    own = torch.cat([t1, t2])                                   # vertex i of t1, then of t2 ...
+    other = torch.cat([t2, t1])                                 # ... against the other triangle
+    verts = own.transpose(0, 1).reshape(-1, 3)                  # (3 * 2m, 3): vertex i of each row
+    tri = other.repeat(3, 1, 1)
+    near = closest_point_on_triangle(verts, tri[:, 0], tri[:, 1], tri[:, 2], dot=row_dot).view(3, 2, m, 3)
+    verts = verts.view(3, 2, m, 3)
+    vertex_1 = torch.cat([verts[:, 0], near[:, 1]])             # (6, m, 3): the point on t1
+    vertex_2 = torch.cat([near[:, 0], verts[:, 1]])             # and on t2
+    i, j = torch.arange(3).repeat_interleave(3), torch.arange(3).repeat(3)
+    a1, b1 = t1[:, i].transpose(0, 1).reshape(-1, 3), t1[:, (i + 1) % 3].transpose(0, 1).reshape(-1, 3)
+    a2, b2 = t2[:, j].transpose(0, 1).reshape(-1, 3), t2[:, (j + 1) % 3].transpose(0, 1).reshape(-1, 3)
+    edge_1, edge_2 = (p.view(9, m, 3) for p in closest_points_on_segments(a1, b1, a2, b2))
+    k = torch.arange(3)
+    starts = own[:, k].transpose(0, 1).reshape(-1, 3)
+    ends = own[:, (k + 1) % 3].transpose(0, 1).reshape(-1, 3)
+    crossing, through = segment_through_triangle(starts, ends, other.repeat(3, 1, 1))
+    crossing = crossing.view(6, m, 3)
+    p1 = torch.cat([vertex_1, edge_1, crossing]).transpose(0, 1)   # (m, 21, 3)
+    p2 = torch.cat([vertex_2, edge_2, crossing]).transpose(0, 1)
+    dist = torch.cat([(vertex_1 - vertex_2).norm(dim=-1), (edge_1 - edge_2).norm(dim=-1),
+                      torch.where(through.view(6, m), 0.0, torch.inf).to(t1.dtype)]).transpose(0, 1)
+    pick = dist.argmin(dim=1)[:, None, None].expand(-1, 1, 3)
+    return p1.gather(1, pick)[:, 0], p2.gather(1, pick)[:, 0]
+
+
+def _faces_near(x: torch.Tensor, graph: GraphBatch, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
+                high: torch.Tensor, radius: float, face_low: torch.Tensor, face_high: torch.Tensor):
+    """Per directed pair p (own[p], other[p]): the faces of own whose boxes meet other's bounds
+    expanded by radius. Returns (counts (P,), faces (F',)) with each pair's faces consecutive."""
+    face_graph = graph.node_graph.index_select(0, graph.faces[:, 0])
+    face_counts = torch.bincount(face_graph, minlength=graph.num_graphs)
+    face_start = torch.cumsum(face_counts, 0) - face_counts
+    pair, k = ragged_arange(face_counts[own])
+    face = face_start[own[pair]] + k
+    ok = ((face_low[face] <= high[other][pair] + radius) & (face_high[face] >= low[other][pair] - radius)).all(dim=1)
+    return torch.bincount(pair[ok], minlength=len(own)), face[ok]
+
+
+def _outward_normals(x: torch.Tensor, graph: GraphBatch, faces: torch.Tensor) -> torch.Tensor:
+    """Unit normals (F, 3) of the given faces, outward from their object's vertex mean (convex meshes)."""
+    tri = graph.faces[faces]
+    v0 = x[tri[:, 0]]
+    n = torch.linalg.cross(x[tri[:, 1]] - v0, x[tri[:, 2]] - v0)
+    n = n / n.norm(dim=-1, keepdim=True).clamp(min=torch.finfo(x.dtype).tiny)
+    centre = graph_centres(x, graph)[graph.node_graph[tri[:, 0]]]
+    return n * torch.where(((v0 - centre) * n).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(x.dtype)
+
+
+def _geometry(x: torch.Tensor, graph: GraphBatch, receiving: torch.Tensor, sending: torch.Tensor,
+              corner: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The vectors (E, 6), signed distances (E, 1) and sending points p_s (E, 3) of edges to
+    vertex `corner` (0-2) of face `receiving` from face `sending`, from positions x."""
+    tri_r, tri_s = graph.faces[receiving], graph.faces[sending]
+    p_r, p_s = closest_points_on_triangles(x[tri_r], x[tri_s])
+    normal = _outward_normals(x, graph, sending)
+    d = p_r - p_s
+    v = x[tri_r.gather(1, corner[:, None])[:, 0]]
+    inside = (d * normal).sum(-1, keepdim=True) < 0
+    signed = torch.where(inside, -1.0, 1.0).to(x.dtype) * d.norm(dim=-1, keepdim=True)
+    return torch.cat([d, v - p_r], -1), signed, p_s
+
+
+@torch.no_grad()
+def _face_edges(x: torch.Tensor, graph: GraphBatch, radius: float):
+    """face_edges, with each edge's receiving face, sending face and receiving corner."""
+    idx = torch.zeros(0, dtype=torch.int64, device=x.device)
+    empty = EdgeSet(idx, idx, torch.zeros(0, VECTORS, dtype=x.dtype, device=x.device),
+                    torch.zeros(0, 1, dtype=x.dtype, device=x.device))
+    if graph.faces is None:
+        raise ValueError("face collision edges need the graph's faces")
+    near = near_pairs(x, graph, radius)
+    if near is None:
+        return empty, idx, idx, idx
+    a, b, low, high = near
+    tri = x[graph.faces]
+    face_low, face_high = tri.amin(dim=1), tri.amax(dim=1)
+    count_a, faces_a = _faces_near(x, graph, a, b, low, high, radius, face_low, face_high)
+    count_b, faces_b = _faces_near(x, graph, b, a, low, high, radius, face_low, face_high)
+    start_a, start_b = torch.cumsum(count_a, 0) - count_a, torch.cumsum(count_b, 0) - count_b
+    pair, local = ragged_arange(count_a * count_b)
+    fa = faces_a[start_a[pair] + torch.div(local, count_b[pair].clamp(min=1), rounding_mode="floor")]
+    fb = faces_b[start_b[pair] + local % count_b[pair].clamp(min=1)]
+    boxes = ((face_low[fa] <= face_high[fb] + radius) & (face_low[fb] <= face_high[fa] + radius)).all(dim=1)
+    fa, fb = fa[boxes], fb[boxes]
+    if len(fa) == 0:
+        return empty, idx, idx, idx
+    p_a, p_b = closest_points_on_triangles(tri[fa], tri[fb])
+    dist = (p_a - p_b).norm(dim=-1)
+    close = dist < radius
+    fa, fb, dist = fa[close], fb[close], dist[close]
+    if len(fa) == 0:
+        return empty, idx, idx, idx
+    # both directions, then each receiving face's three corners
+    receiving, sending, dist = torch.cat([fa, fb]), torch.cat([fb, fa]), torch.cat([dist, dist])
+    corner = torch.arange(3, device=x.device).repeat(len(receiving))
+    receiving, sending, dist = (t.repeat_interleave(3) for t in (receiving, sending, dist))
+    vertex = graph.faces[receiving, corner]
+    sender_graph = graph.node_graph[graph.faces[sending, 0]]
+    best = smallest_per_group(vertex * graph.num_graphs + sender_graph, dist)
+    receiving, sending, corner = receiving[best], sending[best], corner[best]
+    vectors, signed, p_s = _geometry(x, graph, receiving, sending, corner)
+    tri_s = graph.faces[sending]
+    nearest = (x[tri_s] - p_s[:, None]).norm(dim=-1).argmin(1)
+    senders = tri_s.gather(1, nearest[:, None])[:, 0]
+    return EdgeSet(senders, graph.faces[receiving, corner], vectors, signed), receiving, sending, corner
+
+
+def face_edges(x: torch.Tensor, graph: GraphBatch, radius: float) -> EdgeSet:
+    """Face-face collision edges of positions x (N, 3) within `radius` (see the module's doc):
+    `vectors` (E, 6) = [p_r - p_s, x_r - p_r], `signed` (E, 1)."""
+    edges, receiving, sending, corner = _face_edges(x, graph, radius)
+    if not (torch.is_grad_enabled() and x.requires_grad) or len(edges.senders) == 0:
+        return edges
+    vectors, signed, _ = _geometry(x, graph, receiving, sending, corner)
+    return EdgeSet(edges.senders, edges.receivers, vectors, signed)
