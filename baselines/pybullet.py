@@ -67,15 +67,18 @@ PUBLISHED = BaselineParams()
 # sets how far a cube slides: 0.1 or 0.3 instead of 0.18 doubles the error), so its range is
 # kept to what acrylic on a table can plausibly have. 10^3.5 is a soft contact (the cube visibly
 # sinks), 10^7 about rigid at 592 Hz. Rolling and spinning friction are lever arms in half-widths:
-# Coulomb friction at a face's corners already resists spin with ~0.18 x 1.4 = 0.25.
+# Coulomb friction at a face's corners already resists spin with ~0.18 x 1.4 = 0.25. They are
+# searched on a log scale because the fits land near the bottom of their ranges (rolling 3e-4 to
+# 0.03, spinning ~0.03), where a linear Latin hypercube puts hardly any point; the low ends are
+# negligible next to that Coulomb resistance.
 BOUNDS = (("friction", 0.05, 0.5), ("restitution", 0.0, 0.6),
           ("log10_stiffness", 3.5, 7.0), ("damping_ratio", 0.05, 2.0),
-          ("rolling_friction", 0.0, 0.1), ("spinning_friction", 0.0, 0.3),
+          ("log10_rolling_friction", -4.0, -1.0), ("log10_spinning_friction", -3.0, 0.0),
           ("substeps", 2, 20), ("solver_iterations", 10, 150), ("contact_erp", 0.05, 1.0))
 # What the pipeline identifies: all but contact_erp, which a compliant contact (stiffness > 0,
 # as every searched point is) ignores: Bullet then derives ERP and CFM from stiffness and damping.
-FIT = ("friction", "restitution", "log10_stiffness", "damping_ratio", "rolling_friction", "spinning_friction",
-       "substeps", "solver_iterations")
+FIT = ("friction", "restitution", "log10_stiffness", "damping_ratio", "log10_rolling_friction",
+       "log10_spinning_friction", "substeps", "solver_iterations")
 
 
 def _build(scene: Scene, params: BaselineParams, frame_rate: float, state) -> tuple[int, int]:

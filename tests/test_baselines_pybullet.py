@@ -160,6 +160,11 @@ def test_unit_cube_mapping_covers_log_and_integer_fields():
     assert p.restitution == PUBLISHED.restitution  # not searched: kept
     np.testing.assert_allclose(unit_from_params(p, names, BOUNDS)[:2], [0.5, 1.0])
     assert unit_from_params(PUBLISHED, ["log10_stiffness"], BOUNDS)[0] == 0.0  # rigid (0) maps to the low end
+    arms = ["log10_rolling_friction", "log10_spinning_friction"]
+    assert set(arms) <= set(FIT)  # lever arms on a log scale: the small values that fit best get sampled
+    p = params_from_unit(np.array([0.0, 0.5]), arms, PUBLISHED, BOUNDS)
+    assert p.rolling_friction == pytest.approx(10 ** box[arms[0]][0])
+    assert p.spinning_friction == pytest.approx(10 ** (sum(box[arms[1]]) / 2))
 
 
 def test_fit_on_a_subset_with_local_starts_is_deterministic(tosses):
