@@ -34,6 +34,7 @@ from gns.contacts import closest_point_on_triangle, near_pairs, row_dot, smalles
 from gns.graph import EdgeSet, GraphBatch, graph_centres, ragged_arange
 
 VECTORS = 6   # the width of a face edge's vectors: p_r - p_s, v - p_r
+CHUNK = 1 << 16   # triangle pairs measured at once: ~100 MB of temporaries
 
 
 def closest_points_on_segments(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor,
@@ -99,6 +100,11 @@ def closest_points_on_triangles(t1: torch.Tensor, t2: torch.Tensor) -> tuple[tor
     return p1.gather(1, pick)[:, 0], p2.gather(1, pick)[:, 0]
 
 
+def _distance(t1: torch.Tensor, t2: torch.Tensor) -> torch.Tensor:
+    p1, p2 = closest_points_on_triangles(t1, t2)
+    return (p1 - p2).norm(dim=-1)
+
+
 def _faces_near(x: torch.Tensor, graph: GraphBatch, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
                 high: torch.Tensor, radius: float, face_low: torch.Tensor, face_high: torch.Tensor):
     """Per directed pair p (own[p], other[p]): the faces of own whose boxes meet other's bounds
@@ -160,8 +166,9 @@ def _face_edges(x: torch.Tensor, graph: GraphBatch, radius: float):
     fa, fb = fa[boxes], fb[boxes]
     if len(fa) == 0:
         return empty, idx, idx, idx
-    p_a, p_b = closest_points_on_triangles(tri[fa], tri[fb])
-    dist = (p_a - p_b).norm(dim=-1)
+    # in chunks: objects overlapping far inside each other (a stability test's 100x sizes) put
+    # every face of one near every face of the other, and all pairs at once ran out of memory
+    dist = torch.cat([_distance(tri[fa[k:k + CHUNK]], tri[fb[k:k + CHUNK]]) for k in range(0, len(fa), CHUNK)])
     close = dist < radius
     fa, fb, dist = fa[close], fb[close], dist[close]
     if len(fa) == 0:
