@@ -103,11 +103,8 @@ def main(argv=None) -> list[dict]:
     return rows
 
 
-def pairs_in_contact(x, graph, radius: float) -> set[tuple[int, int]]:
-    """Object pairs (a < b) whose meshes come within `radius`: the closest triangle pair of each
-    near pair, by the exact distance (every face edge is such a pair, so this is the face mode's
-    own test, taken as the reference for what the other modes see)."""
-    e = face_edges(x, graph, radius)
+def joined_pairs(e, graph) -> set[tuple[int, int]]:
+    """Object pairs (a < b) some edge of e joins."""
     a, b = graph.node_graph[e.senders], graph.node_graph[e.receivers]
     return {(int(min(i, j)), int(max(i, j))) for i, j in zip(a, b)}
 
@@ -129,16 +126,20 @@ def on_dataset(data: str, radius: float, limit: int) -> list[dict]:
         t = totals.setdefault(n, {"frames": 0, "contacts": 0, **{f"{m}_{k}": 0.0 for m in MODES for k in ("edges", "ms", "seen")}})
         for f in range(sc.num_frames):
             x = frames[:, f].contiguous()
-            contact = pairs_in_contact(x, graph, radius)
-            t["frames"] += 1
-            t["contacts"] += len(contact)
+            joined = {}
             for mode, build in MODES.items():
                 start = time.perf_counter()
                 e = build(x, graph, radius)
                 t[f"{mode}_ms"] += (time.perf_counter() - start) * 1e3
                 t[f"{mode}_edges"] += len(e.senders)
-                joined = {(int(min(i, j)), int(max(i, j))) for i, j in zip(graph.node_graph[e.senders], graph.node_graph[e.receivers])}
-                t[f"{mode}_seen"] += len(contact & joined)
+                joined[mode] = joined_pairs(e, graph)
+            # the face mode joins every pair of triangles closer than the radius, by the exact
+            # distance: its pairs are the pairs in contact, the reference for what the others see
+            contact = joined["face"]
+            t["frames"] += 1
+            t["contacts"] += len(contact)
+            for mode in MODES:
+                t[f"{mode}_seen"] += len(contact & joined[mode])
     header = f"{'objects':>8}{'frames':>8}{'pairs in contact':>18}" + "".join(
         f"{mode + ' edges':>15}{'ms':>7}{'sees':>7}" for mode in MODES)
     print(f"{ds.root}: {len(scenes)} test scenes, every frame; radius {radius}; 1 thread; per frame")

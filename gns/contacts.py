@@ -214,6 +214,15 @@ def with_collision_edges(graph: GraphBatch, x: torch.Tensor, radius: float) -> G
     return replace(graph, collision_edges=collision_edges(x, graph, radius))
 
 
+def outward_normals(x: torch.Tensor, tri: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+    """Unit normals (F, 3) of triangles tri (F, 3) at positions x, outward from their object's
+    centre (F, 3): the meshes are convex."""
+    v0 = x[tri[:, 0]]
+    normal = torch.linalg.cross(x[tri[:, 1]] - v0, x[tri[:, 2]] - v0)
+    normal = normal / normal.norm(dim=-1, keepdim=True).clamp(min=torch.finfo(x.dtype).tiny)
+    return normal * torch.where(((v0 - centre) * normal).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(x.dtype)
+
+
 def _pushes(x: torch.Tensor, graph: GraphBatch, centre: torch.Tensor, reach: torch.Tensor):
     """Every vertex inside another object of its scene: (own, other, push) with push (M, 3) the
     shortest move of the vertex out of the other's convex hull, through the face whose plane it
@@ -232,11 +241,8 @@ def _pushes(x: torch.Tensor, graph: GraphBatch, centre: torch.Tensor, reach: tor
         return None
     tri = graph.faces
     v0 = x[tri[:, 0]]
-    normal = torch.linalg.cross(x[tri[:, 1]] - v0, x[tri[:, 2]] - v0)
-    normal = normal / normal.norm(dim=-1, keepdim=True).clamp(min=torch.finfo(x.dtype).tiny)
     face_graph = graph.node_graph[tri[:, 0]]
-    # outward from the object's centre: the meshes are convex
-    normal = normal * torch.where(((v0 - centre[face_graph]) * normal).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(x.dtype)
+    normal = outward_normals(x, tri, centre[face_graph])
     offset = (normal * v0).sum(-1)
     face_counts = torch.bincount(face_graph, minlength=graph.num_graphs)
     face_start = torch.cumsum(face_counts, 0) - face_counts

@@ -12,8 +12,8 @@ Here each such face pair becomes an edge to each vertex v of the receiving trian
 sending triangle's vertex nearest p_s (a node, whose latent sends the message), with the vectors
 [p_r - p_s, v - p_r] and the signed distance |p_r - p_s| (negative when p_r lies behind the
 sending face; 0 where the triangles cross, as in FIGNet: how deep objects overlap is the
-business of the keep_apart projection, not of these edges). A contact on a mesh edge is as near to both triangles that share it, so which pair
-wins is rounding's choice; these features are the same for either (a face normal, which is not,
+business of the keep_apart projection, not of these edges). A contact on a mesh edge is as near
+to both triangles that share it, so which pair wins is rounding's choice; these features are the same for either (a face normal, which is not,
 is left out: d is along the normal wherever one is defined). Of the face pairs that reach a vertex
 from one other object only the closest is kept, so a vertex has at most one edge from each object
 and the edge count stays that of the vertices near contacts, as with surface edges.
@@ -22,15 +22,14 @@ Phases: object pairs whose bounds, one expanded by the radius, overlap (gns.cont
 per pair, the triangles of each inside the other's expanded bounds; per pair, every such triangle
 of one against every such triangle of the other whose expanded boxes overlap; then the exact
 triangle-triangle distance (the 6 vertex-triangle and 9 edge-edge closest points, and where an
-edge passes through the other triangle). Which edges is
-decided without gradient; the geometry is computed again from x for the chosen triangles, so a
+edge passes through the other triangle). Which edges is decided without gradient; the geometry is computed again from x for the chosen triangles, so a
 differentiable rollout's gradient flows through the contact features too.
 """
 from __future__ import annotations
 
 import torch
 
-from gns.contacts import closest_point_on_triangle, near_pairs, row_dot, smallest_per_group
+from gns.contacts import closest_point_on_triangle, near_pairs, outward_normals, row_dot, smallest_per_group
 from gns.graph import EdgeSet, GraphBatch, graph_centres, ragged_arange
 
 VECTORS = 6   # the width of a face edge's vectors: p_r - p_s, v - p_r
@@ -105,7 +104,7 @@ def _distance(t1: torch.Tensor, t2: torch.Tensor) -> torch.Tensor:
     return (p1 - p2).norm(dim=-1)
 
 
-def _faces_near(x: torch.Tensor, graph: GraphBatch, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
+def _faces_near(graph: GraphBatch, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
                 high: torch.Tensor, radius: float, face_low: torch.Tensor, face_high: torch.Tensor):
     """Per directed pair p (own[p], other[p]): the faces of own whose boxes meet other's bounds
     expanded by radius. Returns (counts (P,), faces (F',)) with each pair's faces consecutive."""
@@ -118,23 +117,13 @@ def _faces_near(x: torch.Tensor, graph: GraphBatch, own: torch.Tensor, other: to
     return torch.bincount(pair[ok], minlength=len(own)), face[ok]
 
 
-def _outward_normals(x: torch.Tensor, graph: GraphBatch, faces: torch.Tensor) -> torch.Tensor:
-    """Unit normals (F, 3) of the given faces, outward from their object's vertex mean (convex meshes)."""
-    tri = graph.faces[faces]
-    v0 = x[tri[:, 0]]
-    n = torch.linalg.cross(x[tri[:, 1]] - v0, x[tri[:, 2]] - v0)
-    n = n / n.norm(dim=-1, keepdim=True).clamp(min=torch.finfo(x.dtype).tiny)
-    centre = graph_centres(x, graph)[graph.node_graph[tri[:, 0]]]
-    return n * torch.where(((v0 - centre) * n).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(x.dtype)
-
-
 def _geometry(x: torch.Tensor, graph: GraphBatch, receiving: torch.Tensor, sending: torch.Tensor,
               corner: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The vectors (E, 6), signed distances (E, 1) and sending points p_s (E, 3) of edges to
     vertex `corner` (0-2) of face `receiving` from face `sending`, from positions x."""
     tri_r, tri_s = graph.faces[receiving], graph.faces[sending]
     p_r, p_s = closest_points_on_triangles(x[tri_r], x[tri_s])
-    normal = _outward_normals(x, graph, sending)
+    normal = outward_normals(x, tri_s, graph_centres(x, graph)[graph.node_graph[tri_s[:, 0]]])
     d = p_r - p_s
     v = x[tri_r.gather(1, corner[:, None])[:, 0]]
     inside = (d * normal).sum(-1, keepdim=True) < 0
@@ -156,12 +145,12 @@ def _face_edges(x: torch.Tensor, graph: GraphBatch, radius: float):
     a, b, low, high = near
     tri = x[graph.faces]
     face_low, face_high = tri.amin(dim=1), tri.amax(dim=1)
-    count_a, faces_a = _faces_near(x, graph, a, b, low, high, radius, face_low, face_high)
-    count_b, faces_b = _faces_near(x, graph, b, a, low, high, radius, face_low, face_high)
+    count_a, faces_a = _faces_near(graph, a, b, low, high, radius, face_low, face_high)
+    count_b, faces_b = _faces_near(graph, b, a, low, high, radius, face_low, face_high)
     start_a, start_b = torch.cumsum(count_a, 0) - count_a, torch.cumsum(count_b, 0) - count_b
     pair, local = ragged_arange(count_a * count_b)
-    fa = faces_a[start_a[pair] + torch.div(local, count_b[pair].clamp(min=1), rounding_mode="floor")]
-    fb = faces_b[start_b[pair] + local % count_b[pair].clamp(min=1)]
+    fa = faces_a[start_a[pair] + torch.div(local, count_b[pair], rounding_mode="floor")]
+    fb = faces_b[start_b[pair] + local % count_b[pair]]
     boxes = ((face_low[fa] <= face_high[fb] + radius) & (face_low[fb] <= face_high[fa] + radius)).all(dim=1)
     fa, fb = fa[boxes], fb[boxes]
     if len(fa) == 0:
