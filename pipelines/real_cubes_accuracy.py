@@ -1,6 +1,7 @@
 """The accuracy experiment on real cube tosses: the tuned GNS against tuned PyBullet and MuJoCo.
 
-    python -m pipelines.real_cubes_accuracy --src DATA [--preset accuracy|tiny] [--out DIR] [--export DIR]
+    python -m pipelines.real_cubes_accuracy --src DATA [--preset accuracy|few|tiny] [--out DIR] [--export DIR]
+        [--workers N]
 
 The split, the training subsets and the test tosses are those of pipelines/real_cubes.py (seed
 2022, 96 test tosses, nested training sets). At each training size the GNS is trained with the
@@ -15,6 +16,10 @@ A GNS with a time step of k frames starts from frames 0, k and 2k: it sees the t
 2k, where the engines see frames 0-2. So the engines are also scored starting from frame 2k
 (their state estimated on frames 0..2k), and the report gives each engine's better score.
 
+Presets: `accuracy` trains at 16, 64 and 256 tosses with seed 0 (~1 h of one core); `few` at 8 and 16
+tosses with three seeds, only the GNS that also trains on the tuned MuJoCo's tosses, the engines'
+search at 200 evaluations (~2.5 h of one core, ~1.3 h with --workers 2); `tiny` is the test suite's.
+
 Stages are skipped on a rerun when done (datasets, trainings by step, fits and evaluations by
 what they were made from). Writes report.md, results.json, plots/accuracy.png; with --export,
 the trained models as small files (gns export) named real_cubes_n<N>.pt and real_cubes_mujoco_n<N>.pt
@@ -22,13 +27,17 @@ the trained models as small files (gns export) named real_cubes_n<N>.pt and real
 """
 from __future__ import annotations
 
+import json
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from plumbing import DataError
 from baselines.toss import evaluate_baseline
 from gns.evaluate import evaluate_run, write_json
+from gns.metrics import METRICS
 from gns.checkpoint import read_checkpoint
 from gns.zoo import export_model
 from pipelines.common import Costs, done, guarded, say, train_stage
@@ -86,15 +95,27 @@ class Preset:
     levers: dict = field(default_factory=dict)
     # the same for the GNS trained with the engine's tosses, where they differ from `levers`
     engine_levers: dict = field(default_factory=dict)
+    # every training size is run with each seed: its tosses (pipelines/real_cubes_data.training_ids),
+    # the engines' search, the engine's tosses and the GNS's initialisation
+    seeds: tuple[int, ...] = (0,)
+    real_only: bool = True         # also the GNS trained on the real tosses alone
 
 
 PRESETS = {
     "tiny": Preset(test=1, valid=0, steps={2: 30}, model="tiny", baseline_budget=3, baseline_tosses=None,
                    train=tuple(o for o in _TRAIN if not o.startswith("valid.every")) + ("valid.every=0",),
-                   engine_data={2: (4, 2)}, levers={2: (*SYMMETRIC, *MANY_TOSSES)}, engine_levers={2: MANY_TOSSES}),
+                   engine_data={2: (4, 2)}, levers={2: (*SYMMETRIC, *MANY_TOSSES)}, engine_levers={2: MANY_TOSSES},
+                   seeds=(0, 1)),
     # ~3-4 min per 10k steps on one idle core (16 tosses, batch 32); lr decays 10x every third of the steps
     "accuracy": Preset(test=96, valid=32, steps={16: 20000, 64: 30000, 256: 40000}, engine_data={16: (2000, 40)},
                        levers={16: SYMMETRIC, 64: MANY_TOSSES, 256: MANY_TOSSES}, engine_levers={16: MANY_TOSSES}),
+    # few tosses (the paper's Fig. 4 left end), three seeds: the recipe of the zoo's real_cubes_16 at 8
+    # and 16 tosses (each real toss 40 times beside 2000 tosses of the MuJoCo tuned on the same ones)
+    # against both engines identified on the same tosses by a 200-evaluation search. ~25 min of one
+    # core per size and seed; --workers 2 runs two at a time
+    "few": Preset(test=96, valid=32, steps={8: 20000, 16: 20000}, seeds=(0, 1, 2), real_only=False,
+                  baseline_budget=200, engine_data={8: (2000, 40), 16: (2000, 40)},
+                  engine_levers={8: MANY_TOSSES, 16: MANY_TOSSES}),
 }
 
 
@@ -129,55 +150,97 @@ def fair_start_stage(path: Path, data: Path, engine: str, params: dict, given: i
     return results
 
 
-def run(preset: str, src: Path, out: Path, export: Path | None = None) -> dict:
+def unit_stage(preset: str, src: Path, out: Path, n: int, s: int, engines: list[str]) -> dict:
+    """One training size and seed: its engines identified on its tosses, its GNS trained and
+    everything scored on the test tosses. A top-level function so that --workers can run it in
+    another process; every file it writes is its own (the published-constants score and the test
+    tosses are made by run() first)."""
+    p = PRESETS[preset]
+    split = make_split(duplicate_groups(read_tosses(Path(src))), p.test, p.valid)
+    ids = training_ids(split, n, s)
+    tag = f"n{n}" + (f"_s{s}" if s else "")       # seed 0 keeps the names of the one-seed runs
+    test = out / "data" / "test"
+    costs = Costs(out / "costs" / f"n{n}_s{s}.json")
+    data = import_stage(Path(src), out / "data" / f"train_n{n}_s{s}",
+                        {"train": ids, **({"valid": split["valid"]} if split["valid"] else {})})
+    base = baselines_stage(out / "baseline", {(n, s): (data, ids)}, test, engines, p.baseline_budget,
+                           p.baseline_tosses, costs)
+    seed_args = [f"train.seed={s}"] if s else []
+    given = 2 * STRIDE + 1
+    row = {"steps": p.steps[n], "train_ids": ids}
+    if p.real_only:
+        run_dir = out / "runs" / f"gns_{tag}"
+        train_stage(data, run_dir, p.model, gns_settings(p, n) + seed_args)
+        row["gns"] = summary(gns_stage(out / "eval" / f"gns_{tag}.json", run_dir, test))
+    for e in engines:
+        params = base["fits"][e][f"n{n}_s{s}"]["params"]
+        first3 = summary(base["evals"][e][f"n{n}_s{s}"])
+        later = summary(fair_start_stage(out / "baseline" / f"eval_{e}_n{n}_s{s}_given{given}.json"
+                                         if s else out / "baseline" / f"eval_{e}_n{n}_given{given}.json",
+                                         test, e, params, given))
+        row[e] = min(first3, later, key=lambda r: r["position_error_pct"] + r["rotation_error_deg"])
+        row[e]["given_frames"] = 3 if row[e] is first3 else given
+    if n in p.engine_data and "mujoco" in engines:
+        count, copies = p.engine_data[n]
+        mixed = synthetic_stage(out / "data" / f"mujoco_n{n}_s{s}", data, "mujoco",
+                                base["fits"]["mujoco"][f"n{n}_s{s}"]["params"], count, s, copies)
+        mixed_run = out / "runs" / f"gns_mujoco_{tag}"
+        train_stage(mixed.root, mixed_run, p.model, gns_settings(p, n, engine_data=True) + seed_args)
+        row["gns_engine_data"] = summary(gns_stage(out / "eval" / f"gns_mujoco_{tag}.json", mixed_run, test))
+        row["engine_data"] = {"synthetic": count, "real_copies": copies}
+    return row
+
+
+def over_seeds(rows: list[dict]) -> dict:
+    """The rows of one training size, one per seed, as one: each simulator's mean metrics, with
+    `spread` (the lowest and highest seed) and `per_seed`."""
+    out = {k: v for k, v in rows[0].items() if not isinstance(v, dict) or k == "engine_data"}
+    out.pop("train_ids", None)
+    for who in (k for k, v in rows[0].items() if isinstance(v, dict) and k != "engine_data"):
+        per = [r[who] for r in rows]
+        mean = {k: float(np.mean([r[k] for r in per])) for k in (*METRICS, "true_penetration_pct")}
+        out[who] = {**per[0], **mean}
+        if len(rows) > 1:
+            out[who]["spread"] = {k: [min(r[k] for r in per), max(r[k] for r in per)] for k in METRICS}
+            out[who]["per_seed"] = per
+            if "given_frames" in per[0]:
+                out[who]["given_frames"] = "/".join(str(r["given_frames"]) for r in per)
+    return out
+
+
+def run(preset: str, src: Path, out: Path, export: Path | None = None, workers: int = 1) -> dict:
     p = PRESETS[preset]
     if not Path(src).is_dir():
         raise DataError(f"source folder does not exist: {src}")
     tosses = read_tosses(Path(src))
     split = make_split(duplicate_groups(tosses), p.test, p.valid)
-    for n in p.steps:
-        training_ids(split, n, 0)  # an impossible size is refused before anything is trained
+    units = [(n, s) for n in p.steps for s in p.seeds]
+    for n, s in units:
+        training_ids(split, n, s)  # an impossible size is refused before anything is trained
     out.mkdir(parents=True, exist_ok=True)
-    costs = Costs(out / "costs.json")
     test = import_stage(Path(src), out / "data" / "test", {"test": split["test"]})
-    datasets = {}
-    for n in p.steps:
-        ids = training_ids(split, n, 0)
-        datasets[n] = (import_stage(Path(src), out / "data" / f"train_n{n}_s0",
-                                    {"train": ids, **({"valid": split["valid"]} if split["valid"] else {})}), ids)
     engines = available_engines()
-    base = baselines_stage(out / "baseline", {(n, 0): d for n, d in datasets.items()}, test, engines,
-                           p.baseline_budget, p.baseline_tosses, costs)
-    given = 2 * STRIDE + 1
-    rows = {}
-    for n, steps in p.steps.items():
-        run_dir = out / "runs" / f"gns_n{n}"
-        train_args = gns_settings(p, n)
-        train_stage(datasets[n][0], run_dir, p.model, train_args)
-        row = {"gns": summary(gns_stage(out / "eval" / f"gns_n{n}.json", run_dir, test)), "steps": steps}
-        for e in engines:
-            params = base["fits"][e][f"n{n}_s0"]["params"]
-            first3 = summary(base["evals"][e][f"n{n}_s0"])
-            later = summary(fair_start_stage(out / "baseline" / f"eval_{e}_n{n}_given{given}.json", test, e,
-                                             params, given))
-            row[e] = min(first3, later, key=lambda r: r["position_error_pct"] + r["rotation_error_deg"])
-            row[e]["given_frames"] = 3 if row[e] is first3 else given
-        if n in p.engine_data and "mujoco" in engines:
-            count, copies = p.engine_data[n]
-            mixed = synthetic_stage(out / "data" / f"mujoco_n{n}_s0", datasets[n][0], "mujoco",
-                                    base["fits"]["mujoco"][f"n{n}_s0"]["params"], count, 0, copies)
-            mixed_run = out / "runs" / f"gns_mujoco_n{n}"
-            train_stage(mixed.root, mixed_run, p.model, gns_settings(p, n, engine_data=True))
-            row["gns_engine_data"] = summary(gns_stage(out / "eval" / f"gns_mujoco_n{n}.json", mixed_run, test))
-            row["engine_data"] = {"synthetic": count, "real_copies": copies}
-        rows[n] = row
-        if export is not None:
-            export_model(run_dir / "latest.pt", export / f"real_cubes_n{n}.pt", overwrite=True)
-            if "gns_engine_data" in row:
+    baselines_stage(out / "baseline", {}, test, engines, p.baseline_budget, p.baseline_tosses,
+                    Costs(out / "costs" / "published.json"))
+    if workers > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+        with ProcessPoolExecutor(min(workers, len(units)), mp_context=multiprocessing.get_context("spawn")) as pool:
+            jobs = {u: pool.submit(unit_stage, preset, src, out, *u, engines) for u in units}
+            done_rows = {u: j.result() for u, j in jobs.items()}
+    else:
+        done_rows = {u: unit_stage(preset, src, out, *u, engines) for u in units}
+    rows = {n: over_seeds([done_rows[(n, s)] for s in p.seeds]) for n in p.steps}
+    if export is not None:
+        for n in p.steps:
+            if p.real_only:
+                export_model(out / "runs" / f"gns_n{n}" / "latest.pt", export / f"real_cubes_n{n}.pt", overwrite=True)
+            if "gns_engine_data" in rows[n]:
                 export_model(out / "runs" / f"gns_mujoco_n{n}" / "latest.pt",
                              export / f"real_cubes_mujoco_n{n}.pt", overwrite=True)
-    results = {"preset": preset, "src": str(src), "stride": STRIDE, "engines": engines,
-               "published": summary(base["evals"]["published"][""]), "sizes": {str(n): r for n, r in rows.items()}}
+    results = {"preset": preset, "src": str(src), "stride": STRIDE, "engines": engines, "seeds": list(p.seeds),
+               "published": summary(json.loads((out / "baseline" / "eval_published.json").read_text())),
+               "sizes": {str(n): r for n, r in rows.items()}}
     write_json(out / "results.json", results)
     plot(out / "plots" / "accuracy.png", results)
     report(out, results)
@@ -185,28 +248,37 @@ def run(preset: str, src: Path, out: Path, export: Path | None = None) -> dict:
     return results
 
 
+def _line(ax, sizes: list[int], rows: dict, who: str, key: str, style: str, label: str) -> None:
+    """Mean over seeds, the seeds' range as error bars."""
+    have = [n for n in sizes if who in rows[str(n)]]
+    if not have:
+        return
+    mean = np.array([rows[str(n)][who][key] for n in have])
+    lo_hi = np.array([rows[str(n)][who].get("spread", {}).get(key, [m, m]) for n, m in zip(have, mean)])
+    ax.errorbar(have, mean, yerr=[mean - lo_hi[:, 0], lo_hi[:, 1] - mean], fmt=style, capsize=3, label=label)
+
+
 def plot(path: Path, results: dict) -> Path:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    sizes = [int(n) for n in results["sizes"]]
+    sizes, rows = [int(n) for n in results["sizes"]], results["sizes"]
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
     for ax, key, label in zip(axes, ("position_error_pct", "rotation_error_deg"),
                               ("position error [% of width]", "rotation error [deg]")):
-        ax.plot(sizes, [results["sizes"][str(n)]["gns"][key] for n in sizes], "o-", label="GNS")
-        mixed = [n for n in sizes if "gns_engine_data" in results["sizes"][str(n)]]
-        if mixed:
-            ax.plot(mixed, [results["sizes"][str(n)]["gns_engine_data"][key] for n in mixed], "^-",
-                    label="GNS + tuned-MuJoCo tosses")
+        _line(ax, sizes, rows, "gns", key, "o-", "GNS")
+        _line(ax, sizes, rows, "gns_engine_data", key, "^-", "GNS + tuned-MuJoCo tosses")
         for e in results["engines"]:
-            ax.plot(sizes, [results["sizes"][str(n)][e][key] for n in sizes], "s--", label=f"{ENGINE_LABELS[e]} (tuned)")
+            _line(ax, sizes, rows, e, key, "s--", f"{ENGINE_LABELS[e]} (tuned)")
         ax.axhline(results["published"][key], color="gray", lw=0.8, ls=":", label="PyBullet (published constants)")
         ax.set_xscale("log", base=2)
         ax.set_xlabel("training tosses")
         ax.set_ylabel(label)
         ax.set_ylim(bottom=0)
     axes[0].legend(fontsize=8)
-    fig.suptitle("Real cube tosses: learned vs tuned engines, 96 test tosses")
+    seeds = len(results.get("seeds", [0]))
+    fig.suptitle("Real cube tosses: learned vs tuned engines, 96 test tosses"
+                 + (f" (mean of {seeds} seeds, bars: their range)" if seeds > 1 else ""))
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -214,21 +286,34 @@ def plot(path: Path, results: dict) -> Path:
     return path
 
 
+def _cells(r: dict) -> str:
+    """Metric cells, with the seeds' range when there are several."""
+    if "spread" not in r:
+        return metric_cells(r)
+    lo_hi = r["spread"]
+    return " | ".join(f"{r[k]:.2f} ({lo_hi[k][0]:.2f}-{lo_hi[k][1]:.2f})"
+                      for k in ("position_error_pct", "rotation_error_deg", "penetration_pct"))
+
+
 def report(out: Path, results: dict) -> Path:
+    seeds = results.get("seeds", [0])
     lines = [f"# Real cube tosses: tuned GNS against tuned engines (preset `{results['preset']}`)", "",
              f"Made by `python -m pipelines.real_cubes_accuracy --src {results['src']} --preset {results['preset']}`.",
              "All scored on the same test tosses at every recorded frame (docs/metrics.md). Engines: the better "
-             f"of starting from frames 0-2 and from frames 0-{2 * results['stride']} (what the GNS is given).", "",
-             "| training tosses | simulator | steps | position % | rotation deg | penetration % |",
+             f"of starting from frames 0-2 and from frames 0-{2 * results['stride']} (what the GNS is given)."
+             + (f" Each training size with seeds {', '.join(map(str, seeds))} (its tosses, the engines' search, the "
+                "GNS's initialisation): the mean, in brackets the lowest and highest seed." if len(seeds) > 1 else ""),
+             "", "| training tosses | simulator | steps | position % | rotation deg | penetration % |",
              "|---|---|---|---|---|---|"]
     for n, row in results["sizes"].items():
-        lines.append(f"| {n} | GNS | {row['steps']} | {metric_cells(row['gns'])} |")
+        if "gns" in row:
+            lines.append(f"| {n} | GNS | {row['steps']} | {_cells(row['gns'])} |")
         if "gns_engine_data" in row:
             e = row["engine_data"]
             lines.append(f"| {n} | GNS on the real tosses x{e['real_copies']} + {e['synthetic']} tuned-MuJoCo tosses "
-                         f"| {row['steps']} | {metric_cells(row['gns_engine_data'])} |")
+                         f"| {row['steps']} | {_cells(row['gns_engine_data'])} |")
         for e in results["engines"]:
-            lines.append(f"| {n} | {ENGINE_LABELS[e]} tuned (from {row[e]['given_frames']} frames) | - | {metric_cells(row[e])} |")
+            lines.append(f"| {n} | {ENGINE_LABELS[e]} tuned (from {row[e]['given_frames']} frames) | - | {_cells(row[e])} |")
     lines += ["", f"PyBullet with the published constants: {metric_cells(results['published'])}.", "",
               "![accuracy](plots/accuracy.png)"]
     path = out / "report.md"
@@ -238,9 +323,14 @@ def report(out: Path, results: dict) -> Path:
 
 def main(argv=None) -> int:
     ap = real_cubes_parser("real_cubes_accuracy", __doc__, PRESETS, "accuracy")
-    ap.add_argument("--export", type=Path, help="also write the trained models here (gns export)")
+    ap.add_argument("--export", type=Path, help="also write the trained models (seed 0) here (gns export)")
+    ap.add_argument("--workers", type=int, default=1,
+                    help="run this many training sizes and seeds at once, in separate processes (one core each)")
     a = ap.parse_args(argv)
-    return guarded(lambda: run(a.preset, a.src, a.out or Path("runs") / f"real_cubes_{a.preset}", a.export))
+    if a.workers < 1:
+        ap.error(f"--workers must be at least 1, not {a.workers}")
+    return guarded(lambda: run(a.preset, a.src, a.out or Path("runs") / f"real_cubes_{a.preset}", a.export,
+                               a.workers))
 
 
 if __name__ == "__main__":

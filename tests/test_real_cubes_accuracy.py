@@ -10,15 +10,21 @@ from gns.checkpoint import load_model
 def test_tiny_preset_end_to_end_and_rerun(tmp_path, capsys):
     out, export = tmp_path / "acc", tmp_path / "models"
     args = ["--src", str(SRC), "--preset", "tiny", "--out", str(out), "--export", str(export)]
-    assert real_cubes_accuracy.main(args) == 0
+    assert real_cubes_accuracy.main(args + ["--workers", "2"]) == 0    # the two seeds in two processes
     results = json.loads((out / "results.json").read_text())
     row = results["sizes"]["2"]
-    assert set(row) >= {"gns", "pybullet", "mujoco", "steps"}
-    for who in ("gns", "pybullet", "mujoco"):
+    assert set(row) >= {"gns", "pybullet", "mujoco", "steps"} and results["seeds"] == [0, 1]
+    for who in ("gns", "gns_engine_data", "pybullet", "mujoco"):
         assert row[who]["num_scenes"] == 1 and row[who]["position_error_pct"] >= 0
-    assert row["pybullet"]["given_frames"] in (3, 17)
+        seeds = [r["position_error_pct"] for r in row[who]["per_seed"]]
+        assert len(seeds) == 2 and row[who]["position_error_pct"] == sum(seeds) / 2
+        assert row[who]["spread"]["position_error_pct"] == [min(seeds), max(seeds)]
+    assert set(row["pybullet"]["given_frames"].split("/")) <= {"3", "17"}
+    # each seed its own tosses and its own engine fit
+    fits = [json.loads((out / "baseline" / f"fit_mujoco_n2{t}.json").read_text()) for t in ("_s0", "_s1")]
+    assert fits[0]["train_ids"] != fits[1]["train_ids"] and (out / "runs" / "gns_n2_s1" / "latest.pt").exists()
     assert (out / "plots" / "accuracy.png").stat().st_size > 1000
-    assert "| 2 | GNS |" in (out / "report.md").read_text()
+    assert "| 2 | GNS |" in (out / "report.md").read_text() and "lowest and highest seed" in (out / "report.md").read_text()
     # the GNS trained on the real tosses (x2) and 4 tosses of the MuJoCo tuned on them
     assert row["gns_engine_data"]["num_scenes"] == 1 and row["engine_data"] == {"synthetic": 4, "real_copies": 2}
     from datagen.shards import Dataset
