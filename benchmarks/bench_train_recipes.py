@@ -341,8 +341,7 @@ def bench_recipes(names: list[str], args) -> list[dict]:
                      "threads": run.threads, "batch": run.cfg.train.batch_size, "nodes": nodes, "edges": edges,
                      "collisions": collisions, "steps_per_sec": steps / elapsed,
                      "drawing": best["drawing"] / elapsed, "gflop_per_step": flops / steps / 1e9,
-                     "gflops": flops / elapsed / 1e9,
-                     "at_shapes": ref.flops / ref.seconds / 1e9,
+                     "gflops": flops / elapsed / 1e9, "at_shapes": ref.flops / ref.seconds / 1e9,
                      "peak": peaks[key], "data": run.tag, "source": run.source})
     return rows
 
@@ -377,8 +376,7 @@ def main(argv=None) -> None:
     p.add_argument("--warmup", type=int, default=3, help="untimed steps per recipe")
     p.add_argument("--threads", type=int, help="torch threads for every recipe (default: its own)")
     p.add_argument("--batch", type=int, help="training batch size for every recipe (default: its own)")
-    p.add_argument("--rounds", type=int, default=1,
-                   help="alternate the recipes this many times and keep each one's best")
+    p.add_argument("--rounds", type=int, default=1, help="alternate the recipes this many times and keep each one's best")
     p.add_argument("--scenes", type=int, default=64, help="recipes: training scenes to generate (default 64)")
     p.add_argument("--src", help="recipes on ContactNets tosses: the folder holding tosses_processed/")
     p.add_argument("--cache", help="recipes: where generated and imported data are kept (default: a folder "
