@@ -89,19 +89,22 @@ def test_collision_mode_is_checked():
     assert build_config(overrides=["features.collision_mode=surface"]).features.collision_mode == "surface"
 
 
-def test_tiny_model_trains_and_rolls_out_with_surface_edges(tmp_path):
+@pytest.mark.parametrize("mode", ["surface", "face"])
+def test_tiny_model_trains_and_rolls_out_with_collision_edges(tmp_path, mode):
     from datagen.cli import main as datagen_main
     from gns.evaluate import evaluate_run
+    from gns.spec import RolloutOptions
     from gns.train import train
     data = tmp_path / "d"
-    assert datagen_main(["toss", "--out", str(data), "--objects", "2-3", "--scenes", "4", "--test", "2",
+    assert datagen_main(["toss", "--out", str(data), "--objects", "3-4", "--scenes", "4", "--test", "2",
                          "--frames", "10", "--shapes", "cube,cylinder", "--quiet"]) == 0
     cfg = build_config(path="configs/gns_tiny.toml",
-                       overrides=["train.steps=10", "valid.every=0", "features.collision_mode=surface"])
+                       overrides=["train.steps=10", "valid.every=0", f"features.collision_mode={mode}"])
     train(data, tmp_path / "run", cfg, log=lambda s: None)
-    results, pred, *_ = evaluate_run(tmp_path / "run", data, progress=False)
-    assert all(np.isfinite(sc.positions).all() for sc in pred)
-    assert results["num_object_pairs"] >= 2 and results["interpenetration_pct"] >= 0
+    for options in (RolloutOptions(), RolloutOptions(symmetrize="d1", keep_apart=True)):
+        results, pred, *_ = evaluate_run(tmp_path / "run", data, options=options, progress=False)
+        assert all(np.isfinite(sc.positions).all() for sc in pred)
+        assert results["num_object_pairs"] >= 2 and results["interpenetration_pct"] >= 0
 
 
 def _deepest(x, graph):

@@ -4,7 +4,6 @@ import pytest
 import torch
 from gns_fixtures import cube_meshes
 
-from gns.config import build_config
 from gns.contacts import surface_edges
 from gns.data import vertices_from_poses
 from gns.face_contacts import closest_points_on_segments, closest_points_on_triangles, face_edges
@@ -118,20 +117,3 @@ def test_face_edge_geometry_carries_the_gradient_of_the_positions():
     upper = graph.node_graph == 1
     # the upper cube moving up opens the gap, the lower one moving up closes it
     assert torch.isfinite(x.grad).all() and x.grad[upper, 2].sum() > 0 and x.grad[~upper, 2].sum() < 0
-
-
-def test_tiny_model_trains_and_rolls_out_with_face_edges(tmp_path):
-    from datagen.cli import main as datagen_main
-    from gns.evaluate import evaluate_run
-    from gns.spec import RolloutOptions
-    from gns.train import train
-    data = tmp_path / "d"
-    assert datagen_main(["toss", "--out", str(data), "--objects", "3-4", "--scenes", "4", "--test", "2",
-                         "--frames", "10", "--shapes", "cube,cylinder", "--quiet"]) == 0
-    cfg = build_config(path="configs/gns_tiny.toml",
-                       overrides=["train.steps=10", "valid.every=0", "features.collision_mode=face"])
-    train(data, tmp_path / "run", cfg, log=lambda s: None)
-    for options in (RolloutOptions(), RolloutOptions(symmetrize="d1", keep_apart=True)):
-        results, pred, *_ = evaluate_run(tmp_path / "run", data, options=options, progress=False)
-        assert all(np.isfinite(sc.positions).all() for sc in pred)
-        assert results["num_object_pairs"] >= 2
