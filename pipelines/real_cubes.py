@@ -21,6 +21,8 @@ stages are skipped. Presets (docs/results.md has their measured costs):
   tiny   the test suite's smoke run: sizes 1 and 2, a tiny model, 30 steps
   quick  sizes 8, 32, 128, one seed, the CPU model for 6000 steps; ablations at 128, noise at 32
   full   sizes 8 to 256, three seeds, 30000 steps; ablations and noise at 256
+  zoo    the zoo's real_cubes recipe (256 tosses, its settings and 40,000 steps), its ablations and noise
+--workers N trains N GNS runs at a time.
 """
 from __future__ import annotations
 
@@ -40,6 +42,7 @@ from pipelines.real_cubes_baselines import available_engines, baselines_stage
 from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_split, overlaps, read_tosses,
                                       real_cubes_parser, training_ids)
 from pipelines.real_cubes_report import fit_summary, make_plots, report, summary
+from pipelines.recipe import load_recipe
 
 # Everything run() writes into --out: --fresh deletes a folder holding only these.
 OUTPUTS = {"split.json", "costs.json", "data", "runs", "eval", "baseline", "plots", "results.json", "report.md"}
@@ -76,6 +79,8 @@ class Preset:
 # 0.0003 at 32 tosses; 0.001 beat 0.0005 at 128 tosses (22% vs 28% position, 3% vs 6% penetration).
 _TRAIN = ("train.threads=1", "train.batch_size=32", "train.lr_init=1e-3", "augment.noise_std=0.001",
           "valid.rollout_scenes=8", "valid.rollout_steps=50")
+_ZOO_RUN = load_recipe("real_cubes").runs[0]
+RECIPE, RECIPE_STEPS = tuple(_ZOO_RUN.overrides), _ZOO_RUN.steps
 PRESETS = {
     "tiny": Preset(test=1, valid=0, sizes=(1, 2), seeds=(0,), model="tiny", steps=30,
                    train=_TRAIN + ("valid.every=0", "train.checkpoint_every=30"), baseline_budget=3,
@@ -89,6 +94,11 @@ PRESETS = {
                    train=_TRAIN + ("train.lr_decay_steps=10000", "valid.every=2000"),
                    baseline_budget=200, ablation_size=256, noise_size=256, vertex_noise=(0.01, 0.03, 0.1),
                    track_noise=(0.01, 0.03, 0.1)),
+    # the ablations (Fig. 5) and the noise study (Fig. 7) on the zoo's real_cubes: its recipe's
+    # settings and 256 tosses (its full model is the zoo model retrained), ~5 h of one core
+    "zoo": Preset(test=96, valid=32, sizes=(256,), seeds=(0,), model="cpu", steps=RECIPE_STEPS, train=RECIPE,
+                  baseline_budget=200, ablation_size=256, noise_size=256, vertex_noise=(0.01, 0.03, 0.1),
+                  track_noise=(0.01, 0.03, 0.1)),
 }
 
 
@@ -147,18 +157,36 @@ def gns_runs(p: Preset, sets: dict) -> dict[str, tuple[Path, list[str]]]:
     return runs
 
 
+def train_one(data: Path, run: Path, model: str, over: list[str]) -> tuple[Path, float | None, int]:
+    """One GNS run trained (or skipped when done): its checkpoint, the seconds it trained (None
+    when it had nothing left to train) and the step it started from. Top-level, so that
+    --workers can run it in another process."""
+    t0, before = time.perf_counter(), trained_step(run)
+    ckpt = train_stage(data, run, model, over)
+    return ckpt, (time.perf_counter() - t0 if trained_step(run) != before else None), before
+
+
 def gns_stage(out: Path, p: Preset, runs: dict, test_data: Path, external: dict | None,
-              costs: Costs) -> tuple[dict, dict]:
-    """Every GNS run trained and scored on the test tosses (and on --test-dir's); the ablation
-    size's model also without shape matching. Returns (evaluations, external evaluations)."""
+              costs: Costs, workers: int = 1) -> tuple[dict, dict]:
+    """Every GNS run trained (workers at a time, each in its own process) and scored on the test
+    tosses (and on --test-dir's); the ablation size's model also without shape matching. Returns
+    (evaluations, external evaluations)."""
     largest = f"gns_n{max(p.sizes)}_s{p.seeds[0]}"
     evals, ext_evals = {}, {}
-    for name, (data, over) in runs.items():
-        t0, before = time.perf_counter(), trained_step(out / "runs" / name)
-        ckpt = train_stage(data, out / "runs" / name, p.model, over)
-        if trained_step(out / "runs" / name) != before:  # it trained: add this run's time to any earlier one's
+    jobs = {name: (data, out / "runs" / name, p.model, over) for name, (data, over) in runs.items()}
+    if workers > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {name: pool.submit(train_one, *job) for name, job in jobs.items()}
+            trained = {name: f.result() for name, f in futures.items()}
+    else:
+        trained = {}
+    for name in runs:
+        ckpt, seconds, before = trained[name] if name in trained else train_one(*jobs[name])
+        if seconds is not None:  # it trained: add this run's time to any earlier one's
             earlier = costs.data.get(f"train {name}", 0.0) if before > 0 else 0.0
-            costs.add(f"train {name}", earlier + time.perf_counter() - t0)
+            costs.add(f"train {name}", earlier + seconds)
         plots = out / "plots" / name if p.plots and name == largest else None
         evals[name] = gns_eval_stage(out / "eval" / f"{name}.json", ckpt, test_data, costs, plots_dir=plots)
         if name == f"gns_n{p.ablation_size}_s{p.seeds[0]}":
@@ -183,7 +211,9 @@ def gns_eval_stage(path: Path, ckpt: Path, data: Path, costs: Costs, shape_match
     if _scored_on(results, data):
         return results
     t0 = time.perf_counter()
-    results, *_ = evaluate_run(ckpt, data, "test", shape_matching=shape_matching, plots_dir=plots_dir, progress=False)
+    # at every recorded frame (a strided model's poses interpolated), the instants the engines are scored at
+    results, *_ = evaluate_run(ckpt, data, "test", shape_matching=shape_matching, plots_dir=plots_dir, progress=False,
+                               at_data_rate=True)
     results["checkpoint_step"] = int(read_checkpoint(ckpt)["step"])
     write_json(path, results)
     costs.add(f"eval {path.stem}", time.perf_counter() - t0)
@@ -197,7 +227,7 @@ def check_preset(p: Preset) -> None:
         raise ValueError("ablation_size and noise_size must be training sizes of the preset")
 
 
-def run(preset: str, src: Path, out: Path, test_dir: Path | None = None) -> dict:
+def run(preset: str, src: Path, out: Path, test_dir: Path | None = None, workers: int = 1) -> dict:
     p = PRESETS[preset]
     check_preset(p)
     src = Path(src)
@@ -219,7 +249,7 @@ def run(preset: str, src: Path, out: Path, test_dir: Path | None = None) -> dict
                            available_engines(), p.baseline_budget, p.baseline_tosses, costs,
                            external_data=external["data"] if external is not None else None,
                            plots_for=(max(p.sizes), p.seeds[0]) if p.plots else None)
-    evals, ext_evals = gns_stage(out, p, runs, test_data, external, costs)
+    evals, ext_evals = gns_stage(out, p, runs, test_data, external, costs, workers)
     results = collect(preset, p, src, split, evals, base, external, ext_evals, costs)
     results["pipeline_seconds_this_call"] = round(time.perf_counter() - t_start, 1)
     write_json(out / "results.json", results)
@@ -276,7 +306,11 @@ def main(argv=None) -> int:
     ap = real_cubes_parser("real_cubes", __doc__, PRESETS, "quick")
     ap.add_argument("--test-dir", type=Path, help="a further folder of N.pt tosses to score everything on")
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
+    ap.add_argument("--workers", type=int, default=1,
+                    help="train this many GNS runs at once, each in its own process (one core each)")
     a = ap.parse_args(argv)
+    if a.workers < 1:
+        ap.error(f"--workers must be at least 1, not {a.workers}")
     out = a.out or Path("runs") / f"real_cubes_{a.preset}"
     import torch
     torch.set_num_threads(1)  # rollouts of 8-vertex graphs: a second thread only waits on the first
@@ -284,7 +318,7 @@ def main(argv=None) -> int:
     def stages():
         if a.fresh:
             remove_output(out, OUTPUTS)
-        run(a.preset, a.src, out, a.test_dir)
+        run(a.preset, a.src, out, a.test_dir, a.workers)
     return guarded(stages)
 
 

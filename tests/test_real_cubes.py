@@ -14,9 +14,10 @@ IDS = (55, 229, 274)
 def test_tiny_preset_end_to_end_with_an_external_test_folder(tmp_path, capsys):
     out = tmp_path / "rc"
     args = ["--src", str(SRC), "--preset", "tiny", "--out", str(out), "--test-dir", str(SRC)]
-    assert real_cubes.main(args) == 0
+    assert real_cubes.main(args + ["--workers", "2"]) == 0     # the GNS runs trained two at a time
     results = json.loads((out / "results.json").read_text())
     assert set(results["sizes"]) == {"1", "2"}
+    assert {k for k in results["costs_seconds"] if k.startswith("train ")} == {f"train {r.name}" for r in (out / "runs").iterdir()}
     for rows in results["sizes"].values():
         for key in ("position_error_pct", "rotation_error_deg", "penetration_pct"):
             for who in ("gns", "pybullet", "mujoco"):

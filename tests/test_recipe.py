@@ -63,6 +63,19 @@ def _config(preset: str, overrides):
     return build_config(path=config_dir() / f"{preset}.toml", overrides=list(overrides))
 
 
+def test_the_real_cube_sweep_ablates_the_zoo_model_by_its_recipe():
+    """pipelines.real_cubes --preset zoo: its full model (the ablations' and noise study's
+    reference) is the zoo's real_cubes trained by its recipe."""
+    from pipelines.real_cubes import PRESETS
+    p = PRESETS["zoo"]
+    recipe = load_recipe("real_cubes")
+    assert p.sizes == (recipe.data["tosses"],) and p.ablation_size == p.noise_size == recipe.data["tosses"]
+    assert (p.test, p.valid) == (recipe.data["test"], recipe.data["valid"])
+    ours = _config(f"gns_{p.model}", [f"train.steps={p.steps}", f"train.seed={p.seeds[0]}", *p.train])
+    theirs = _config(recipe.model, run_overrides(recipe.runs[-1], None))
+    assert config_differences(config_to_dict(theirs), ours, ignore=SETTINGS_FREE) == []
+
+
 def test_the_real_cube_pipeline_trains_the_zoo_models_by_their_recipes():
     """pipelines.real_cubes_accuracy trains the same 256-toss and 16 + MuJoCo models as the recipes."""
     from pipelines.real_cubes_accuracy import PRESETS, gns_settings
