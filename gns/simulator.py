@@ -173,7 +173,7 @@ class LearnedSimulator(Stepping, nn.Module):
             return surface_edges(x, graph, self.layout.collision_radius)
         if self.collision_mode == "face":
             from gns.face_contacts import face_edges
-            return face_edges(x, graph, self.layout.collision_radius)
+            return face_edges(x, graph, self.layout.collision_radius, compiled=self.__dict__.get("_compiled") is not None)
         return collision_edges(x, graph, self.layout.collision_radius)
 
     def _inputs(self, history: torch.Tensor, graph: GraphBatch, world: torch.Tensor | None = None,

@@ -117,3 +117,33 @@ def test_face_edge_geometry_carries_the_gradient_of_the_positions():
     upper = graph.node_graph == 1
     # the upper cube moving up opens the gap, the lower one moving up closes it
     assert torch.isfinite(x.grad).all() and x.grad[upper, 2].sum() > 0 and x.grad[~upper, 2].sum() < 0
+
+
+def _random_triangle_pairs(m=400, seed=3):
+    rng = np.random.default_rng(seed)
+    t1 = torch.from_numpy(rng.normal(size=(m, 3, 3)))
+    return t1, torch.from_numpy(rng.normal(size=(m, 3, 3))) + torch.from_numpy(rng.normal(size=(m, 1, 3))) * 2
+
+
+def test_the_plane_test_rules_out_only_triangles_beyond_the_radius():
+    from gns.face_contacts import _beyond_plane, _distance
+    t1, t2 = _random_triangle_pairs()
+    dist = _distance(t1, t2)
+    for radius in (0.1, 0.5, 1.0):
+        apart = _beyond_plane(t1, t2, radius) | _beyond_plane(t2, t1, radius)
+        assert apart.any() and not (apart & (dist < radius)).any()
+    flat = t1.clone()
+    flat[:, 2] = flat[:, 1]            # no plane: nothing ruled out
+    assert not _beyond_plane(flat, t2, 0.1).any()
+
+
+def test_compiled_triangle_distances_are_the_eager_ones_to_rounding():
+    from gns.face_contacts import _distance, compiled_distance
+    t1, t2 = _random_triangle_pairs()
+    eager = _distance(t1, t2)
+    assert (eager == 0).sum() >= 5       # crossing pairs among them
+    assert torch.allclose(compiled_distance()(t1, t2), eager, rtol=0, atol=1e-12)
+    graph, x, _ = _crossed_cubes(0.05, shift=(0.13, -0.21))
+    e, c = face_edges(x, graph, 0.15), face_edges(x, graph, 0.15, compiled=True)
+    assert torch.equal(e.senders, c.senders) and torch.equal(e.receivers, c.receivers)
+    assert torch.allclose(e.vectors, c.vectors, atol=1e-12)
