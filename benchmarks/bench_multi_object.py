@@ -9,7 +9,7 @@ PyBullet and the model, best of --repeats, one thread. "touching pairs" is the m
 object pairs a frame whose bounding spheres touch in the truth: the contacts a step must handle.
 
     python benchmarks/bench_multi_object.py --run movi_a_multi --data data/multi_test --plot cost.png
-    python benchmarks/bench_multi_object.py --run RUN --data DIR --keep-apart --json out.json
+    python benchmarks/bench_multi_object.py --run RUN --data DIR --keep-apart --compile --json out.json
 """
 from __future__ import annotations
 
@@ -47,13 +47,16 @@ def main(argv=None) -> int:
     p.add_argument("--split", default="test")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--keep-apart", action=argparse.BooleanOptionalAction, help="override the options' keep_apart")
+    p.add_argument("--compile", action=argparse.BooleanOptionalAction,
+                   help="override the options' compile (the network and, for face edges, the triangle distances)")
     p.add_argument("--json")
     p.add_argument("--plot", help="PNG: cost per step against objects a scene, both simulators")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
     options = default_options(a.run)
-    if a.keep_apart is not None:
-        options = options.replace(keep_apart=a.keep_apart)
+    for key in ("keep_apart", "compile"):
+        if getattr(a, key) is not None:
+            options = options.replace(**{key: getattr(a, key)})
     sim, saved = load_simulator(checkpoint_of(a.run), "cpu", options)
     ds, scenes = load_split(a.data, a.split, None, saved["spec"]["frame_rate"])
     if ds.stride != 1:
