@@ -71,6 +71,19 @@ def finished_dataset(out: Path, key: str, value, what: str) -> Dataset | None:
     return ds
 
 
+def in_processes(fn, jobs: dict, workers: int) -> dict:
+    """{key: fn(*args)} for jobs {key: args}, `workers` at a time in processes of their own
+    (spawned: no state is inherited, so fn must be a module's top-level function), or in this
+    process with one worker. The first failure is raised once the running jobs end."""
+    if workers <= 1:
+        return {key: fn(*args) for key, args in jobs.items()}
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {key: pool.submit(fn, *args) for key, args in jobs.items()}
+        return {key: f.result() for key, f in futures.items()}
+
+
 def guarded(stages) -> int:
     """Run a pipeline's stages; a user error ends it with one `error:` line and exit status 2."""
     from gns.config import ConfigError

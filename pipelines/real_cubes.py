@@ -37,7 +37,7 @@ from plumbing import check_writable, DataError
 from datagen.shards import Dataset
 from gns.evaluate import evaluate_run, write_json
 from gns.checkpoint import read_checkpoint
-from pipelines.common import Costs, done, guarded, remove_output, say, train_stage, trained_step
+from pipelines.common import Costs, done, guarded, in_processes, remove_output, say, train_stage, trained_step
 from pipelines.real_cubes_baselines import available_engines, baselines_stage
 from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_split, overlaps, read_tosses,
                                       real_cubes_parser, training_ids)
@@ -173,17 +173,10 @@ def gns_stage(out: Path, p: Preset, runs: dict, test_data: Path, external: dict 
     (evaluations, external evaluations)."""
     largest = f"gns_n{max(p.sizes)}_s{p.seeds[0]}"
     evals, ext_evals = {}, {}
-    jobs = {name: (data, out / "runs" / name, p.model, over) for name, (data, over) in runs.items()}
-    if workers > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = {name: pool.submit(train_one, *job) for name, job in jobs.items()}
-            trained = {name: f.result() for name, f in futures.items()}
-    else:
-        trained = {}
+    trained = in_processes(train_one, {name: (data, out / "runs" / name, p.model, over)
+                                       for name, (data, over) in runs.items()}, workers)
     for name in runs:
-        ckpt, seconds, before = trained[name] if name in trained else train_one(*jobs[name])
+        ckpt, seconds, before = trained[name]
         if seconds is not None:  # it trained: add this run's time to any earlier one's
             earlier = costs.data.get(f"train {name}", 0.0) if before > 0 else 0.0
             costs.add(f"train {name}", earlier + seconds)

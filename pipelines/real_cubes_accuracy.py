@@ -40,7 +40,7 @@ from gns.evaluate import evaluate_run, write_json
 from gns.metrics import METRICS
 from gns.checkpoint import read_checkpoint
 from gns.zoo import export_model
-from pipelines.common import Costs, done, guarded, say, train_stage
+from pipelines.common import Costs, done, guarded, in_processes, say, train_stage
 from pipelines.engine_pretrain import synthetic_stage
 from pipelines.real_cubes_baselines import available_engines, baselines_stage
 from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_split, read_tosses, real_cubes_parser,
@@ -175,9 +175,8 @@ def unit_stage(preset: str, src: Path, out: Path, n: int, s: int, engines: list[
     for e in engines:
         params = base["fits"][e][f"n{n}_s{s}"]["params"]
         first3 = summary(base["evals"][e][f"n{n}_s{s}"])
-        later = summary(fair_start_stage(out / "baseline" / f"eval_{e}_n{n}_s{s}_given{given}.json"
-                                         if s else out / "baseline" / f"eval_{e}_n{n}_given{given}.json",
-                                         test, e, params, given))
+        later = summary(fair_start_stage(out / "baseline" / f"eval_{e}_{tag}_given{given}.json", test, e, params,
+                                         given))
         row[e] = min(first3, later, key=lambda r: r["position_error_pct"] + r["rotation_error_deg"])
         row[e]["given_frames"] = 3 if row[e] is first3 else given
     if n in p.engine_data and "mujoco" in engines:
@@ -222,14 +221,7 @@ def run(preset: str, src: Path, out: Path, export: Path | None = None, workers: 
     engines = available_engines()
     baselines_stage(out / "baseline", {}, test, engines, p.baseline_budget, p.baseline_tosses,
                     Costs(out / "costs" / "published.json"))
-    if workers > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-        with ProcessPoolExecutor(min(workers, len(units)), mp_context=multiprocessing.get_context("spawn")) as pool:
-            jobs = {u: pool.submit(unit_stage, preset, src, out, *u, engines) for u in units}
-            done_rows = {u: j.result() for u, j in jobs.items()}
-    else:
-        done_rows = {u: unit_stage(preset, src, out, *u, engines) for u in units}
+    done_rows = in_processes(unit_stage, {u: (preset, src, out, *u, engines) for u in units}, workers)
     rows = {n: over_seeds([done_rows[(n, s)] for s in p.seeds]) for n in p.steps}
     if export is not None:
         for n in p.steps:
