@@ -1,6 +1,6 @@
 """The paper's Fig. 6: the GNS and a GRU on MuJoCo cube tosses with hard, medium and soft contact.
 
-    python -m pipelines.stiffness --preset quick|full [--out runs/stiffness_<preset>] [--starts-from DATA]
+    python -m pipelines.stiffness --preset quick|full [--out runs/stiffness_<preset>] [--starts-from DATA] [--workers N]
 
 Data: `datagen toss --engine mujoco --stiffness LEVEL` (configs/mujoco_cubes.toml): one cube of the
 real ContactNets set-up tossed onto a table from starts drawn from a distribution fitted to the
@@ -21,8 +21,10 @@ by baselines.gru (the same formulas). The penetration each level's own data show
 its test tosses.
 
 The command lines run in-process (datagen.cli.main, gns.cli.main). Output in --out: report.md,
-results.json, plots/error_vs_size.png, costs.json, and the data/, runs/, eval/ folders of the
-stages. Rerunning skips finished stages and resumes an interrupted training. Presets:
+results.json, plots/error_vs_size.png, costs.json and costs/ (one file per level and size), and
+the data/, runs/, eval/ folders of the stages. Rerunning skips finished stages and resumes an
+interrupted training. --workers N trains N levels and sizes at a time (each its GNS, then its
+GRU), one process and core each. Presets:
   tiny   the test suite's smoke run: 2 levels, sizes 2 and 4, a tiny GNS and GRU, 4 steps
   quick  sizes 30, 100, 300; 3000 steps each; 100 test tosses a level (~1 h on one core)
   full   sizes 100, 1000, 10000 (Allen et al.'s); the recipe's 40,000 steps; 200 test tosses (~10 h)
@@ -39,11 +41,11 @@ from pathlib import Path
 from baselines import gru
 from datagen.shards import Dataset
 from plumbing import DataError, check_writable
-from pipelines.common import Costs, guarded, remove_output, say, trained_step
+from pipelines.common import Costs, guarded, in_processes, remove_output, say, trained_step
 from pipelines.stiffness_report import finding, plot, report
 
 LEVELS = ("soft", "medium", "hard")     # soft to hard: the order of every table and plot
-OUTPUTS = {"costs.json", "data", "runs", "eval", "plots", "results.json", "report.md", "starts.toml"}
+OUTPUTS = {"costs.json", "costs", "data", "runs", "eval", "plots", "results.json", "report.md", "starts.toml"}
 EVAL_FLAGS = ("--at-data-rate", "--symmetrize", "d2")
 
 
@@ -245,7 +247,23 @@ def _summary(r: dict) -> dict:
     return {k: r.get(k) for k in SUMMARY}
 
 
-def run(preset: str, out: Path, starts_from: Path | None = None) -> dict:
+def size_stage(preset: str, out: Path, level: str, n: int) -> tuple[dict, dict]:
+    """The GNS and the GRU of one level and training size, trained and scored on the level's test
+    tosses; returns their row and the stage costs. Top-level, so that --workers can run it in a
+    process of its own: its costs go to a file of its own (costs/LEVEL_nN.json)."""
+    p = PRESETS[preset]
+    name, data, test = f"{level}_n{n}", out / "data" / level / f"train_n{n}", out / "data" / level / "test"
+    costs = Costs(out / "costs" / f"{name}.json")
+    gns_train_stage(out / "runs" / f"gns_{name}", data, p, costs)
+    g = gns_eval_stage(out / "eval" / f"gns_{name}.json", out / "runs" / f"gns_{name}", test, costs)
+    r = gru_stage(out / "runs" / f"gru_{name}", data, test, out / "eval" / f"gru_{name}.json", p, costs)
+    say(f"{name}: GNS {g['position_error_pct']:.1f}% / {g['rotation_error_deg']:.1f} deg, "
+        f"GRU {r['position_error_pct']:.1f}% / {r['rotation_error_deg']:.1f} deg")
+    return ({"gns": _summary(g), "gru": _summary(r), "gns_train_seconds": costs.data.get(f"train gns gns_{name}"),
+             "gru_train_seconds": r.get("train_seconds")}, costs.data)
+
+
+def run(preset: str, out: Path, starts_from: Path | None = None, workers: int = 1) -> dict:
     p = PRESETS[preset]
     check_writable(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -259,27 +277,22 @@ def run(preset: str, out: Path, starts_from: Path | None = None) -> dict:
                "levels": {}}
     for level in p.levels:
         t0 = time.perf_counter()
-        test = out / "data" / level / "test"
-        sets = {n: out / "data" / level / f"train_n{n}" for n in p.sizes}
-        made = data_stage(test, level, {"test": p.test}, p.seed, config)
-        for n, data in sets.items():
-            made |= data_stage(data, level, {"train": n, "valid": p.valid}, p.seed, config)
+        made = data_stage(out / "data" / level / "test", level, {"test": p.test}, p.seed, config)
+        for n in p.sizes:
+            made |= data_stage(out / "data" / level / f"train_n{n}", level, {"train": n, "valid": p.valid}, p.seed,
+                               config)
         if made:
             costs.add(f"data {level}", time.perf_counter() - t0)
-        lv = {"penetration": penetration_stage(test), "sizes": {}}
-        for n, data in sets.items():
-            name = f"{level}_n{n}"
-            gns_train_stage(out / "runs" / f"gns_{name}", data, p, costs)
-            g = gns_eval_stage(out / "eval" / f"gns_{name}.json", out / "runs" / f"gns_{name}", test, costs)
-            r = gru_stage(out / "runs" / f"gru_{name}", data, test, out / "eval" / f"gru_{name}.json", p, costs)
-            lv["sizes"][str(n)] = {"gns": _summary(g), "gru": _summary(r),
-                                   "gns_train_seconds": costs.data.get(f"train gns gns_{name}"),
-                                   "gru_train_seconds": r.get("train_seconds")}
-            say(f"{name}: GNS {g['position_error_pct']:.1f}% / {g['rotation_error_deg']:.1f} deg, "
-                f"GRU {r['position_error_pct']:.1f}% / {r['rotation_error_deg']:.1f} deg")
-        results["levels"][level] = lv
+    rows = in_processes(size_stage, {(level, n): (preset, out, level, n) for level in p.levels for n in p.sizes},
+                        workers)
+    unit_costs = {}
+    for level in p.levels:
+        results["levels"][level] = {"penetration": penetration_stage(out / "data" / level / "test"),
+                                    "sizes": {str(n): rows[(level, n)][0] for n in p.sizes}}
+        for n in p.sizes:
+            unit_costs.update(rows[(level, n)][1])
     results["finding"] = finding(results)
-    results["costs_seconds"] = costs.data
+    results["costs_seconds"] = {**costs.data, **unit_costs}
     results["pipeline_seconds_this_call"] = round(time.perf_counter() - t_start, 1)
     _write_json(out / "results.json", results)
     plot(out / "plots" / "error_vs_size.png", results)
@@ -296,7 +309,11 @@ def main(argv=None) -> int:
     ap.add_argument("--starts-from", type=Path, metavar="DATA",
                     help="refit the start distribution to the ContactNets tosses in DATA (tosses_processed/N.pt)")
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
+    ap.add_argument("--workers", type=int, default=1,
+                    help="train this many levels and sizes at once, each in its own process (one core each)")
     a = ap.parse_args(argv)
+    if a.workers < 1:
+        ap.error(f"--workers must be at least 1, not {a.workers}")
     out = a.out or Path("runs") / f"stiffness_{a.preset}"
     import torch
     torch.set_num_threads(1)
@@ -304,7 +321,7 @@ def main(argv=None) -> int:
     def stages():
         if a.fresh:
             remove_output(out, OUTPUTS)
-        run(a.preset, out, a.starts_from)
+        run(a.preset, out, a.starts_from, a.workers)
     return guarded(stages)
 
 

@@ -11,7 +11,7 @@ from pipelines import stiffness  # noqa: E402
 
 def test_tiny_preset_end_to_end_then_a_rerun_skips_every_stage(tmp_path, capsys):
     out = tmp_path / "st"
-    assert stiffness.main(["--preset", "tiny", "--out", str(out)]) == 0
+    assert stiffness.main(["--preset", "tiny", "--out", str(out), "--workers", "2"]) == 0   # two sizes at a time
     results = json.loads((out / "results.json").read_text())
     assert set(results["levels"]) == {"soft", "hard"}
     for lv in results["levels"].values():
@@ -25,11 +25,13 @@ def test_tiny_preset_end_to_end_then_a_rerun_skips_every_stage(tmp_path, capsys)
     assert {r["size"] for r in results["finding"]["soft_to_hard"]["gns position_error_pct"]} == {2, 4}
     report = (out / "report.md").read_text()
     assert "Soft to hard" in report and (out / "plots" / "error_vs_size.png").stat().st_size > 1000
-    costs = (out / "costs.json").read_text()
+    assert {f"train gns gns_{lv}_n{n}" for lv in ("soft", "hard") for n in (2, 4)} <= set(results["costs_seconds"])
+    costs = [f.read_text() for f in sorted((out / "costs").iterdir())] + [(out / "costs.json").read_text()]
     capsys.readouterr()
     assert stiffness.main(["--preset", "tiny", "--out", str(out)]) == 0
     err = capsys.readouterr().err
-    assert "train:" not in err and "data:" not in err and (out / "costs.json").read_text() == costs
+    assert "train:" not in err and "data:" not in err
+    assert [f.read_text() for f in sorted((out / "costs").iterdir())] + [(out / "costs.json").read_text()] == costs
 
 
 def test_bad_input_is_one_error_line(tmp_path, capsys):
