@@ -18,7 +18,8 @@ A GNS with a time step of k frames starts from frames 0, k and 2k: it sees the t
 
 Presets: `accuracy` trains at 16, 64 and 256 tosses with seed 0 (~1 h of one core); `few` at 8 and 16
 tosses with three seeds, only the GNS that also trains on the tuned MuJoCo's tosses, the engines'
-search at 200 evaluations (~2.5 h of one core, ~1.3 h with --workers 2); `tiny` is the test suite's.
+search at 200 evaluations (79 min on 2 cores with --workers 2, another training beside it); `tiny`
+is the test suite's.
 
 Stages are skipped on a rerun when done (datasets, trainings by step, fits and evaluations by
 what they were made from). Writes report.md, results.json, plots/accuracy.png; with --export,
