@@ -81,7 +81,11 @@ def in_processes(fn, jobs: dict, workers: int) -> dict:
     from concurrent.futures import ProcessPoolExecutor
     with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = {key: pool.submit(fn, *args) for key, args in jobs.items()}
-        return {key: f.result() for key, f in futures.items()}
+        try:
+            return {key: f.result() for key, f in futures.items()}
+        except BaseException:
+            pool.shutdown(cancel_futures=True)   # the jobs not started yet are dropped, not run first
+            raise
 
 
 def guarded(stages) -> int:
