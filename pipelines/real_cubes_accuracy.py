@@ -140,7 +140,6 @@ def gns_stage(path: Path, run: Path, data: Path) -> dict:
 def fair_start_stage(path: Path, data: Path, engine: str, params: dict, given: int) -> dict:
     """An engine scored from the frames a strided GNS is given (0 .. given-1)."""
     if path.exists():
-        import json
         saved = json.loads(path.read_text())
         if saved.get("params") == params and saved.get("given_frames") == given:
             return saved
@@ -151,13 +150,12 @@ def fair_start_stage(path: Path, data: Path, engine: str, params: dict, given: i
     return results
 
 
-def unit_stage(preset: str, src: Path, out: Path, n: int, s: int, engines: list[str]) -> dict:
+def unit_stage(preset: str, src: Path, out: Path, split: dict, n: int, s: int, engines: list[str]) -> dict:
     """One training size and seed: its engines identified on its tosses, its GNS trained and
     everything scored on the test tosses. A top-level function so that --workers can run it in
     another process; every file it writes is its own (the published-constants score and the test
     tosses are made by run() first)."""
     p = PRESETS[preset]
-    split = make_split(duplicate_groups(read_tosses(Path(src))), p.test, p.valid)
     ids = training_ids(split, n, s)
     tag = f"n{n}" + (f"_s{s}" if s else "")       # seed 0 keeps the names of the one-seed runs
     test = out / "data" / "test"
@@ -220,9 +218,9 @@ def run(preset: str, src: Path, out: Path, export: Path | None = None, workers: 
     out.mkdir(parents=True, exist_ok=True)
     test = import_stage(Path(src), out / "data" / "test", {"test": split["test"]})
     engines = available_engines()
-    baselines_stage(out / "baseline", {}, test, engines, p.baseline_budget, p.baseline_tosses,
-                    Costs(out / "costs" / "published.json"))
-    done_rows = in_processes(unit_stage, {u: (preset, src, out, *u, engines) for u in units}, workers)
+    published = baselines_stage(out / "baseline", {}, test, engines, p.baseline_budget, p.baseline_tosses,
+                                Costs(out / "costs" / "published.json"))["evals"]["published"][""]
+    done_rows = in_processes(unit_stage, {u: (preset, src, out, split, *u, engines) for u in units}, workers)
     rows = {n: over_seeds([done_rows[(n, s)] for s in p.seeds]) for n in p.steps}
     if export is not None:
         for n in p.steps:
@@ -232,7 +230,7 @@ def run(preset: str, src: Path, out: Path, export: Path | None = None, workers: 
                 export_model(out / "runs" / f"gns_mujoco_n{n}" / "latest.pt",
                              export / f"real_cubes_mujoco_n{n}.pt", overwrite=True)
     results = {"preset": preset, "src": str(src), "stride": STRIDE, "engines": engines, "seeds": list(p.seeds),
-               "published": summary(json.loads((out / "baseline" / "eval_published.json").read_text())),
+               "published": summary(published),
                "sizes": {str(n): r for n, r in rows.items()}}
     write_json(out / "results.json", results)
     plot(out / "plots" / "accuracy.png", results)
