@@ -3,8 +3,11 @@ so rerunning a pipeline after an interruption continues where it stopped."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -71,21 +74,54 @@ def finished_dataset(out: Path, key: str, value, what: str) -> Dataset | None:
     return ds
 
 
+_STOPPED = []   # in a worker: set once a job of it was interrupted
+
+
+def _job_of(parent: int, fn, *args):
+    """fn(*args) in a worker, unless the pipeline stopped it or has gone. A pool hands a worker
+    one job ahead, which cancelling cannot take back: a worker whose training SIGTERM stopped
+    would start it, and one orphaned by a killed pipeline would train beside a rerun."""
+    if _STOPPED or os.getppid() != parent:
+        raise RuntimeError(f"job not started: the pipeline (process {parent}) stopped")
+    try:
+        return fn(*args)
+    except KeyboardInterrupt:
+        _STOPPED.append(True)
+        raise
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
 def in_processes(fn, jobs: dict, workers: int) -> dict:
     """{key: fn(*args)} for jobs {key: args}, `workers` at a time in processes of their own
     (spawned: no state is inherited, so fn must be a module's top-level function), or in this
-    process with one worker. The first failure is raised once the running jobs end."""
-    if workers <= 1:
+    process with one worker. The first failure is raised once the running jobs end. Ctrl-C or
+    SIGTERM to this process drops the jobs not started and passes SIGTERM on to the running
+    ones (a training stops after its step with a checkpoint), as a training in one process does."""
+    if workers <= 1 or len(jobs) <= 1:
         return {key: fn(*args) for key, args in jobs.items()}
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
-    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = {key: pool.submit(fn, *args) for key, args in jobs.items()}
-        try:
-            return {key: f.result() for key, f in futures.items()}
-        except BaseException:
-            pool.shutdown(cancel_futures=True)   # the jobs not started yet are dropped, not run first
-            raise
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _interrupt) if main else None
+    try:
+        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {key: pool.submit(_job_of, os.getpid(), fn, *args) for key, args in jobs.items()}
+            try:
+                return {key: f.result() for key, f in futures.items()}
+            except BaseException:
+                for f in futures.values():
+                    f.cancel()               # the jobs not started yet are dropped, not run first
+                for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                    if proc.is_alive():
+                        proc.terminate()     # SIGTERM: a training checkpoints and stops
+                pool.shutdown(cancel_futures=True)
+                raise
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def guarded(stages) -> int:
@@ -175,12 +211,31 @@ def train_stage(data: Path, run: Path, preset: str, overrides: list[str]) -> Pat
     return run / LATEST
 
 
+def zoo_model_as_run(name: str, data: Path, preset: str, overrides: list[str]) -> Path | None:
+    """The file of zoo model `name` if it is what train_stage would make of `data` with these
+    settings (the same training data, by fingerprint, and the same config but for SETTINGS_FREE),
+    else None: a pipeline scores the model the zoo ships instead of training its twin."""
+    from gns.checkpoint import checkpoint_of, read_checkpoint
+    shipped = read_checkpoint(checkpoint_of(name))
+    if shipped.get("provenance", {}).get("data", {}).get("fingerprint") != Dataset(data).fingerprint:
+        return None
+    cfg = build_config(path=CONFIGS / f"gns_{preset}.toml", overrides=overrides)
+    if config_differences(shipped["config"], cfg, ignore=SETTINGS_FREE) or shipped["step"] != cfg.train.steps:
+        return None
+    return checkpoint_of(name)
+
+
 def done(path: Path, checkpoint: Path) -> dict | None:
-    """A stage's JSON output if it was made from this very checkpoint step."""
+    """A stage's JSON output if it was made from this very checkpoint step (of its run folder,
+    or of the file itself when it is not in one: a zoo model)."""
     if not path.exists():
         return None
     try:
         out = json.loads(path.read_text())
     except ValueError:  # torn by a crash mid-write: the stage runs again
         return None
-    return out if out.get("checkpoint_step") == trained_step(checkpoint.parent) else None
+    step = trained_step(checkpoint.parent)
+    if step < 0 and checkpoint.is_file():
+        from gns.checkpoint import read_checkpoint
+        step = int(read_checkpoint(checkpoint)["step"])
+    return out if out.get("checkpoint_step") == step else None

@@ -76,6 +76,29 @@ def test_the_real_cube_sweep_ablates_the_zoo_model_by_its_recipe():
     assert config_differences(config_to_dict(theirs), ours, ignore=SETTINGS_FREE) == []
 
 
+def test_a_zoo_model_stands_for_the_run_it_is_and_for_no_other(tmp_path):
+    """pipelines.common.zoo_model_as_run: the zoo preset scores the shipped real_cubes instead of
+    training its twin, only when the tosses (fingerprint) and the settings are the run's."""
+    from gns_fixtures import write_toss_dataset
+    from gns.cli import main as gns_main
+    from pipelines.common import done, train_stage, zoo_model_as_run
+    data = write_toss_dataset(tmp_path / "data", train=3, valid=0, frames=8)
+    other = write_toss_dataset(tmp_path / "other", train=3, valid=0, frames=8, seed=1)
+    over = ["train.steps=3", "train.checkpoint_every=3", "valid.every=0"]
+    train_stage(data, tmp_path / "run", "tiny", over)
+    shipped = tmp_path / "shipped.pt"   # exported, as the zoo holds its models
+    gns_main(["export", "--run", str(tmp_path / "run"), "--out", str(shipped)])
+    assert zoo_model_as_run(str(shipped), data, "tiny", over) == shipped
+    assert zoo_model_as_run(str(shipped), other, "tiny", over) is None                       # other tosses
+    assert zoo_model_as_run(str(shipped), data, "tiny", [*over, "train.lr_init=0.01"]) is None  # other settings
+    assert zoo_model_as_run(str(shipped), data, "tiny", ["train.steps=6", *over[1:]]) is None    # further trained
+    # its scores are kept across reruns: a file outside a run folder counts by its own step
+    (tmp_path / "eval.json").write_text(json.dumps({"checkpoint_step": 3}))
+    assert done(tmp_path / "eval.json", shipped) == {"checkpoint_step": 3}
+    (tmp_path / "eval.json").write_text(json.dumps({"checkpoint_step": 2}))
+    assert done(tmp_path / "eval.json", shipped) is None
+
+
 def test_the_real_cube_pipeline_trains_the_zoo_models_by_their_recipes():
     """pipelines.real_cubes_accuracy trains the same 256-toss and 16 + MuJoCo models as the recipes."""
     from pipelines.real_cubes_accuracy import PRESETS, gns_settings
