@@ -179,11 +179,12 @@ def gns_stage(out: Path, p: Preset, runs: dict, test_data: Path, external: dict 
     evals, ext_evals = {}, {}
     shipped = {}
     if p.zoo is not None:
-        data, over = runs[largest]
-        shipped = {largest: zoo_model_as_run(p.zoo, data, p.model, over)}
-        if shipped[largest] is None:
+        ckpt = zoo_model_as_run(p.zoo, runs[largest][0], p.model, runs[largest][1])
+        if ckpt is None:
             say(f"zoo: {p.zoo} was not trained on these tosses with these settings: {largest} is trained")
-            shipped = {}
+        else:
+            say(f"zoo: {largest} is the shipped {p.zoo} ({ckpt}), scored as it is")
+            shipped[largest] = ckpt
     trained = in_processes(train_one, {name: (data, out / "runs" / name, p.model, over)
                                        for name, (data, over) in runs.items() if name not in shipped}, workers)
     trained.update({name: (ckpt, None, -1) for name, ckpt in shipped.items()})
@@ -285,7 +286,8 @@ def collect(preset, p, src, split, evals, base, external, ext_evals, costs) -> d
                                       for e in engines}})
         sizes[str(n)] = rows
     full_name = f"gns_n{p.ablation_size}_s{p.seeds[0]}"
-    ablations = {"full model": summary(evals[full_name]), "no shape matching": summary(evals["ablation_nosm"])}
+    full_label = f"full model (the zoo's {p.zoo})" if evals[full_name].get("run", "").endswith(f"{p.zoo}.pt") else "full model"
+    ablations = {full_label: summary(evals[full_name]), "no shape matching": summary(evals["ablation_nosm"])}
     ablations.update({label: summary(evals[f"ablation_{k}"]) for k, (label, _) in ABLATIONS.items()})
     noise_ref = summary(evals[f"gns_n{p.noise_size}_s{p.seeds[0]}"])
     noise = {"vertex": {"0": noise_ref, **{f"{v:g}": summary(evals[f"vertex_noise_{v:g}"]) for v in p.vertex_noise}},
