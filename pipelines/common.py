@@ -75,13 +75,30 @@ def finished_dataset(out: Path, key: str, value, what: str) -> Dataset | None:
 
 
 _STOPPED = []   # in a worker: set once a job of it was interrupted
+ORPHAN_GRACE = 10.0   # seconds a worker of a vanished pipeline has to stop its job before it ends
+
+
+def _watch_parent(parent: int) -> None:
+    """In a worker, from its start: once the pipeline that made it is gone (killed outright,
+    with no chance to stop its workers), stop as the pipeline would have asked (SIGTERM: a
+    training checkpoints after its step) and end the process soon after. With no one to report
+    to, a worker would otherwise finish its job, or wait for work, forever."""
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(ORPHAN_GRACE)
+        os._exit(1)
+    threading.Thread(target=watch, daemon=True).start()
 
 
 def _job_of(parent: int, fn, *args):
     """fn(*args) in a worker, unless the pipeline stopped it or has gone. A pool hands a worker
     one job ahead, which cancelling cannot take back: a worker whose training SIGTERM stopped
     would start it, and one orphaned by a killed pipeline would train beside a rerun."""
-    if _STOPPED or os.getppid() != parent:
+    if os.getppid() != parent:
+        os._exit(1)   # no one to report to
+    if _STOPPED:
         raise RuntimeError(f"job not started: the pipeline (process {parent}) stopped")
     try:
         return fn(*args)
@@ -99,7 +116,8 @@ def in_processes(fn, jobs: dict, workers: int) -> dict:
     (spawned: no state is inherited, so fn must be a module's top-level function), or in this
     process with one worker. The first failure is raised once the running jobs end. Ctrl-C or
     SIGTERM to this process drops the jobs not started and passes SIGTERM on to the running
-    ones (a training stops after its step with a checkpoint), as a training in one process does."""
+    ones (a training stops after its step with a checkpoint), as a training in one process does;
+    workers whose pipeline was killed outright do the same by themselves (_watch_parent)."""
     if workers <= 1 or len(jobs) <= 1:
         return {key: fn(*args) for key, args in jobs.items()}
     import multiprocessing
@@ -107,7 +125,8 @@ def in_processes(fn, jobs: dict, workers: int) -> dict:
     main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _interrupt) if main else None
     try:
-        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn")) as pool:
+        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_watch_parent, initargs=(os.getpid(),)) as pool:
             futures = {key: pool.submit(_job_of, os.getpid(), fn, *args) for key, args in jobs.items()}
             try:
                 return {key: f.result() for key, f in futures.items()}
