@@ -114,9 +114,9 @@ def _interrupt(signum, frame):
 def in_processes(fn, jobs: dict, workers: int) -> dict:
     """{key: fn(*args)} for jobs {key: args}, `workers` at a time in processes of their own
     (spawned: no state is inherited, so fn must be a module's top-level function), or in this
-    process with one worker. The first failure is raised once the running jobs end. Ctrl-C or
-    SIGTERM to this process drops the jobs not started and passes SIGTERM on to the running
-    ones (a training stops after its step with a checkpoint), as a training in one process does;
+    process with one worker. A failing job, Ctrl-C or SIGTERM to this process drops the jobs not
+    started and passes SIGTERM on to the running ones (a training stops after its step with a
+    checkpoint, as a training in one process does), then the failure is raised;
     workers whose pipeline was killed outright do the same by themselves (_watch_parent)."""
     if workers <= 1 or len(jobs) <= 1:
         return {key: fn(*args) for key, args in jobs.items()}

@@ -58,7 +58,7 @@ def _pipeline(folder, jobs: int, seconds: float):
     proc = subprocess.Popen([sys.executable, "-c", code], env=env, stderr=subprocess.DEVNULL)
     t0 = time.monotonic()
     while len(list(Path(folder).glob("started-*"))) < 2:
-        assert time.monotonic() - t0 < 60 and proc.poll() is None
+        assert time.monotonic() - t0 < 300 and proc.poll() is None   # spawned workers import torch: slow on a busy machine
         time.sleep(0.05)
     return proc
 
