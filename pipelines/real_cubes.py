@@ -99,7 +99,7 @@ PRESETS = {
                    track_noise=(0.01, 0.03, 0.1)),
     # the ablations (Fig. 5) and the noise study (Fig. 7) on the zoo's real_cubes: its recipe's
     # settings and 256 tosses; the full model is the shipped file itself (its tosses and settings
-    # checked), the other six trained: ~3 h 30 min of one core, under 2 h with --workers 2
+    # checked), the other six trained: ~2 h with --workers 2 on 2 cores
     "zoo": Preset(test=96, valid=32, sizes=(256,), seeds=(0,), model="cpu", steps=RECIPE_STEPS, train=RECIPE,
                   baseline_budget=200, ablation_size=256, noise_size=256, vertex_noise=(0.01, 0.1),
                   track_noise=(0.1,), zoo="real_cubes"),
