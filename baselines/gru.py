@@ -145,7 +145,8 @@ def train(data: str | Path, out: str | Path, cfg: GRUConfig = GRUConfig(), log=N
     rng = np.random.default_rng(cfg.seed)
     norm = normalisation(seqs)
     model = GRUSimulator(cfg.hidden, cfg.layers, norm)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr_init)
+    from gns.train import adam
+    opt = adam(model.parameters(), cfg.lr_init)
     out.mkdir(parents=True, exist_ok=True)
     lines, t0, running = [], time.perf_counter(), []
     for step in range(cfg.steps):

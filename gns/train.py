@@ -98,6 +98,17 @@ def _seed(cfg: Config, log: Callable[[str], None]) -> np.random.Generator:
     return np.random.default_rng(cfg.train.seed)
 
 
+def adam(params, lr: float) -> torch.optim.Optimizer:
+    """Adam with its fused kernel where this torch has one for the parameters' device (CPU from
+    torch 2.4): 1.04-1.11x steps/s on the shipped recipes, whose many small tensors make the
+    per-parameter loop a tenth of a step (experiments/log.md); the plain loop elsewhere."""
+    params = list(params)
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True)
+    except (RuntimeError, TypeError, ValueError):
+        return torch.optim.Adam(params, lr=lr)
+
+
 def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] | None, rng: np.random.Generator
                  ) -> tuple[LearnedSimulator, torch.optim.Optimizer, ModelSpec, int, WeightAverage | None]:
     """The simulator and its optimiser: new, started from train.init_from's weights, or where
@@ -107,7 +118,7 @@ def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] |
     spec = replace(data_spec, node_features=tuple(n for n, _ in sim.layout.node_groups),
                    edge_features=tuple(n for n, _ in sim.layout.edge_groups),
                    collision_features=tuple(n for n, _ in sim.layout.collision_groups))
-    optimizer = torch.optim.Adam(sim.parameters(), lr=cfg.train.lr_init)
+    optimizer = adam(sim.parameters(), cfg.train.lr_init)
     decay = cfg.train.ema_decay
     # imported only where used: a plain training from scratch loads neither module
     if decay:

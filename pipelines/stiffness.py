@@ -70,8 +70,10 @@ PRESETS = {
                    gru={"hidden": 8, "layers": 1, "log_every": 2}),
     "quick": Preset(levels=LEVELS, sizes=(30, 100, 300), test=100, valid=16, model="gns_cpu", steps=3000,
                     lr_decay_steps=3000, train=("valid.every=1000", "train.checkpoint_every=1000")),
+    # compiled (1.29x steps/s on this recipe, experiments/log.md; it changes no setting that is
+    # learned) and checkpointed often: the preset outlasts a working day and resumes
     "full": Preset(levels=LEVELS, sizes=(100, 1000, 10000), test=200, valid=32, model="gns_cpu", steps=40000,
-                   lr_decay_steps=13333),
+                   lr_decay_steps=13333, train=("train.compile=true", "train.checkpoint_every=1000")),
 }
 
 
@@ -116,9 +118,10 @@ def gns(argv: list[str]) -> None:
 
 # ---- stages ------------------------------------------------------------------------------------
 
-def data_stage(out: Path, level: str, counts: dict[str, int], seed: int, config: Path | None) -> bool:
-    """A level's tosses (counts per split) in `out`, made unless it already holds exactly them.
-    Returns whether it made them."""
+def data_stage(out: Path, level: str, counts: dict[str, int], seed: int, config: Path | None, workers: int = 1
+               ) -> bool:
+    """A level's tosses (counts per split) in `out`, made (on `workers` processes) unless it
+    already holds exactly them. Returns whether it made them."""
     from datagen.mujoco_tosses import load_config
     want = load_config(config, stiffness=level)
     try:
@@ -131,7 +134,7 @@ def data_stage(out: Path, level: str, counts: dict[str, int], seed: int, config:
     say(f"data: {sum(counts.values())} {level} tosses into {out}")
     datagen(["toss", "--engine", "mujoco", "--stiffness", level, "--scenes", counts.get("train", 0),
              "--valid", counts.get("valid", 0), "--test", counts.get("test", 0), "--seed", seed, "--out", out,
-             "--quiet", "--overwrite", *(["--config", config] if config else [])])
+             "--workers", workers, "--quiet", "--overwrite", *(["--config", config] if config else [])])
     return True
 
 
@@ -277,10 +280,10 @@ def run(preset: str, out: Path, starts_from: Path | None = None, workers: int = 
                "levels": {}}
     for level in p.levels:
         t0 = time.perf_counter()
-        made = data_stage(out / "data" / level / "test", level, {"test": p.test}, p.seed, config)
+        made = data_stage(out / "data" / level / "test", level, {"test": p.test}, p.seed, config, workers)
         for n in p.sizes:
             made |= data_stage(out / "data" / level / f"train_n{n}", level, {"train": n, "valid": p.valid}, p.seed,
-                               config)
+                               config, workers)
         if made:
             costs.add(f"data {level}", time.perf_counter() - t0)
     rows = in_processes(size_stage, {(level, n): (preset, out, level, n) for level in p.levels for n in p.sizes},
