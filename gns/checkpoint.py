@@ -5,7 +5,8 @@ exported files are gns.zoo's).
 A checkpoint is a `torch.save` dict of format CHECKPOINT_FORMAT: "format", "step", "seed",
 "config" (the full config as a dict), "spec" (the dataset feature spec, gns.spec.ModelSpec),
 "model" (weights and normalisers), "provenance", and in a training checkpoint also
-"optimizer" and "rng", and with `train.ema_decay` "trained" (the weights training goes on from;
+"optimizer", "rng" and "train_seconds" (the seconds of training that reached it, resumed segments
+summed), and with `train.ema_decay` "trained" (the weights training goes on from;
 "model" then holds their moving average, gns.weight_average). An exported model
 (gns.zoo.export_model) drops the last three. docs/model.md documents the keys.
 """
@@ -26,6 +27,7 @@ from gns.spec import ModelSpec, SpecError
 CHECKPOINT_FORMAT = 1
 LATEST = "latest.pt"
 TRAINED = "trained"
+TRAIN_SECONDS = "train_seconds"
 
 
 def checkpoint_of(run: str | Path) -> Path:

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from datagen.shards import Dataset
-from gns.checkpoint import CHECKPOINT_FORMAT, TRAINED, CheckpointError, build_simulator, save_checkpoint
+from gns.checkpoint import CHECKPOINT_FORMAT, TRAIN_SECONDS, TRAINED, CheckpointError, build_simulator, save_checkpoint
 from gns.config import Config, config_to_dict
 from gns.data import Batch, ObjectTracks, load_data
 from gns.network import HISTORY
@@ -73,7 +73,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     try:
         provenance = run_provenance(data_dir, fingerprint, step, ckpt.get("provenance"))
         step = _train_loop(run, cfg, sim, optimizer, tracks, valid, spec, step, rng, device, world,
-                           stale, resumed_from, provenance, log, average)
+                           stale, resumed_from, provenance, log, average, float(ckpt.get(TRAIN_SECONDS, 0.0)))
         finished = True
         return step
     finally:
@@ -167,11 +167,14 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
                 tracks: ObjectTracks, valid: ObjectTracks | None, spec: ModelSpec, step: int,
                 rng: np.random.Generator, device: torch.device, world: World, stale: list[Path],
                 resumed_from: Path | None, provenance: dict, log: Callable[[str], None],
-                average: WeightAverage | None = None) -> int:
+                average: WeightAverage | None = None, earlier_seconds: float = 0.0) -> int:
     """Steps from `step` to cfg.train.steps: a batch, an Adam step, a metrics line every
     train.log_every steps (with validation every valid.every), a checkpoint every
-    train.checkpoint_every. Returns the last step."""
+    train.checkpoint_every. Returns the last step. Every checkpoint records the seconds trained
+    to reach it, the earlier segments' (`earlier_seconds`) included: the cost of a run that was
+    stopped and resumed is in its checkpoint, not in whoever timed its last segment."""
     config_dict = config_to_dict(cfg)
+    t_segment = time.perf_counter()
     if world.main:
         start_run_folder(run, stale, resumed_from, step, config_dict, provenance, log)
 
@@ -180,7 +183,8 @@ def _train_loop(run: Path, cfg: Config, sim: LearnedSimulator, optimizer: torch.
             {"model": average.state_dict(sim), TRAINED: sim.state_dict()}
         return {"format": CHECKPOINT_FORMAT, "step": step, "seed": cfg.train.seed, "config": config_dict,
                 "spec": spec.to_dict(), **weights, "optimizer": optimizer.state_dict(),
-                "rng": rng_state(rng), "provenance": provenance}
+                "rng": rng_state(rng), "provenance": provenance,
+                TRAIN_SECONDS: round(earlier_seconds + time.perf_counter() - t_segment, 3)}
 
     log(_start_line(cfg, sim, tracks, spec, step, world, resumed_from))
     last_good = resumed_from

@@ -127,7 +127,7 @@ def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool =
             raise DataError(f"{out} exists and is not an exported gns model; refusing to replace it")
     check_writable(out.parent, "output folder")
     out.parent.mkdir(parents=True, exist_ok=True)
-    slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance") if k in ckpt}
+    slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance", "train_seconds") if k in ckpt}
     with atomic_file(out, mode=0o644) as tmp:  # an exported model is meant to be shared
         torch.save(slim, tmp)
     return out

@@ -187,6 +187,13 @@ def trained_step(run: Path) -> int:
     return resumable(run)[1]
 
 
+def training_seconds(run: Path) -> float | None:
+    """The seconds of training a run's newest checkpoint records (a stopped and resumed run's
+    segments summed), or None for a run without one (or from before checkpoints kept them)."""
+    _, ckpt, _ = _resume_point(run)
+    return None if ckpt is None or "train_seconds" not in ckpt else float(ckpt["train_seconds"])
+
+
 def resumable(run: Path) -> tuple[Path | None, int, str | None]:
     """(newest usable checkpoint, its step, a warning if it is not latest.pt), or (None, -1,
     None) for a run with no checkpoint file."""

@@ -38,7 +38,7 @@ from datagen.shards import Dataset
 from gns.evaluate import evaluate_run, write_json
 from gns.checkpoint import read_checkpoint
 from pipelines.common import (Costs, done, guarded, in_processes, remove_output, say, train_stage, trained_step,
-                              zoo_model_as_run)
+                              training_seconds, zoo_model_as_run)
 from pipelines.real_cubes_baselines import available_engines, baselines_stage
 from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_split, overlaps, read_tosses,
                                       real_cubes_parser, training_ids)
@@ -190,9 +190,10 @@ def gns_stage(out: Path, p: Preset, runs: dict, test_data: Path, external: dict 
     trained.update({name: (ckpt, None, -1) for name, ckpt in shipped.items()})
     for name in runs:
         ckpt, seconds, before = trained[name]
-        if seconds is not None:  # it trained: add this run's time to any earlier one's
+        if seconds is not None:  # it trained: the checkpoint's total, else this call's time added to any earlier
+            total = training_seconds(out / "runs" / name)
             earlier = costs.data.get(f"train {name}", 0.0) if before > 0 else 0.0
-            costs.add(f"train {name}", earlier + seconds)
+            costs.add(f"train {name}", total if total is not None else earlier + seconds)
         plots = out / "plots" / name if p.plots and name == largest else None
         evals[name] = gns_eval_stage(out / "eval" / f"{name}.json", ckpt, test_data, costs, plots_dir=plots)
         if name == f"gns_n{p.ablation_size}_s{p.seeds[0]}":

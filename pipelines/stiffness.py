@@ -41,7 +41,7 @@ from pathlib import Path
 from baselines import gru
 from datagen.shards import Dataset
 from plumbing import DataError, check_writable
-from pipelines.common import Costs, guarded, in_processes, remove_output, say, trained_step
+from pipelines.common import Costs, guarded, in_processes, remove_output, say, trained_step, training_seconds
 from pipelines.stiffness_report import finding, plot, report
 
 LEVELS = ("soft", "medium", "hard")     # soft to hard: the order of every table and plot
@@ -157,8 +157,8 @@ def gns_train_stage(run: Path, data: Path, p: Preset, costs: Costs) -> None:
     t0 = time.perf_counter()
     gns(["train", "--data", data, "--out", run, "--config", p.model,
          *(["--resume"] if step >= 0 else ["--overwrite"]), "--set", *overrides])
-    costs.add(f"train gns {run.name}", costs.data.get(f"train gns {run.name}", 0.0) * (step > 0)
-              + time.perf_counter() - t0)
+    seconds = training_seconds(run)
+    costs.add(f"train gns {run.name}", seconds if seconds is not None else time.perf_counter() - t0)
 
 
 def _current(path: Path, step: int, test: Path) -> dict | None:

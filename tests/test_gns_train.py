@@ -96,6 +96,17 @@ def test_resume_continues_exactly(data, tmp_path):
     assert losses_a[12] == losses_b[12] and losses_a[8] == losses_b[8]
 
 
+def test_a_resumed_run_records_the_seconds_of_all_its_segments(data, tmp_path):
+    common = ("train.checkpoint_every=4", "valid.every=0")
+    train(data, tmp_path, tiny("train.steps=4", *common), log=quiet)
+    first = read_checkpoint(tmp_path / "latest.pt")
+    assert 0 < first["train_seconds"] < 600
+    first["train_seconds"] = 1000.0      # as if the first segment had taken 1000 s
+    torch.save(first, tmp_path / "latest.pt")
+    train(data, tmp_path, tiny("train.steps=8", *common), resume=True, log=quiet)
+    assert 1000 < read_checkpoint(tmp_path / "latest.pt")["train_seconds"] < 1600
+
+
 def test_learning_rate_decays_from_init_to_final():
     cfg = build_config(overrides=["train.lr_init=1e-4", "train.lr_final=1e-6", "train.lr_decay_steps=100"])
     assert learning_rate(cfg, 0) == pytest.approx(1e-4)
