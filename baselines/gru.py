@@ -40,6 +40,8 @@ from plumbing import DataError, atomic_file
 STATE = 13
 GIVEN = 3
 CHECKPOINT = "gru.pt"
+PARTIAL = "gru_partial.pt"      # an unfinished run's state, deleted when gru.pt is written
+SAVE_EVERY_SECONDS = 120.0
 METRICS = "metrics.jsonl"
 
 
@@ -132,7 +134,11 @@ def trained(out: str | Path, cfg: GRUConfig) -> bool:
 def train(data: str | Path, out: str | Path, cfg: GRUConfig = GRUConfig(), log=None) -> Path:
     """Train on the train split of `data`; writes OUT/gru.pt (weights, normalisation, config,
     wall seconds) and OUT/metrics.jsonl (loss every log_every steps). A run whose checkpoint has
-    reached cfg.steps with the same config is kept (returned without training)."""
+    reached cfg.steps with the same config is kept (returned without training).
+
+    Resumable: every SAVE_EVERY_SECONDS, and on SIGINT or SIGTERM after the step under way (then
+    KeyboardInterrupt), OUT/gru_partial.pt keeps the weights, Adam's moments and both random
+    streams; a call with the same config and data goes on from it exactly, as if never stopped."""
     out = Path(out)
     path = out / CHECKPOINT
     if trained(out, cfg):
@@ -148,33 +154,75 @@ def train(data: str | Path, out: str | Path, cfg: GRUConfig = GRUConfig(), log=N
     from gns.train import adam
     opt = adam(model.parameters(), cfg.lr_init)
     out.mkdir(parents=True, exist_ok=True)
-    lines, t0, running = [], time.perf_counter(), []
-    for step in range(cfg.steps):
-        for g in opt.param_groups:
-            g["lr"] = learning_rate(cfg, step)
-        x, y, m = _batch(seqs, rng.integers(len(seqs), size=cfg.batch_size))
-        pred, _ = model(x, noise=cfg.noise_std)
-        err = ((pred - (y - model.dmean) / model.dstd) ** 2).mean(-1)
-        loss = (err * m).sum() / m.sum()
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-        opt.step()
-        running.append(loss.item())
-        if (step + 1) % cfg.log_every == 0 or step + 1 == cfg.steps:
-            lines.append({"step": step + 1, "loss": float(np.mean(running)), "lr": learning_rate(cfg, step),
-                          "seconds": round(time.perf_counter() - t0, 2)})
-            running = []
-            if log and ((step + 1) % (10 * cfg.log_every) == 0 or step + 1 == cfg.steps):
-                log(f"gru {out.name}: step {step + 1}/{cfg.steps} loss {lines[-1]['loss']:.4g}")
-    seconds = time.perf_counter() - t0
+    step, lines, running, earlier = _resume(out, cfg, ds.fingerprint, model, opt, rng)
+    if step and log:
+        log(f"gru {out.name}: resuming at step {step}/{cfg.steps}")
+    t0 = t_saved = time.perf_counter()
+
+    def save_partial():
+        with atomic_file(out / PARTIAL) as tmp:
+            torch.save({"config": asdict(cfg), "data_fingerprint": ds.fingerprint, "step": step,
+                        "state_dict": model.state_dict(), "optimizer": opt.state_dict(),
+                        "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "lines": lines,
+                        "running": running, "train_seconds": earlier + time.perf_counter() - t0}, tmp)
+
+    from gns.run_folder import StopRequest
+    with StopRequest() as stop:
+        while step < cfg.steps:
+            for g in opt.param_groups:
+                g["lr"] = learning_rate(cfg, step)
+            x, y, m = _batch(seqs, rng.integers(len(seqs), size=cfg.batch_size))
+            pred, _ = model(x, noise=cfg.noise_std)
+            err = ((pred - (y - model.dmean) / model.dstd) ** 2).mean(-1)
+            loss = (err * m).sum() / m.sum()
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            opt.step()
+            running.append(loss.item())
+            step += 1
+            if step % cfg.log_every == 0 or step == cfg.steps:
+                lines.append({"step": step, "loss": float(np.mean(running)), "lr": learning_rate(cfg, step - 1),
+                              "seconds": round(earlier + time.perf_counter() - t0, 2)})
+                running = []
+                if log and (step % (10 * cfg.log_every) == 0 or step == cfg.steps):
+                    log(f"gru {out.name}: step {step}/{cfg.steps} loss {lines[-1]['loss']:.4g}")
+            if stop.asked:
+                save_partial()
+                raise KeyboardInterrupt(f"{stop.asked}: GRU stopped at step {step} of {cfg.steps}, saved in "
+                                        f"{out / PARTIAL}; the same call goes on from there")
+            if time.perf_counter() - t_saved > SAVE_EVERY_SECONDS and step < cfg.steps:
+                save_partial()
+                t_saved = time.perf_counter()
+    seconds = earlier + time.perf_counter() - t0
     with atomic_file(out / METRICS) as tmp:
         tmp.write_text("".join(json.dumps(r) + "\n" for r in lines))
     with atomic_file(path) as tmp:
         torch.save({"config": asdict(cfg), "step": cfg.steps, "state_dict": model.state_dict(),
                     "norm": {k: v.tolist() for k, v in norm.items()}, "train_seconds": seconds,
                     "data": str(data), "data_fingerprint": ds.fingerprint, "num_train": ds.num_scenes("train")}, tmp)
+    (out / PARTIAL).unlink(missing_ok=True)
     return path
+
+
+def _resume(out: Path, cfg: GRUConfig, fingerprint: str, model: GRUSimulator, opt: torch.optim.Optimizer,
+            rng: np.random.Generator) -> tuple[int, list, list, float]:
+    """(step, metrics lines, losses since the last line, seconds trained) of OUT/gru_partial.pt
+    loaded into the model, optimiser and random streams; (0, [], [], 0.0) when there is none,
+    or it holds another config or data (it is then overwritten at the next save)."""
+    try:
+        saved = torch.load(out / PARTIAL, map_location="cpu", weights_only=False)
+    except FileNotFoundError:
+        return 0, [], [], 0.0
+    except Exception:           # torn or foreign: a fresh start, as with no file
+        return 0, [], [], 0.0
+    if saved.get("config") != asdict(cfg) or saved.get("data_fingerprint") != fingerprint:
+        return 0, [], [], 0.0
+    model.load_state_dict(saved["state_dict"])
+    opt.load_state_dict(saved["optimizer"])
+    rng.bit_generator.state = saved["rng"]
+    torch.set_rng_state(saved["torch_rng"])
+    return int(saved["step"]), saved["lines"], saved["running"], float(saved["train_seconds"])
 
 
 def load(run: str | Path) -> tuple[GRUSimulator, dict]:

@@ -199,9 +199,8 @@ def gru_stage(run: Path, data: Path, test: Path, path: Path, p: Preset, costs: C
     cfg = gru_config(p)
     if not gru.trained(run, cfg):
         say(f"gru train: {run} ({cfg.steps} steps)")
-        t0 = time.perf_counter()
         gru.train(data, run, cfg, log=say)
-        costs.add(f"train gru {run.name}", time.perf_counter() - t0)
+        costs.add(f"train gru {run.name}", gru.load(run)[1]["train_seconds"])   # resumed segments summed
     saved = _current(path, cfg.steps, test)
     if saved is not None and saved.get("train_seconds") == gru.load(run)[1]["train_seconds"]:
         return saved

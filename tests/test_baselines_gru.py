@@ -1,7 +1,11 @@
 """baselines.gru: a tiny GRU trains, rolls out with the right shapes, and learns free fall."""
 import json
+import os
+import signal
 
 import numpy as np
+import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
 from baselines import gru
@@ -51,6 +55,27 @@ def test_a_tiny_gru_trains_its_loss_falls_and_its_rollout_has_the_right_shapes(t
     assert pred.positions.shape == (37, 1, 3) and pred.quaternions.shape == (37, 1, 4)   # frames 0..36: 10 steps of 4
     assert truth.num_frames == 37 and np.allclose(np.linalg.norm(pred.quaternions, axis=-1), 1.0)
     np.testing.assert_allclose(pred.positions[[0, 4, 8], 0], sc.positions[[0, 4, 8], 0])     # the 3 given states
+
+
+def test_a_gru_stopped_by_sigterm_goes_on_exactly_where_it_stopped(tmp_path):
+    rng = np.random.default_rng(2)
+    data = dataset(tmp_path / "d", [free_fall(rng) for _ in range(8)])
+    cfg = gru.GRUConfig(hidden=8, layers=1, stride=4, steps=40, batch_size=4, log_every=2, lr_decay_steps=40)
+    gru.train(data, tmp_path / "straight", cfg)
+
+    def stop_at_step_20(line):          # called every 10 log lines: steps 20 and 40
+        if "step 20/" in line:
+            os.kill(os.getpid(), signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt, match="SIGTERM: GRU stopped at step 20 of 40"):
+        gru.train(data, tmp_path / "split", cfg, log=stop_at_step_20)
+    assert (tmp_path / "split" / gru.PARTIAL).exists() and not gru.trained(tmp_path / "split", cfg)
+    gru.train(data, tmp_path / "split", cfg)
+    a, b = gru.load(tmp_path / "straight")[1], gru.load(tmp_path / "split")[1]
+    assert all(torch.equal(a["state_dict"][k], b["state_dict"][k]) for k in a["state_dict"])
+    losses = [[json.loads(line)["loss"] for line in (tmp_path / run / gru.METRICS).read_text().splitlines()]
+              for run in ("straight", "split")]
+    assert losses[0] == losses[1] and len(losses[0]) == 20
+    assert not (tmp_path / "split" / gru.PARTIAL).exists()
 
 
 def test_free_fall_is_predicted_after_training_on_free_fall(tmp_path):
