@@ -23,8 +23,8 @@ its test tosses.
 The command lines run in-process (datagen.cli.main, gns.cli.main). Output in --out: report.md,
 results.json, plots/error_vs_size.png, costs.json and costs/ (one file per level and size), and
 the data/, runs/, eval/ folders of the stages. Rerunning skips finished stages and resumes an
-interrupted training. --workers N trains N levels and sizes at a time (each its GNS, then its
-GRU), one process and core each. Presets:
+interrupted training. --workers N trains N models at a time (every GNS, then every GRU: the
+longer first), one process and core each; GNS and GRU trainings resume where they were stopped. Presets:
   tiny   the test suite's smoke run: 2 levels, sizes 2 and 4, a tiny GNS and GRU, 4 steps
   quick  sizes 30, 100, 300; 3000 steps each; 100 test tosses a level (~1 h on one core)
   full   sizes 100, 1000, 10000 (Allen et al.'s); the recipe's 40,000 steps; 200 test tosses (~10 h)
@@ -249,20 +249,23 @@ def _summary(r: dict) -> dict:
     return {k: r.get(k) for k in SUMMARY}
 
 
-def size_stage(preset: str, out: Path, level: str, n: int) -> tuple[dict, dict]:
-    """The GNS and the GRU of one level and training size, trained and scored on the level's test
-    tosses; returns their row and the stage costs. Top-level, so that --workers can run it in a
-    process of its own: its costs go to a file of its own (costs/LEVEL_nN.json)."""
+def size_stage(preset: str, out: Path, level: str, n: int, model: str) -> tuple[dict, float | None, dict]:
+    """The GNS or the GRU (`model`) of one level and training size, trained and scored on the
+    level's test tosses; returns its scores, its training seconds and the stage costs. Top-level, so that --workers can
+    run it in a process of its own: its costs go to a file of its own (costs/MODEL_LEVEL_nN.json)."""
     p = PRESETS[preset]
     name, data, test = f"{level}_n{n}", out / "data" / level / f"train_n{n}", out / "data" / level / "test"
-    costs = Costs(out / "costs" / f"{name}.json")
-    gns_train_stage(out / "runs" / f"gns_{name}", data, p, costs)
-    g = gns_eval_stage(out / "eval" / f"gns_{name}.json", out / "runs" / f"gns_{name}", test, costs)
-    r = gru_stage(out / "runs" / f"gru_{name}", data, test, out / "eval" / f"gru_{name}.json", p, costs)
-    say(f"{name}: GNS {g['position_error_pct']:.1f}% / {g['rotation_error_deg']:.1f} deg, "
-        f"GRU {r['position_error_pct']:.1f}% / {r['rotation_error_deg']:.1f} deg")
-    return ({"gns": _summary(g), "gru": _summary(r), "gns_train_seconds": costs.data.get(f"train gns gns_{name}"),
-             "gru_train_seconds": r.get("train_seconds")}, costs.data)
+    costs = Costs(out / "costs" / f"{model}_{name}.json")
+    run, path = out / "runs" / f"{model}_{name}", out / "eval" / f"{model}_{name}.json"
+    if model == "gns":
+        gns_train_stage(run, data, p, costs)
+        r = gns_eval_stage(path, run, test, costs)
+        seconds = costs.data.get(f"train gns {run.name}")
+    else:
+        r = gru_stage(run, data, test, path, p, costs)
+        seconds = r.get("train_seconds")
+    say(f"{name}: {model.upper()} {r['position_error_pct']:.1f}% / {r['rotation_error_deg']:.1f} deg")
+    return _summary(r), seconds, costs.data
 
 
 def run(preset: str, out: Path, starts_from: Path | None = None, workers: int = 1) -> dict:
@@ -285,14 +288,18 @@ def run(preset: str, out: Path, starts_from: Path | None = None, workers: int = 
                                config, workers)
         if made:
             costs.add(f"data {level}", time.perf_counter() - t0)
-    rows = in_processes(size_stage, {(level, n): (preset, out, level, n) for level in p.levels for n in p.sizes},
-                        workers)
+    # every GNS before any GRU: the longer jobs first keep both workers busy to the end
+    units = in_processes(size_stage, {(model, level, n): (preset, out, level, n, model) for model in ("gns", "gru")
+                                      for level in p.levels for n in p.sizes}, workers)
     unit_costs = {}
     for level in p.levels:
-        results["levels"][level] = {"penetration": penetration_stage(out / "data" / level / "test"),
-                                    "sizes": {str(n): rows[(level, n)][0] for n in p.sizes}}
+        sizes = {}
         for n in p.sizes:
-            unit_costs.update(rows[(level, n)][1])
+            (g, g_seconds, g_costs), (r, r_seconds, r_costs) = units[("gns", level, n)], units[("gru", level, n)]
+            sizes[str(n)] = {"gns": g, "gru": r, "gns_train_seconds": g_seconds, "gru_train_seconds": r_seconds}
+            unit_costs.update(g_costs)
+            unit_costs.update(r_costs)
+        results["levels"][level] = {"penetration": penetration_stage(out / "data" / level / "test"), "sizes": sizes}
     results["finding"] = finding(results)
     results["costs_seconds"] = {**costs.data, **unit_costs}
     results["pipeline_seconds_this_call"] = round(time.perf_counter() - t_start, 1)
