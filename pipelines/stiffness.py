@@ -21,10 +21,10 @@ by baselines.gru (the same formulas). The penetration each level's own data show
 its test tosses.
 
 The command lines run in-process (datagen.cli.main, gns.cli.main). Output in --out: report.md,
-results.json, plots/error_vs_size.png, costs.json and costs/ (one file per level and size), and
-the data/, runs/, eval/ folders of the stages. Rerunning skips finished stages and resumes an
-interrupted training. --workers N trains N models at a time (every GNS, then every GRU: the
-longer first), one process and core each; GNS and GRU trainings resume where they were stopped. Presets:
+results.json, plots/error_vs_size.png, costs.json and costs/ (one file per model, level and
+size), and the data/, runs/, eval/ folders of the stages. Rerunning skips finished stages and
+resumes an interrupted GNS or GRU training where it stopped. --workers N trains N models at a
+time (every GNS, then every GRU: the longer first), one process and core each. Presets:
   tiny   the test suite's smoke run: 2 levels, sizes 2 and 4, a tiny GNS and GRU, 4 steps
   quick  sizes 30, 100, 300; 3000 steps each; 100 test tosses a level (~1 h on one core)
   full   sizes 100, 1000, 10000 (Allen et al.'s); the recipe's 40,000 steps; 200 test tosses (~10 h)
