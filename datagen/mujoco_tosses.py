@@ -162,7 +162,8 @@ def generate_tosses(cfg: dict, seed: int, counts: dict[str, int], out: str | Pat
                     per_shard: int = 250, progress: bool = False, workers: int = 1) -> dict:
     """Simulate counts[split] tosses per split into the dataset folder `out`; returns its metadata.
     Shards are simulated on `workers` processes (the output does not depend on it), written
-    atomically in order, metadata.json last (a dataset is complete or absent)."""
+    atomically in order, metadata.json last (a dataset is complete or absent: an interrupted run
+    removes its shards)."""
     if workers < 1:
         raise DataError(f"--workers must be >= 1, got {workers}")
     mujoco = _mujoco()
@@ -193,6 +194,15 @@ def generate_tosses(cfg: dict, seed: int, counts: dict[str, int], out: str | Pat
                                                            "first_scene": first, "source": "mujoco"})
             splits[split]["shards"].append(name)
             bar.update(len(scenes))
+    except BaseException:
+        # stopped (Ctrl-C, SIGTERM) or failed: shards without metadata.json are no dataset, and
+        # tosses are quick to make again, so nothing is kept
+        if pool:
+            pool.terminate()
+            pool = None
+        bar.close()
+        clear_dataset(out)
+        raise
     finally:
         if pool:
             pool.terminate()

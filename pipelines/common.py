@@ -148,6 +148,10 @@ def guarded(stages) -> int:
     from gns.config import ConfigError
     from gns.evaluate import DivergedError
     from gns.train import TrainingError
+    main = threading.current_thread() is threading.main_thread()
+    # SIGTERM as Ctrl-C in every stage, not only while in_processes runs: the message, and the
+    # stopping of whatever workers the stage started, are the same
+    previous = signal.signal(signal.SIGTERM, _interrupt) if main else None
     try:
         stages()
     except (DataError, ConfigError, CheckpointError, TrainingError, DivergedError) as e:
@@ -159,6 +163,9 @@ def guarded(stages) -> int:
     except KeyboardInterrupt as e:  # a training stopped by Ctrl-C or SIGTERM says where it stopped
         print(f"error: interrupted{': ' + str(e) if str(e) else ''}; rerun the same command to go on", file=sys.stderr)
         return 130
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, previous)
     return 0
 
 

@@ -1,4 +1,5 @@
 """datagen toss --engine mujoco: reproducible real-cube-like tosses at three contact stiffnesses."""
+import os
 from pathlib import Path
 
 import numpy as np
@@ -82,3 +83,25 @@ def test_bad_input_is_one_error_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and all(line.startswith("error: ") for line in err)
     assert "squishy" in err[0] and "--shapes" in err[1] and "--engine mujoco" in err[2]
+
+
+@pytest.mark.skipif(os.name != "posix", reason="signals between processes")
+def test_sigterm_stops_the_workers_and_leaves_no_shard(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+    out = tmp_path / "tosses"
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.Popen([sys.executable, "-m", "datagen.cli", "toss", "--engine", "mujoco", "--scenes", "20000",
+                             "--workers", "2", "--quiet", "--scenes-per-shard", "50", "--out", str(out)],
+                            cwd=root, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not list(out.glob("*.h5")):      # a shard written: the workers are running
+        assert time.monotonic() - t0 < 300 and proc.poll() is None
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert err.strip().splitlines() == ["error: interrupted; its shards were removed (rerun the same command)"]
+    assert not list(out.glob("*.h5")) and not (out / "metadata.json").exists()

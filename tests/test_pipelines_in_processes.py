@@ -110,3 +110,18 @@ def test_workers_of_a_killed_pipeline_stop_their_jobs_start_no_other_and_end(tmp
         for pid in pids:
             if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
+
+
+def test_sigterm_in_any_stage_ends_the_pipeline_with_its_message(capsys):
+    """Not only while in_processes runs: a data stage stopped by SIGTERM says so too."""
+    import signal
+    import time
+    from pipelines.common import guarded
+
+    def stage():
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(10)                      # the signal ends it long before
+    before = signal.getsignal(signal.SIGTERM)
+    assert guarded(stage) == 130
+    assert "error: interrupted: SIGTERM; rerun the same command to go on" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGTERM) == before
