@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import pickle
 import sys
 import time
 from dataclasses import asdict, dataclass, replace
@@ -212,9 +213,7 @@ def _resume(out: Path, cfg: GRUConfig, fingerprint: str, model: GRUSimulator, op
     or it holds another config or data (it is then overwritten at the next save)."""
     try:
         saved = torch.load(out / PARTIAL, map_location="cpu", weights_only=False)
-    except FileNotFoundError:
-        return 0, [], [], 0.0
-    except Exception:           # torn or foreign: a fresh start, as with no file
+    except (OSError, RuntimeError, EOFError, ValueError, pickle.UnpicklingError):   # absent or torn: from the start
         return 0, [], [], 0.0
     if saved.get("config") != asdict(cfg) or saved.get("data_fingerprint") != fingerprint:
         return 0, [], [], 0.0
