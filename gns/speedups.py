@@ -122,5 +122,19 @@ class _OwnCode(nn.Module):
 
 def compiled(network: nn.Module) -> nn.Module:
     """The network through torch.compile, with dynamic shapes (every batch has its own node and
-    edge counts) and a code object of its own (_OwnCode)."""
+    edge counts) and a code object of its own (_OwnCode). On a CPU without a C++ compiler, which
+    inductor needs, the network itself with a warning: the same results, only slower, where
+    torch.compile would fail at the first call."""
+    device = next(network.parameters()).device
+    if device.type == "cpu" and not cpp_compiler():
+        warnings.warn("compile asked for, but this machine has no C++ compiler (g++, c++, clang++, cl or $CXX), "
+                      "which torch.compile needs on a CPU: the network runs uncompiled", stacklevel=2)
+        return network
     return torch.compile(_OwnCode(network), dynamic=True)
+
+
+def cpp_compiler() -> str | None:
+    """The C++ compiler inductor would find, or None."""
+    import shutil
+    names = [os.environ["CXX"]] if os.environ.get("CXX") else []
+    return next((path for name in (*names, "g++", "c++", "clang++", "cl") if (path := shutil.which(name))), None)

@@ -68,3 +68,15 @@ def test_the_cli_shows_a_warning_as_one_line_and_leaves_the_format_as_it_found_i
     monkeypatch.setattr(parser, "parse_args", lambda argv: type("A", (), {"run": staticmethod(run)})())
     cli.main([])
     assert capsys.readouterr().out == "warning: shown\n" and warnings.formatwarning is before
+
+
+def test_compile_without_a_cpp_compiler_warns_and_runs_the_network_as_it_is(monkeypatch):
+    import shutil
+    from gns import speedups
+    net = torch.nn.Linear(3, 2)
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    monkeypatch.delenv("CXX", raising=False)
+    with pytest.warns(UserWarning, match="no C.. compiler"):
+        assert speedups.compiled(net) is net
+    monkeypatch.setattr(shutil, "which", lambda name: "/usr/bin/g++" if name == "g++" else None)
+    assert speedups.compiled(net) is not net
