@@ -47,6 +47,25 @@ class DataError(Exception):
     """A dataset, shard or output path that does not follow the format or cannot be used."""
 
 
+@contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Inside, SIGTERM raises KeyboardInterrupt (the message "SIGTERM") as Ctrl-C does, so that a
+    command stopped either way cleans up and says so alike; outside a main thread, nothing."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 # --- safe writes and output checks
 
 @contextmanager

@@ -194,13 +194,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     from plumbing import DataError
     a = build_parser().parse_args(argv)
-    import signal
-    import threading
-    main_thread = threading.current_thread() is threading.main_thread()
-    # SIGTERM as Ctrl-C: the workers are stopped and the message says what was kept
-    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
+    from plumbing import sigterm_as_interrupt
     try:
-        return a.func(a)
+        with sigterm_as_interrupt():     # the workers are stopped and the message says what was kept
+            return a.func(a)
     except (ConfigError, DataError) as e:
         return _fail(str(e))
     except KeyboardInterrupt:
@@ -209,14 +206,6 @@ def main(argv=None) -> int:
         return _fail("interrupted; no partial shard was left (rerun with --resume to finish)")
     except OSError as e:
         return _fail(f"{e.strerror or e} ({e.filename})" if getattr(e, "filename", None) else str(e))
-    finally:
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous)
-
-
-def _interrupt(signum, frame):
-    import signal
-    raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
 if __name__ == "__main__":

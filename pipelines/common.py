@@ -11,7 +11,7 @@ import threading
 import time
 from pathlib import Path
 
-from plumbing import config_dir, DataError
+from plumbing import config_dir, DataError, sigterm_as_interrupt
 from datagen.scenes import load_config as load_scene_config
 from datagen.toss import generate
 from datagen.shards import Dataset
@@ -107,10 +107,6 @@ def _job_of(parent: int, fn, *args):
         raise
 
 
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt(signal.Signals(signum).name)
-
-
 def in_processes(fn, jobs: dict, workers: int) -> dict:
     """{key: fn(*args)} for jobs {key: args}, `workers` at a time in processes of their own
     (spawned: no state is inherited, so fn must be a module's top-level function), or in this
@@ -122,9 +118,7 @@ def in_processes(fn, jobs: dict, workers: int) -> dict:
         return {key: fn(*args) for key, args in jobs.items()}
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
-    main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _interrupt) if main else None
-    try:
+    with sigterm_as_interrupt():
         with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
                                  initializer=_watch_parent, initargs=(os.getpid(),)) as pool:
             futures = {key: pool.submit(_job_of, os.getpid(), fn, *args) for key, args in jobs.items()}
@@ -138,9 +132,6 @@ def in_processes(fn, jobs: dict, workers: int) -> dict:
                         proc.terminate()     # SIGTERM: a training checkpoints and stops
                 pool.shutdown(cancel_futures=True)
                 raise
-    finally:
-        if main:
-            signal.signal(signal.SIGTERM, previous)
 
 
 def guarded(stages) -> int:
@@ -148,12 +139,11 @@ def guarded(stages) -> int:
     from gns.config import ConfigError
     from gns.evaluate import DivergedError
     from gns.train import TrainingError
-    main = threading.current_thread() is threading.main_thread()
-    # SIGTERM as Ctrl-C in every stage, not only while in_processes runs: the message, and the
-    # stopping of whatever workers the stage started, are the same
-    previous = signal.signal(signal.SIGTERM, _interrupt) if main else None
     try:
-        stages()
+        # SIGTERM as Ctrl-C in every stage: the same message, and whatever workers a stage
+        # started are stopped the same way
+        with sigterm_as_interrupt():
+            stages()
     except (DataError, ConfigError, CheckpointError, TrainingError, DivergedError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -163,9 +153,6 @@ def guarded(stages) -> int:
     except KeyboardInterrupt as e:  # a training stopped by Ctrl-C or SIGTERM says where it stopped
         print(f"error: interrupted{': ' + str(e) if str(e) else ''}; rerun the same command to go on", file=sys.stderr)
         return 130
-    finally:
-        if main:
-            signal.signal(signal.SIGTERM, previous)
     return 0
 
 
