@@ -203,8 +203,10 @@ def _resume_point(run: Path) -> tuple[Path | None, dict | None, str | None]:
 
 
 # settings that do not change what a run learns: a finished run is a result with any of them
+# (train.compile changes the network's arithmetic only by rounding)
 SETTINGS_FREE = ("train.steps", "train.threads", "train.device", "train.log_every", "train.checkpoint_every",
-                 "train.keep_checkpoints", "valid.every", "valid.windows", "valid.rollout_scenes", "valid.rollout_steps")
+                 "train.keep_checkpoints", "train.compile", "valid.every", "valid.windows", "valid.rollout_scenes",
+                 "valid.rollout_steps")
 
 
 def train_stage(data: Path, run: Path, preset: str, overrides: list[str]) -> Path:

@@ -70,10 +70,9 @@ PRESETS = {
                    gru={"hidden": 8, "layers": 1, "log_every": 2}),
     "quick": Preset(levels=LEVELS, sizes=(30, 100, 300), test=100, valid=16, model="gns_cpu", steps=3000,
                     lr_decay_steps=3000, train=("valid.every=1000", "train.checkpoint_every=1000")),
-    # compiled (1.29x steps/s on this recipe, experiments/log.md; it changes no setting that is
-    # learned) and checkpointed often: the preset outlasts a working day and resumes
+    # checkpointed often: the preset outlasts a working day and resumes
     "full": Preset(levels=LEVELS, sizes=(100, 1000, 10000), test=200, valid=32, model="gns_cpu", steps=40000,
-                   lr_decay_steps=13333, train=("train.compile=true", "train.checkpoint_every=1000")),
+                   lr_decay_steps=13333, train=("train.checkpoint_every=1000",)),
 }
 
 
@@ -139,12 +138,28 @@ def data_stage(out: Path, level: str, counts: dict[str, int], seed: int, config:
 
 
 def _settings_guard(run: Path, settings: dict) -> None:
-    """A run folder records what it was trained with; other settings are refused, not mixed."""
+    """A run folder records what it was trained with; settings that change what it learns are
+    refused, not mixed (pipelines.common.SETTINGS_FREE, such as compiling, may change)."""
     path = run / "pipeline_settings.json"
-    if path.exists() and json.loads(path.read_text()) != settings:
-        raise DataError(f"{run} was trained with other settings: delete it (or the output with --fresh) to train again")
+    if path.exists():
+        old = json.loads(path.read_text())
+        if old.get("data") != settings["data"] or _learned(old) != _learned(settings):
+            raise DataError(f"{run} was trained with other settings: delete it (or the output with --fresh) to train "
+                            f"again")
     run.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(settings, indent=1) + "\n")
+
+
+def _learned(settings: dict) -> dict:
+    """The config a run's settings resolve to, but for what does not change what it learns."""
+    from gns.config import build_config, config_to_dict
+    from pipelines.common import SETTINGS_FREE
+    from plumbing import config_path
+    cfg = config_to_dict(build_config(path=config_path(settings["config"]), overrides=list(settings["set"])))
+    for key in SETTINGS_FREE:
+        section, name = key.split(".")
+        cfg.get(section, {}).pop(name, None)
+    return cfg
 
 
 def gns_train_stage(run: Path, data: Path, p: Preset, costs: Costs) -> None:

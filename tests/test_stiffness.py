@@ -42,3 +42,16 @@ def test_bad_input_is_one_error_line(tmp_path, capsys):
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error: ")]
     assert len(err) == 2 and "no N.pt" in err[0] and "notes.txt" in err[1]
     assert (tmp_path / "mine" / "notes.txt").exists()
+
+
+def test_a_run_folder_refuses_settings_that_change_what_it_learns_and_no_other(tmp_path):
+    from pipelines.stiffness import _settings_guard
+    from plumbing import DataError
+    base = {"data": "d", "config": "gns_tiny", "set": ["train.lr_init=0.001", "train.steps=4"]}
+    _settings_guard(tmp_path, base)
+    # compiled, trained further, in another order: the same run
+    _settings_guard(tmp_path, {**base, "set": ["train.compile=true", "train.steps=8", "train.lr_init=0.001"]})
+    with pytest.raises(DataError, match="trained with other settings"):
+        _settings_guard(tmp_path, {**base, "set": ["train.lr_init=0.01", "train.steps=8"]})
+    with pytest.raises(DataError, match="trained with other settings"):
+        _settings_guard(tmp_path, {**base, "data": "other"})
