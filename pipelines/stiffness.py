@@ -27,7 +27,8 @@ resumes an interrupted GNS or GRU training where it stopped. --workers N trains 
 time (every GNS, then every GRU: the longer first), one process and core each. Presets:
   tiny   the test suite's smoke run: 2 levels, sizes 2 and 4, a tiny GNS and GRU, 4 steps
   quick  sizes 30, 100, 300; 3000 steps each; 100 test tosses a level (~1 h on one core)
-  full   sizes 100, 1000, 10000 (Allen et al.'s); the recipe's 40,000 steps; 200 test tosses (~10 h)
+  full   sizes 100, 1000, 10000 (Allen et al.'s); the recipe's 40,000 steps; 200 test tosses
+         (~4 h on 2 cores with --workers 2)
 """
 from __future__ import annotations
 
@@ -334,7 +335,7 @@ def main(argv=None) -> int:
                     help="refit the start distribution to the ContactNets tosses in DATA (tosses_processed/N.pt)")
     ap.add_argument("--fresh", action="store_true", help="delete the output folder first instead of resuming")
     ap.add_argument("--workers", type=int, default=1,
-                    help="train this many levels and sizes at once, each in its own process (one core each)")
+                    help="train this many models (GNS or GRU) at once, each in its own process (one core each)")
     a = ap.parse_args(argv)
     if a.workers < 1:
         ap.error(f"--workers must be at least 1, not {a.workers}")
