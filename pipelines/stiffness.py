@@ -66,7 +66,7 @@ class Preset:
 
 PRESETS = {
     "tiny": Preset(levels=("soft", "hard"), sizes=(2, 4), test=2, valid=0, model="gns_tiny", steps=4, lr_decay_steps=4,
-                   train=("model.message_passing_steps=1", "train.batch_size=2", "valid.every=0",
+                   train=("model.message_passing_steps=1", "train.batch_size=2", "valid.every=0", "train.compile=false",
                           "train.checkpoint_every=4", "features.normalizer_steps=4", "train.log_every=2"),
                    gru={"hidden": 8, "layers": 1, "log_every": 2}),
     "quick": Preset(levels=LEVELS, sizes=(30, 100, 300), test=100, valid=16, model="gns_cpu", steps=3000,
