@@ -49,11 +49,12 @@ from pipelines.real_cubes_data import (duplicate_groups, import_stage, make_spli
 from pipelines.real_cubes_report import ENGINE_LABELS, metric_cells, summary
 
 # The real-cube training settings of pipelines/real_cubes.py (batch 32, lr 1e-3, input noise 0.001
-# half-widths), plus the levers that measured best (experiments/log.md).
+# half-widths, compiled as the real_cubes recipe is), plus the levers that measured best
+# (experiments/log.md).
 STRIDE = 8
 _TRAIN = ("train.threads=1", "train.batch_size=32", "train.lr_init=1e-3", "augment.noise_std=0.001",
           "valid.rollout_scenes=8", "valid.rollout_steps=50", "valid.every=5000", "train.checkpoint_every=5000",
-          f"features.frame_stride={STRIDE}", "train.all_phases=true")
+          f"features.frame_stride={STRIDE}", "train.all_phases=true", "train.compile=true")
 # The cube's symmetries as augmentation (experiments/log.md): at 16 tosses they cut position error
 # from 17.2% to 14.6%; at 64 tosses they cost 3.5 degrees of rotation (probably: the real cube and
 # its tracking are less symmetric than its mesh, and 64 tosses are enough to learn how). One seed each.
@@ -104,7 +105,8 @@ class Preset:
 
 PRESETS = {
     "tiny": Preset(test=1, valid=0, steps={2: 30}, model="tiny", baseline_budget=3, baseline_tosses=None,
-                   train=tuple(o for o in _TRAIN if not o.startswith("valid.every")) + ("valid.every=0",),
+                   train=tuple(o for o in _TRAIN if not o.startswith(("valid.every", "train.compile")))
+                   + ("valid.every=0",),
                    engine_data={2: (4, 2)}, levers={2: (*SYMMETRIC, *MANY_TOSSES)}, engine_levers={2: MANY_TOSSES},
                    seeds=(0, 1)),
     # ~3-4 min per 10k steps on one idle core (16 tosses, batch 32); lr decays 10x every third of the steps
