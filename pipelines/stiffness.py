@@ -144,23 +144,21 @@ def _settings_guard(run: Path, settings: dict) -> None:
     path = run / "pipeline_settings.json"
     if path.exists():
         old = json.loads(path.read_text())
-        if old.get("data") != settings["data"] or _learned(old) != _learned(settings):
+        from gns.config import config_differences, config_to_dict
+        from pipelines.common import SETTINGS_FREE
+        if old.get("data") != settings["data"] or config_differences(config_to_dict(_config(old)), _config(settings),
+                                                                      ignore=SETTINGS_FREE):
             raise DataError(f"{run} was trained with other settings: delete it (or the output with --fresh) to train "
                             f"again")
     run.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(settings, indent=1) + "\n")
 
 
-def _learned(settings: dict) -> dict:
-    """The config a run's settings resolve to, but for what does not change what it learns."""
-    from gns.config import build_config, config_to_dict
-    from pipelines.common import SETTINGS_FREE
+def _config(settings: dict):
+    """The Config a run's recorded settings resolve to."""
+    from gns.config import build_config
     from plumbing import config_path
-    cfg = config_to_dict(build_config(path=config_path(settings["config"]), overrides=list(settings["set"])))
-    for key in SETTINGS_FREE:
-        section, name = key.split(".")
-        cfg.get(section, {}).pop(name, None)
-    return cfg
+    return build_config(path=config_path(settings["config"]), overrides=list(settings["set"]))
 
 
 def gns_train_stage(run: Path, data: Path, p: Preset, costs: Costs) -> None:
