@@ -302,9 +302,11 @@ def run(preset: str, out: Path, starts_from: Path | None = None, workers: int = 
                                config, workers)
         if made:
             costs.add(f"data {level}", time.perf_counter() - t0)
-    # every GNS before any GRU: the longer jobs first keep both workers busy to the end
+    # every GNS before any GRU (the longer jobs first keep both workers busy to the end), and the
+    # extreme levels before the middle ones: soft against hard, the finding, is complete first
+    extremes_first = sorted(p.levels, key=lambda level: level not in (p.levels[0], p.levels[-1]))
     units = in_processes(size_stage, {(model, level, n): (preset, out, level, n, model) for model in ("gns", "gru")
-                                      for level in p.levels for n in p.sizes}, workers)
+                                      for level in extremes_first for n in p.sizes}, workers)
     unit_costs = {}
     for level in p.levels:
         sizes = {}
