@@ -213,7 +213,15 @@ def gru_stage(run: Path, data: Path, test: Path, path: Path, p: Preset, costs: C
     cfg = gru_config(p)
     if not gru.trained(run, cfg):
         say(f"gru train: {run} ({cfg.steps} steps)")
-        gru.train(data, run, cfg, log=say)
+        import torch
+        # one thread, as the GNS's recipe (train.threads=1): at torch's default (every core) two
+        # workers' GRUs ran 4 threads on 2 cores, ~12 steps/s each instead of ~17
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            gru.train(data, run, cfg, log=say)
+        finally:
+            torch.set_num_threads(threads)
         costs.add(f"train gru {run.name}", gru.load(run)[1]["train_seconds"])   # resumed segments summed
     saved = _current(path, cfg.steps, test)
     if saved is not None and saved.get("train_seconds") == gru.load(run)[1]["train_seconds"]:
