@@ -81,8 +81,10 @@ def gns_overrides(p: Preset) -> list[str]:
     """The real-cube zoo model's settings (its recipe), the preset's steps and schedule on top."""
     from pipelines.recipe import load_recipe
     recipe = load_recipe("real_cubes").runs[0]
-    return [*recipe.overrides, f"train.steps={p.steps}", f"train.seed={p.seed}",
-            f"train.lr_decay_steps={p.lr_decay_steps}", *p.train]
+    overrides = [*recipe.overrides, f"train.steps={p.steps}", f"train.seed={p.seed}",
+                 f"train.lr_decay_steps={p.lr_decay_steps}", *p.train]
+    # one entry a key, the last given (the preset's over the recipe's), so the report lists each once
+    return list({o.split("=", 1)[0]: o for o in overrides}.values())
 
 
 def gru_config(p: Preset) -> gru.GRUConfig:
