@@ -217,7 +217,7 @@ def gru_stage(run: Path, data: Path, test: Path, path: Path, p: Preset, costs: C
         say(f"gru train: {run} ({cfg.steps} steps)")
         import torch
         # one thread, as the GNS's recipe (train.threads=1): at torch's default (every core) two
-        # workers' GRUs ran 4 threads on 2 cores, ~12 steps/s each instead of ~17
+        # workers' GRUs ran 4 threads on 2 cores, ~12 steps/s each instead of ~27
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
         try:
