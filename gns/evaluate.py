@@ -66,7 +66,8 @@ def rollout_tracks(sim: LearnedSimulator, tracks: ObjectTracks, which: torch.Ten
     device = next(sim.parameters()).device
     # the whole rollout runs on the model's device; only the poses come back
     # the poses come from the rollout's own shape matching (one per step, not a second pass)
-    _, rot, centre = sim.rollout(verts.to(device), graph.to(device), length - HISTORY, poses=True)
+    _, rot, centre = sim.rollout(verts.to(device), graph.to(device), length - HISTORY, poses=True,
+                                 live_steps=(tracks.length[which] - HISTORY).to(device))
     rot, centre = rot.cpu(), centre.cpu()
     idx = (tracks.start[which])[:, None] + torch.arange(HISTORY)
     true_pos = tracks.positions[idx].permute(1, 0, 2).numpy()

@@ -135,7 +135,8 @@ class Stepping:
         return r1 @ r0.transpose(1, 2) @ r1, 2 * t1 - t0 + self.gravity_per_frame.to(t1)
 
     def advance(self, frames: list[torch.Tensor], graph: GraphBatch, pose: list | None = None,
-                counts: dict | None = None, fitted: list | None = None) -> torch.Tensor | None:
+                counts: dict | None = None, fitted: list | None = None,
+                live: torch.Tensor | None = None) -> torch.Tensor | None:
         """One rollout step: positions (N, 3) at t+1 from frames [..., x_{t-2}, x_{t-1}, x_t], before
         shape matching. Sleeping objects keep x_t, free ones (options.free_flight; `pose` holds the
         (R, t) of the last two frames) take the inertial update, the rest the network's answer.
@@ -145,11 +146,18 @@ class Stepping:
         which shape matching the positions would find (the pose fitted to the network's nodes,
         the ballistic one, the one kept), if rigid frames were given, and returns None: the
         caller (a rollout, which shape-matches every frame) poses the vertices; placing them
-        here too cost ~5% of a MOVi-A rollout's step."""
+        here too cost ~5% of a MOVi-A rollout's step. `live` (G,) bool: the objects whose step
+        counts (a batch of ragged tracks runs the ended ones on as padding); None: all."""
         sleep, free_flight = self.sleep, self.options.free_flight
         counts = {} if counts is None else counts
         for key in ("object_steps", "network", "free_flight", "asleep"):
             counts.setdefault(key, 0)
+
+        def counted(mask: torch.Tensor | None = None) -> int:
+            """Object-steps of the objects in mask (None: all), live ones only."""
+            if mask is None:
+                return graph.num_graphs if live is None else int(live.sum())
+            return int((mask if live is None else mask & live).sum())
         if free_flight and pose is None:
             pose = [fit_packed(f, graph.rest, graph.node_graph, graph.num_graphs) for f in frames[-2:]]
         step_graph, contacts = graph, None
@@ -160,7 +168,7 @@ class Stepping:
         skip = torch.zeros(graph.num_graphs, dtype=torch.bool, device=frames[-1].device)
         if sleep is not None:
             sleeping = sleep.asleep_graphs(frames, graph, self.gravity_step, self.layout.floor_z, contacts)
-            counts["asleep"] += int(sleeping.sum())
+            counts["asleep"] += counted(sleeping)
             skip |= sleeping
         poses_only = fitted is not None and free_flight and bool(self.lowest_vertices)
         if free_flight:
@@ -171,9 +179,9 @@ class Stepping:
                                           and graph.num_graphs > 1)
             ballistic = (posed_heights if heights else posed)(*flight, graph.node_graph, graph.rest)
             free = self.in_free_flight(frames, ballistic, graph, contacts) & ~skip
-            counts["free_flight"] += int(free.sum())
+            counts["free_flight"] += counted(free)
             skip |= free
-        counts["object_steps"] += graph.num_graphs
+        counts["object_steps"] += counted()
         skip_node = skip[graph.node_graph]
         needed = None   # the graphs of the network call; None: all
         if int(skip_node.sum()) >= SUBGRAPH_MIN_SHARE * graph.num_nodes:
@@ -193,7 +201,7 @@ class Stepping:
                 return None
             fit = self.fitted_poses(*frames[-HISTORY:], step_graph, needed)
             if fit is not None:
-                counts["network"] += graph.num_graphs if needed is None else int(needed.sum())
+                counts["network"] += counted(needed)
                 if needed is None:
                     fitted.append(_pose_where(skip, held_pose, fit))
                 else:
@@ -207,7 +215,7 @@ class Stepping:
         held = torch.where(free[graph.node_graph, None], ballistic, frames[-1]) if free_flight else frames[-1]
         if needed is None:
             x = self.predict_next(*frames[-HISTORY:], step_graph)
-            counts["network"] += graph.num_graphs
+            counts["network"] += counted()
             if skip.any():
                 x = torch.where(skip_node[:, None], held, x)
             return x
@@ -217,11 +225,12 @@ class Stepping:
             pred = self.predict_next(*(f[nodes] for f in frames[-HISTORY:]), sub)
             use = ~skip[graph.node_graph[nodes]]
             x = x.index_put((nodes[use],), pred[use])  # out of place: gradients pass
-            counts["network"] += int(needed.sum())
+            counts["network"] += counted(needed)
         return x
 
     @torch.no_grad()
-    def rollout(self, history: torch.Tensor, graph: GraphBatch, steps: int, poses: bool = False):
+    def rollout(self, history: torch.Tensor, graph: GraphBatch, steps: int, poses: bool = False,
+                live_steps: torch.Tensor | None = None):
         """Run on its own predictions from history (N, 3, 3) float64 -> positions (steps, N, 3),
         as the model's rollout options ask.
 
@@ -234,7 +243,9 @@ class Stepping:
         scene that overlap after the step are translated apart (gns.contacts.separation) before the
         step enters the history. `self.rollout_counts` then says
         how many object-steps did. With `poses`, also returns every predicted frame's pose from
-        shape matching, rotations (steps, G, 3, 3) and translations (steps, G, 3).
+        shape matching, rotations (steps, G, 3, 3) and translations (steps, G, 3). `live_steps`
+        (G,): how many of the steps are each object's own (its track's length), the rest padding
+        that the counts leave out; the positions are the same either way.
         """
         shape_matching, sleep, free_flight = self.options.shape_matching, self.sleep, self.options.free_flight
         if graph.graph_scene is not None and graph.num_graphs > 1 and alone_in_scenes(graph):
@@ -257,11 +268,11 @@ class Stepping:
             if free_flight else None
         out, rots, trans = [], [], []
         counts = {"object_steps": 0, "network": 0, "free_flight": 0, "asleep": 0}
-        for _ in range(steps):
+        for k in range(steps):
             # with shape matching every frame is rigid, and a model that fits poses to a few
             # nodes (features.lowest_vertices) hands them over: no second fit of all nodes
             fitted = [] if shape_matching and free_flight and self.lowest_vertices else None
-            x = self.advance(frames, graph, pose, counts, fitted)
+            x = self.advance(frames, graph, pose, counts, fitted, None if live_steps is None else live_steps > k)
             if fitted:
                 rot, t = fitted[0]
                 matched = posed(rot, t, graph.node_graph, graph.rest)

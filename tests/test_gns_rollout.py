@@ -46,6 +46,22 @@ def test_rollout_is_finite_rigid_and_starts_from_the_truth(trained):
         np.testing.assert_allclose(d, d[:1].repeat(len(d), 0), atol=1e-9)  # pairwise distances kept
 
 
+def test_object_steps_leave_out_the_padding_of_tracks_shorter_than_their_batch(trained):
+    """A batch rolls every track out to its longest; the steps a shorter one is carried past its
+    end are padding, not work the scene needed: the counts leave them out, the poses are cut."""
+    from dataclasses import replace
+    data, run = trained
+    sim, _ = load_model(run / "latest.pt")
+    ds = Dataset(data)
+    cut = [replace(sc, **{k: getattr(sc, k)[:n] for k in ("positions", "quaternions", "velocities",
+                                                          "angular_velocities")})
+           for sc, n in zip(ds.load("test"), (16, 9, 5))]
+    pred = rollout_scenes(sim, cut, ds.meshes, ds.frame_rate, progress=False)
+    assert [p.num_frames for p in pred] == [16, 9, 5]
+    assert sim.rollout_counts["object_steps"] == (16 - 3) + (9 - 3) + (5 - 3)
+    assert sim.rollout_counts["network"] == sim.rollout_counts["object_steps"]   # no free flight, no sleep
+
+
 def test_rollouts_are_written_in_the_data_format(trained, tmp_path):
     data, run = trained
     sim, _ = load_model(run / "latest.pt", options=RolloutOptions(shape_matching=False))
