@@ -215,15 +215,7 @@ def gru_stage(run: Path, data: Path, test: Path, path: Path, p: Preset, costs: C
     cfg = gru_config(p)
     if not gru.trained(run, cfg):
         say(f"gru train: {run} ({cfg.steps} steps)")
-        import torch
-        # one thread, as the GNS's recipe (train.threads=1): at torch's default (every core) two
-        # workers' GRUs ran 4 threads on 2 cores, ~12 steps/s each instead of ~27
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        try:
-            gru.train(data, run, cfg, log=say)
-        finally:
-            torch.set_num_threads(threads)
+        gru.train(data, run, cfg, log=say)
         costs.add(f"train gru {run.name}", gru.load(run)[1]["train_seconds"])   # resumed segments summed
     saved = _current(path, cfg.steps, test)
     if saved is not None and saved.get("train_seconds") == gru.load(run)[1]["train_seconds"]:
@@ -277,6 +269,11 @@ def size_stage(preset: str, out: Path, level: str, n: int, model: str) -> tuple[
     """The GNS or the GRU (`model`) of one level and training size, trained and scored on the
     level's test tosses; returns its scores, its training seconds and the stage costs. Top-level, so that --workers can
     run it in a process of its own: its costs go to a file of its own (costs/MODEL_LEVEL_nN.json)."""
+    import torch
+    # one thread, as main() sets in this pipeline's own process: a spawned worker starts at
+    # torch's default (every core), and two workers' GRUs ran 4 threads on 2 cores, ~12 steps/s
+    # each instead of ~27
+    torch.set_num_threads(1)
     p = PRESETS[preset]
     name, data, test = f"{level}_n{n}", out / "data" / level / f"train_n{n}", out / "data" / level / "test"
     costs = Costs(out / "costs" / f"{model}_{name}.json")
