@@ -172,13 +172,26 @@ def train_one(data: Path, run: Path, model: str, over: list[str]) -> tuple[Path,
     return ckpt, (time.perf_counter() - t0 if trained_step(run) != before else None), before
 
 
-def gns_stage(out: Path, p: Preset, runs: dict, test_data: Path, external: dict | None,
-              costs: Costs, workers: int = 1) -> tuple[dict, dict]:
-    """Every GNS run trained (workers at a time, each in its own process) and scored on the test
-    tosses (and on --test-dir's); the ablation size's model also without shape matching. Returns
-    (evaluations, external evaluations)."""
+def pooled_job(kind: str, *args):
+    """A job of the pipeline's one pool: a GNS training (train_one) or, beside the first trainings,
+    the engines' identification (baselines_job). Top-level: spawned workers run it."""
+    return train_one(*args) if kind == "train" else baselines_job(*args)
+
+
+def baselines_job(out: Path, sets: dict, test_data: Path, p: Preset, external_data: Path | None) -> dict:
+    """pipelines.real_cubes_baselines.baselines_stage on the training sets: in a worker it writes
+    the costs file itself, which the pipeline reads again once the pool is done."""
+    return baselines_stage(out / "baseline", {k: (data, ids) for k, (data, ids, _) in sets.items()}, test_data,
+                           available_engines(), p.baseline_budget, p.baseline_tosses, Costs(out / "costs.json"),
+                           external_data=external_data, plots_for=(max(p.sizes), p.seeds[0]) if p.plots else None)
+
+
+def fit_and_train(out: Path, p: Preset, sets: dict, runs: dict, test_data: Path, external: dict | None,
+                  workers: int = 1) -> tuple[dict, dict]:
+    """The engines identified and every GNS run trained (or skipped when done), `workers` jobs at a
+    time: the fits (minutes on one core) run beside the first trainings, not before them.
+    Returns (the baselines, {run name: (checkpoint, seconds trained or None, starting step)})."""
     largest = f"gns_n{max(p.sizes)}_s{p.seeds[0]}"
-    evals, ext_evals = {}, {}
     shipped = {}
     if p.zoo is not None:
         ckpt = zoo_model_as_run(p.zoo, runs[largest][0], p.model, runs[largest][1])
@@ -187,9 +200,22 @@ def gns_stage(out: Path, p: Preset, runs: dict, test_data: Path, external: dict 
         else:
             say(f"zoo: {largest} is the shipped {p.zoo} ({ckpt}), scored as it is")
             shipped[largest] = ckpt
-    trained = in_processes(train_one, {name: (data, out / "runs" / name, p.model, over)
-                                       for name, (data, over) in runs.items() if name not in shipped}, workers)
-    trained.update({name: (ckpt, None, -1) for name, ckpt in shipped.items()})
+    jobs = {"baselines": ("baselines", out, sets, test_data, p, external["data"] if external is not None else None)}
+    jobs.update({name: ("train", data, out / "runs" / name, p.model, over)
+                 for name, (data, over) in runs.items() if name not in shipped})
+    done_jobs = in_processes(pooled_job, jobs, workers)
+    base = done_jobs.pop("baselines")
+    done_jobs.update({name: (ckpt, None, -1) for name, ckpt in shipped.items()})
+    return base, done_jobs
+
+
+def gns_stage(out: Path, p: Preset, runs: dict, trained: dict, test_data: Path, external: dict | None,
+              costs: Costs) -> tuple[dict, dict]:
+    """Every GNS run (trained: fit_and_train's) scored on the test tosses (and on --test-dir's);
+    the ablation size's model also without shape matching. Returns (evaluations, external
+    evaluations)."""
+    largest = f"gns_n{max(p.sizes)}_s{p.seeds[0]}"
+    evals, ext_evals = {}, {}
     for name in runs:
         ckpt, seconds, before = trained[name]
         if seconds is not None:  # it trained: the checkpoint's total, else this call's time added to any earlier
@@ -254,11 +280,9 @@ def run(preset: str, src: Path, out: Path, test_dir: Path | None = None, workers
     external = external_stage(test_dir, src, out, tosses)
     sets = training_sets(src, out, p, split)
     runs = gns_runs(p, sets)
-    base = baselines_stage(out / "baseline", {k: (data, ids) for k, (data, ids, _) in sets.items()}, test_data,
-                           available_engines(), p.baseline_budget, p.baseline_tosses, costs,
-                           external_data=external["data"] if external is not None else None,
-                           plots_for=(max(p.sizes), p.seeds[0]) if p.plots else None)
-    evals, ext_evals = gns_stage(out, p, runs, test_data, external, costs, workers)
+    base, trained = fit_and_train(out, p, sets, runs, test_data, external, workers)
+    costs = Costs(out / "costs.json")   # read again: the fits wrote theirs, in a worker or here
+    evals, ext_evals = gns_stage(out, p, runs, trained, test_data, external, costs)
     results = collect(preset, p, src, split, evals, base, external, ext_evals, costs)
     results["pipeline_seconds_this_call"] = round(time.perf_counter() - t_start, 1)
     write_json(out / "results.json", results)

@@ -18,6 +18,9 @@ def test_tiny_preset_end_to_end_with_an_external_test_folder(tmp_path, capsys):
     results = json.loads((out / "results.json").read_text())
     assert set(results["sizes"]) == {"1", "2"}
     assert {k for k in results["costs_seconds"] if k.startswith("train ")} == {f"train {r.name}" for r in (out / "runs").iterdir()}
+    # the engines' fits ran in the pool beside the trainings: their costs reach the results too
+    assert {k for k in results["costs_seconds"] if k.startswith("baseline fit ")} == \
+        {f"baseline fit fit_{tag}n{n}_s0" for tag in ("", "mujoco_") for n in (1, 2)}
     for rows in results["sizes"].values():
         for key in ("position_error_pct", "rotation_error_deg", "penetration_pct"):
             for who in ("gns", "pybullet", "mujoco"):
