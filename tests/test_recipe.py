@@ -42,6 +42,15 @@ def test_the_tiny_recipe_trains_its_chain_and_resumes(tmp_path, capsys):
     assert err.count("skipping") >= 4 and "resuming" not in err
 
 
+def test_a_recipe_whose_data_has_no_test_split_exports_its_model_unscored(tmp_path, capsys):
+    text = (config_dir() / "recipes" / "tiny.toml").read_text().replace("test = 2", "test = 0")
+    text = text[:text.index("[[stage]]\nname = \"b\"")]     # stage a alone
+    (tmp_path / "r.toml").write_text(text)
+    assert recipe_main([str(tmp_path / "r.toml"), "--out", str(tmp_path / "out"), "--workers", "1"]) == 0
+    assert (tmp_path / "out" / "model.pt").is_file() and not (tmp_path / "out" / "results.json").exists()
+    assert "not scored" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("text, message", [
     ("zoo = []\n", "no [[stage]]"),
     ("[[stage]]\nname = 'a'\nsteps = 3\n", "stage 1 has no seed"),
