@@ -11,7 +11,10 @@ run, and checks that both find the same edges. The last columns time vertex-to-s
 With --data DIR (a dataset of several objects a scene, e.g. `datagen toss --objects 3-10`), every
 recorded frame of its test scenes instead: per number of objects, the object pairs in contact
 (closer than the radius), the edges each mode builds and its build time per frame, all modes on
-the same frames; and how many of the pairs in contact each mode sees (some edge joins them).
+the same frames; and how many of the pairs in contact each mode sees (some edge joins them). Then
+the impacts: pairs touching (closer than 0.02) at a frame but not at the one before, and how many
+of them face edges of the frame before already joined, built at x_t and, as
+`features.collision_lookahead` builds them, where the vertices go at constant velocity.
 
     python benchmarks/bench_collision_edges.py [--objects 3,10,30,100]
     python benchmarks/bench_collision_edges.py --data data/multi_test [--radius 0.25] [--limit 100]
@@ -117,6 +120,7 @@ def on_dataset(data: str, radius: float, limit: int) -> list[dict]:
     lib = MeshLibrary(ds.meshes)
     scenes = ds.load("test")[:limit]
     totals: dict[int, dict] = {}
+    impacts = {"impacts": 0, "seen_now": 0, "seen_ahead": 0}
     for sc in scenes:
         n = sc.num_objects
         graph = lib.pack(lib.shape_ids(sc.shape), torch.from_numpy(sc.scale), torch.from_numpy(sc.friction),
@@ -124,6 +128,7 @@ def on_dataset(data: str, radius: float, limit: int) -> list[dict]:
         rot = torch.from_numpy(rotation(sc.quaternions.reshape(-1, 4)).as_matrix()).view(sc.num_frames, n, 3, 3)
         frames = vertices_from_poses(graph, torch.from_numpy(sc.positions).transpose(0, 1), rot.transpose(0, 1))
         t = totals.setdefault(n, {"frames": 0, "contacts": 0, **{f"{m}_{k}": 0.0 for m in MODES for k in ("edges", "ms", "seen")}})
+        count_impacts(frames, graph, radius, impacts)
         for f in range(sc.num_frames):
             x = frames[:, f].contiguous()
             joined = {}
@@ -159,7 +164,31 @@ def on_dataset(data: str, radius: float, limit: int) -> list[dict]:
         print(line)
     print("pairs in contact: object pairs closer than the radius (exact triangle distance); sees: the share of "
           "them some edge of the mode joins")
-    return rows
+    k = max(impacts["impacts"], 1)
+    print(f"impacts (pairs closer than {TOUCH} at a frame, not at the one before): {impacts['impacts']}; face edges "
+          f"of the frame before join {impacts['seen_now'] / k:.0%} of them built at x_t, "
+          f"{impacts['seen_ahead'] / k:.0%} built ahead (2 x_t - x_t-1, features.collision_lookahead)")
+    return rows + [impacts]
+
+
+TOUCH = 0.02
+
+
+def count_impacts(frames: torch.Tensor, graph, radius: float, into: dict) -> None:
+    """Adds a scene's impacts (frames (N, F, 3)) to `into`: pairs that touch at frame f and not at
+    f - 1, and whether face edges at f - 1 join them, built at x_{f-1} and ahead of it."""
+    touching = [joined_pairs(face_edges(frames[:, f].contiguous(), graph, TOUCH), graph)
+                for f in range(frames.shape[1])]
+    for f in range(2, frames.shape[1]):
+        new = touching[f] - touching[f - 1]
+        if not new:
+            continue
+        now, before = frames[:, f - 1].contiguous(), frames[:, f - 2]
+        seen_now = joined_pairs(face_edges(now, graph, radius), graph)
+        seen_ahead = joined_pairs(face_edges((2 * now - before).contiguous(), graph, radius), graph)
+        into["impacts"] += len(new)
+        into["seen_now"] += len(new & seen_now)
+        into["seen_ahead"] += len(new & seen_ahead)
 
 
 if __name__ == "__main__":

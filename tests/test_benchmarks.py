@@ -240,3 +240,18 @@ def test_speed_front_scores_pybullet_settings_and_a_model_against_the_data(tmp_p
     out = capsys.readouterr().out
     assert "features:" in out and "load average" in out and "cheapest PyBullet as accurate" in out
     assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bench_collision_edges_on_a_dataset_counts_impacts_and_who_saw_them(tmp_path, capsys):
+    from datagen.scenes import load_config
+    from datagen.toss import generate
+    cfg = load_config(None, ["scene.frames=12", "scene.shapes=['beveled_cube', 'sphere']", 'scene.objects="6"'])
+    generate(cfg, 5, {"train": 0, "valid": 0, "test": 3}, tmp_path / "d", progress=False)
+    spec = importlib.util.spec_from_file_location("bench_ce", BENCH.parent / "bench_collision_edges.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    *rows, impacts = bench.main(["--data", str(tmp_path / "d"), "--limit", "3"])
+    assert sum(r["frames"] for r in rows) == 36
+    assert impacts["impacts"] > 0       # six objects in a MOVi-A scene meet
+    assert 0 <= impacts["seen_now"] <= impacts["impacts"] and 0 <= impacts["seen_ahead"] <= impacts["impacts"]
+    assert "impacts (pairs closer than" in capsys.readouterr().out
