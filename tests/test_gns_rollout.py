@@ -56,10 +56,24 @@ def test_object_steps_leave_out_the_padding_of_tracks_shorter_than_their_batch(t
     cut = [replace(sc, **{k: getattr(sc, k)[:n] for k in ("positions", "quaternions", "velocities",
                                                           "angular_velocities")})
            for sc, n in zip(ds.load("test"), (16, 9, 5))]
+    sizes, predict_next = [], sim.predict_next
+
+    def spy(x_tm2, x_tm1, x_t, graph):
+        sizes.append(len(x_t))
+        return predict_next(x_tm2, x_tm1, x_t, graph)
+    sim.predict_next = spy
     pred = rollout_scenes(sim, cut, ds.meshes, ds.frame_rate, progress=False)
+    del sim.predict_next
     assert [p.num_frames for p in pred] == [16, 9, 5]
+    # once the 9-frame track has ended too, the network sees the 16-frame track's vertices only (a
+    # 5-frame cube's few vertices alone are not worth cutting the graph for: SUBGRAPH_MIN_SHARE)
+    assert len(sizes) == 13 and sizes[6:] == [len(ds.meshes[cut[0].shape[0]][0])] * 7 < sizes[:6]
     assert sim.rollout_counts["object_steps"] == (16 - 3) + (9 - 3) + (5 - 3)
     assert sim.rollout_counts["network"] == sim.rollout_counts["object_steps"]   # no free flight, no sleep
+    # the padding is not computed either: each track rolls out as it does alone, and an ended one stays put
+    for sc, p in zip(cut, pred):
+        [alone] = rollout_scenes(sim, [sc], ds.meshes, ds.frame_rate, progress=False)
+        np.testing.assert_allclose(p.positions, alone.positions, rtol=0, atol=1e-6)
 
 
 def test_rollouts_are_written_in_the_data_format(trained, tmp_path):
