@@ -13,8 +13,8 @@ recorded frame of its test scenes instead: per number of objects, the object pai
 (closer than the radius), the edges each mode builds and its build time per frame, all modes on
 the same frames; and how many of the pairs in contact each mode sees (some edge joins them). Then
 the impacts: pairs touching (closer than 0.02) at a frame but not at the one before, and how many
-of them face edges of the frame before already joined, built at x_t and, as
-`features.collision_lookahead` builds them, where the vertices go at constant velocity.
+of them face edges of the frame before already joined, built at x_t and where the vertices go at
+constant velocity (2 x_t - x_t-1): how many impacts a model's edges cannot see coming.
 
     python benchmarks/bench_collision_edges.py [--objects 3,10,30,100]
     python benchmarks/bench_collision_edges.py --data data/multi_test [--radius 0.25] [--limit 100]
@@ -167,7 +167,7 @@ def on_dataset(data: str, radius: float, limit: int) -> list[dict]:
     k = max(impacts["impacts"], 1)
     print(f"impacts (pairs closer than {TOUCH} at a frame, not at the one before): {impacts['impacts']}; face edges "
           f"of the frame before join {impacts['seen_now'] / k:.0%} of them built at x_t, "
-          f"{impacts['seen_ahead'] / k:.0%} built ahead (2 x_t - x_t-1, features.collision_lookahead)")
+          f"{impacts['seen_ahead'] / k:.0%} built ahead (2 x_t - x_t-1)")
     return rows + [impacts]
 
 

@@ -46,11 +46,6 @@ class FeatureConfig:
     collision_radius: float = 0.15     # collision edges between objects closer than this, scene units
     # collision edges vertex-vertex or vertex-to-surface (gns.contacts), or face-face (gns.face_contacts)
     collision_mode: str = "vertex"
-    # collision edges found where each vertex would be at t+1 at constant velocity, 2 x_t - x_{t-1},
-    # not at x_t: at 12 fps a third of the impacts between MOVi-A objects come from farther than
-    # 0.25 the frame before, so edges at x_t see them only once the objects overlap (a physics
-    # engine's speculative contacts; experiments/log.md)
-    collision_lookahead: bool = False
     frame_stride: int = 1              # train on every k-th recorded frame: the time step is k / frame_rate
     # a node at each object's centre of mass joined to all its vertices (gns.graph.centre_spokes):
     # every vertex two message-passing steps from every other, whatever the mesh

@@ -47,7 +47,6 @@ class LearnedSimulator(Stepping, nn.Module):
         # the same as a vector: the centre's second difference in free flight (units per frame^2)
         self.gravity_per_frame = spec.gravity_per_frame
         self.collision_mode = features_cfg.collision_mode  # "vertex", "surface" or "face", checked by gns.config
-        self.collision_lookahead = bool(getattr(features_cfg, "collision_lookahead", False))
         # the graphs this model reads: self.mesh_library(meshes)
         self._graph_settings = graph_settings(features_cfg)
         self.canonical_heading = bool(getattr(features_cfg, "canonical_heading", False))
@@ -164,12 +163,10 @@ class LearnedSimulator(Stepping, nn.Module):
             out = network(*args)
         return out.to(torch.float32)
 
-    def collision_edges(self, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch) -> EdgeSet:
-        """The graph's collision edges if given, else built from positions x_t (N, 3), or with
-        features.collision_lookahead from where the vertices go at constant velocity."""
+    def collision_edges(self, x: torch.Tensor, graph: GraphBatch) -> EdgeSet:
+        """The graph's collision edges if given, else built from positions x (N, 3)."""
         if graph.collision_edges is not None:
             return graph.collision_edges
-        x = 2 * x_t - x_tm1 if self.collision_lookahead else x_t
         # imported here: a model of single objects never builds them
         from gns.contacts import collision_edges, surface_edges
         if self.collision_mode == "surface":
@@ -202,7 +199,7 @@ class LearnedSimulator(Stepping, nn.Module):
         edge_sets = [(edges, graph.mesh_edges.senders, graph.mesh_edges.receivers)]
         if self.layout.collisions:
             world = history if world is None else world
-            c = self.collision_edges(world[:, -2], world[:, -1], graph)
+            c = self.collision_edges(world[:, -1], graph)
             raw = raw_collision_features(world, c)
             if turn is not None:
                 from gns.symmetry import turn_about_z
@@ -283,10 +280,10 @@ class LearnedSimulator(Stepping, nn.Module):
         from gns.symmetry import averaged_over_images
         return averaged_over_images(self, history, graph, symmetrize, body_frames)
 
-    def network_nodes(self, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch,
+    def network_nodes(self, x_t: torch.Tensor, graph: GraphBatch,
                       graphs: torch.Tensor | None = None) -> tuple[GraphBatch, torch.Tensor] | None:
         """With features.lowest_vertices = k: the graph of each object's k vertices nearest the floor
-        at x_t (N, 3) (and its features.highest_vertices highest; x_tm1 for the collision edges), its centre and, with collision
+        at x_t (N, 3) (and its features.highest_vertices highest), its centre and, with collision
         edges, every vertex that has one, and those nodes' indices; None where the network sees
         every node. The cut graph carries the collision edges of the whole one (built there, where
         every face is: surface edges need the other object's triangles): both ends of each are
@@ -300,7 +297,7 @@ class LearnedSimulator(Stepping, nn.Module):
             return None
         keep = lowest_nodes(x_t[:, 2], graph, self.lowest_vertices, self.highest_vertices)
         if self.layout.collisions:
-            contacts = self.collision_edges(x_tm1, x_t, graph)
+            contacts = self.collision_edges(x_t, graph)
             if graphs is not None and len(contacts.senders):
                 own = graph.node_graph
                 within = graphs.index_select(0, own.index_select(0, contacts.senders)) & \
@@ -325,7 +322,7 @@ class LearnedSimulator(Stepping, nn.Module):
         With features.lowest_vertices the network moves the nodes it sees (network_nodes) and every
         other vertex takes the pose shape matching fits to those (`fitted_poses`): a rollout's
         shape matching of all of them then finds that same pose."""
-        seen = self.network_nodes(x_tm1, x_t, graph)
+        seen = self.network_nodes(x_t, graph)
         if seen is None:
             return self._predict_next(x_tm2, x_tm1, x_t, graph)
         sub, nodes = seen
@@ -341,7 +338,7 @@ class LearnedSimulator(Stepping, nn.Module):
         network_nodes), without placing the vertices the network does not see: a rollout that
         shape-matches every frame poses them itself. None where the network sees every node (the
         positions are then the network's own, not rigid: predict_next)."""
-        seen = self.network_nodes(x_tm1, x_t, graph, graphs)
+        seen = self.network_nodes(x_t, graph, graphs)
         if seen is None:
             return None
         sub, nodes = seen
@@ -361,7 +358,7 @@ class LearnedSimulator(Stepping, nn.Module):
         shape-matched target (train.rigid_loss): what a rollout keeps of a step. Shape matching
         runs through the differentiable polar factor (`gns.geometry._rotation_differentiable`).
         """
-        seen = self.network_nodes(history[:, -2], history[:, -1], graph)
+        seen = self.network_nodes(history[:, -1], graph)
         if seen is not None:   # the loss of the nodes the network sees (predict_next)
             graph, nodes = seen
             history, target = history[nodes], target[nodes]

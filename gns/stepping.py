@@ -163,7 +163,7 @@ class Stepping:
         step_graph, contacts = graph, None
         if self.layout.collisions and (sleep is not None or free_flight):
             # built once from x_t: the network, the wake-up and the free-flight tests share them
-            contacts = self.collision_edges(frames[-2], frames[-1], graph)
+            contacts = self.collision_edges(frames[-1], graph)
             step_graph = replace(graph, collision_edges=contacts)
         # an object past its track's end is padding: held where it is, like a sleeping one, so a
         # batch of ragged tracks computes only what is live (72% of real-cube steps were padding)

@@ -147,35 +147,3 @@ def test_compiled_triangle_distances_are_the_eager_ones_to_rounding():
     e, c = face_edges(x, graph, 0.15), face_edges(x, graph, 0.15, compiled=True)
     assert torch.equal(e.senders, c.senders) and torch.equal(e.receivers, c.receivers)
     assert torch.allclose(e.vectors, c.vectors, atol=1e-12)
-
-
-def _simulator(lookahead: bool):
-    from dataclasses import replace
-
-    from gns.config import build_config
-    from gns.simulator import LearnedSimulator
-    from test_gns_simulator_free_flight import SPEC
-    cfg = build_config(path="configs/gns_tiny.toml", overrides=[
-        "features.collision_mode=face", "features.collision_radius=0.25",
-        f"features.collision_lookahead={str(lookahead).lower()}"])
-    return LearnedSimulator(cfg.model, cfg.features, replace(SPEC, collision_edges=True)).eval()
-
-
-def test_lookahead_sees_an_impact_the_frame_before_and_nothing_new_at_rest():
-    """Two cubes 0.4 apart closing at 0.3 a frame meet during the next frame: edges at x_t (0.4 >
-    the radius 0.25) miss it, edges where the vertices go at constant velocity see it. At rest
-    both give the same edges; moving apart, the lookahead drops a contact that is ending."""
-    ahead, now = _simulator(True), _simulator(False)
-    graph, x, _ = _crossed_cubes(0.4)
-    step = torch.zeros_like(x)
-    step[graph.node_graph == 1, 2] = -0.3           # the upper cube falls onto the lower
-    assert len(now.collision_edges(x - step, x, graph).senders) == 0
-    seen = ahead.collision_edges(x - step, x, graph)
-    assert set(graph.node_graph[seen.receivers].tolist()) == {0, 1}
-    graph, x, _ = _crossed_cubes(0.1)
-    a, b = ahead.collision_edges(x, x, graph), now.collision_edges(x, x, graph)
-    assert len(a.senders) > 0
-    assert torch.equal(a.senders, b.senders) and torch.equal(a.receivers, b.receivers)
-    torch.testing.assert_close(a.vectors, b.vectors, rtol=0, atol=0)
-    assert len(now.collision_edges(x + step, x, graph).senders) > 0
-    assert len(ahead.collision_edges(x + step, x, graph).senders) == 0

@@ -47,7 +47,7 @@ def test_a_grown_model_starts_as_the_single_object_model_and_then_learns_contact
     batch = tracks.batch(torch.arange(tracks.num_windows))
     grown.eval(), plain.eval()
     with torch.no_grad():
-        edges = grown.collision_edges(batch.history[:, -2], batch.history[:, -1], batch.graph)
+        edges = grown.collision_edges(batch.history[:, -1], batch.graph)
         assert edges.senders.numel() > 0          # the scenes hold contacts: the new edges are used
         torch.testing.assert_close(grown(batch.history, batch.graph), plain(batch.history, batch.graph),
                                    rtol=0, atol=0)

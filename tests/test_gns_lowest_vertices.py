@@ -201,7 +201,7 @@ def test_with_other_objects_every_vertex_in_contact_is_seen():
     touching[full.senders] = True
     low = lowest_nodes(x_t[:, 2], graph, 6)
     assert bool((touching & ~low).any())              # contacts the floor rule alone would miss
-    sub, nodes = sim.network_nodes(x_t, x_t, graph)
+    sub, nodes = sim.network_nodes(x_t, graph)
     seen = torch.zeros(graph.num_nodes, dtype=torch.bool)
     seen[nodes] = True
     assert torch.equal(seen, low | touching)
@@ -259,7 +259,7 @@ def test_surface_edges_on_low_graphs_are_those_of_the_whole_graph_and_mirror_exa
     x_t, graph = _stacked_scene()
     full = surface_edges(x_t, graph, sim.layout.collision_radius)
     assert len(full.senders) > 0
-    sub, nodes = sim.network_nodes(x_t, x_t, graph)
+    sub, nodes = sim.network_nodes(x_t, graph)
     got = sorted(zip(nodes[sub.collision_edges.senders].tolist(), nodes[sub.collision_edges.receivers].tolist(),
                      sub.collision_edges.vectors.tolist()))
     assert got == sorted(zip(full.senders.tolist(), full.receivers.tolist(), full.vectors.tolist()))
