@@ -128,7 +128,7 @@ def on_dataset(data: str, radius: float, limit: int) -> list[dict]:
         rot = torch.from_numpy(rotation(sc.quaternions.reshape(-1, 4)).as_matrix()).view(sc.num_frames, n, 3, 3)
         frames = vertices_from_poses(graph, torch.from_numpy(sc.positions).transpose(0, 1), rot.transpose(0, 1))
         t = totals.setdefault(n, {"frames": 0, "contacts": 0, **{f"{m}_{k}": 0.0 for m in MODES for k in ("edges", "ms", "seen")}})
-        count_impacts(frames, graph, radius, impacts)
+        face_pairs = []
         for f in range(sc.num_frames):
             x = frames[:, f].contiguous()
             joined = {}
@@ -141,10 +141,12 @@ def on_dataset(data: str, radius: float, limit: int) -> list[dict]:
             # the face mode joins every pair of triangles closer than the radius, by the exact
             # distance: its pairs are the pairs in contact, the reference for what the others see
             contact = joined["face"]
+            face_pairs.append(contact)
             t["frames"] += 1
             t["contacts"] += len(contact)
             for mode in MODES:
                 t[f"{mode}_seen"] += len(contact & joined[mode])
+        count_impacts(frames, graph, radius, face_pairs, impacts)
     header = f"{'objects':>8}{'frames':>8}{'pairs in contact':>18}" + "".join(
         f"{mode + ' edges':>15}{'ms':>7}{'sees':>7}" for mode in MODES)
     print(f"{ds.root}: {len(scenes)} test scenes, every frame; radius {radius}; 1 thread; per frame")
@@ -174,20 +176,20 @@ def on_dataset(data: str, radius: float, limit: int) -> list[dict]:
 TOUCH = 0.02
 
 
-def count_impacts(frames: torch.Tensor, graph, radius: float, into: dict) -> None:
+def count_impacts(frames: torch.Tensor, graph, radius: float, face_pairs: list[set], into: dict) -> None:
     """Adds a scene's impacts (frames (N, F, 3)) to `into`: pairs that touch at frame f and not at
-    f - 1, and whether face edges at f - 1 join them, built at x_{f-1} and ahead of it."""
+    f - 1, and whether face edges at f - 1 join them, built at x_{f-1} (`face_pairs`, the pairs
+    the timed face edges of each frame joined) and ahead of it."""
     touching = [joined_pairs(face_edges(frames[:, f].contiguous(), graph, TOUCH), graph)
                 for f in range(frames.shape[1])]
     for f in range(2, frames.shape[1]):
         new = touching[f] - touching[f - 1]
         if not new:
             continue
-        now, before = frames[:, f - 1].contiguous(), frames[:, f - 2]
-        seen_now = joined_pairs(face_edges(now, graph, radius), graph)
-        seen_ahead = joined_pairs(face_edges((2 * now - before).contiguous(), graph, radius), graph)
+        ahead = (2 * frames[:, f - 1] - frames[:, f - 2]).contiguous()
+        seen_ahead = joined_pairs(face_edges(ahead, graph, radius), graph)
         into["impacts"] += len(new)
-        into["seen_now"] += len(new & seen_now)
+        into["seen_now"] += len(new & face_pairs[f - 1])
         into["seen_ahead"] += len(new & seen_ahead)
 
 

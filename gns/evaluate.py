@@ -135,8 +135,8 @@ def timed_rollout(sim: LearnedSimulator, scenes: list[Scene], meshes: dict, fram
 def scene_batches(scenes: list[Scene], batch_tracks: int) -> list[list[int]]:
     """Scene indices in batches of about `batch_tracks` objects, shortest scenes first.
 
-    Tracks of different lengths share a batch: each batch runs to its longest track and the
-    others are cut. Real tosses have nearly as many lengths as tosses (80-442 frames), and a
+    Tracks of different lengths share a batch: each batch runs to its longest track, and the
+    others are held still and left out of the network call once they end. Real tosses have nearly as many lengths as tosses (80-442 frames), and a
     network call costs about the same for 1 or 100 small graphs, so one batch per length
     would cost the sum of the lengths in calls instead of the longest.
     All objects of a scene are rolled out together (one batch), so collision edges between

@@ -273,7 +273,6 @@ def run(preset: str, src: Path, out: Path, test_dir: Path | None = None, workers
     check_writable(out)
     t_start = time.perf_counter()
     tosses, split = split_stage(src, out, p, preset)
-    costs = Costs(out / "costs.json")
     say(f"split: {len(split['test'])} test, {len(split['valid'])} valid, {sum(map(len, split['pool']))} pool tosses; "
         f"{len(split['duplicates'])} groups of copies kept together")
     test_data = import_stage(src, out / "data" / "test", {"test": split["test"]})
@@ -281,7 +280,7 @@ def run(preset: str, src: Path, out: Path, test_dir: Path | None = None, workers
     sets = training_sets(src, out, p, split)
     runs = gns_runs(p, sets)
     base, trained = fit_and_train(out, p, sets, runs, test_data, external, workers)
-    costs = Costs(out / "costs.json")   # read again: the fits wrote theirs, in a worker or here
+    costs = Costs(out / "costs.json")   # read after the pool: the fits wrote theirs, in a worker or here
     evals, ext_evals = gns_stage(out, p, runs, trained, test_data, external, costs)
     results = collect(preset, p, src, split, evals, base, external, ext_evals, costs)
     results["pipeline_seconds_this_call"] = round(time.perf_counter() - t_start, 1)

@@ -176,19 +176,20 @@ def train_recipe(recipe: Recipe, out: Path, data: Path | None = None, src: Path 
     return ckpt, test
 
 
-def _has_test_split(data: Path) -> bool:
-    from datagen.shards import Dataset
-    return Dataset(data).num_scenes("test") > 0
-
-
-def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None) -> dict:
+def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None) -> dict | None:
     """The exported model scored as each zoo card says (its rollout options, on the recipe's test
-    data), or with the default options for a recipe outside the zoo."""
+    data), or with the default options for a recipe outside the zoo; None, the model exported
+    unscored, when the data has no test scenes."""
+    from datagen.shards import Dataset
+    from pipelines.common import say
     from gns import zoo
     from gns.spec import RolloutOptions
     from gns.zoo import export_model
     from gns.evaluate import write_json
     model = export_model(ckpt, out / "model.pt", overwrite=True)
+    if test is not None and Dataset(test).num_scenes("test") == 0:
+        say(f"model: {model}; not scored: {test} has no test scenes")
+        return None
     rows = {}
     for name in recipe.zoo or ("",):
         card = zoo.card(name) if name else None
@@ -240,12 +241,8 @@ def main(argv=None) -> int:
         recipe = load_recipe(a.recipe)
         out = a.out or Path("runs") / f"recipe_{recipe.name}"
         ckpt, test = train_recipe(recipe, out, a.data, a.src, a.workers)
-        if test is not None and not _has_test_split(test):
-            from gns.zoo import export_model
-            say(f"model: {export_model(ckpt, out / 'model.pt', overwrite=True)}; not scored: {test} has no test scenes")
-            return
-        score(recipe, out, ckpt, test)
-        say(f"report: {out / 'report.md'}")
+        if score(recipe, out, ckpt, test) is not None:
+            say(f"report: {out / 'report.md'}")
     return guarded(stages)
 
 
