@@ -213,7 +213,7 @@ class RecipeRun:
         self.rng = np.random.default_rng(cfg.train.seed)
         self.world = World()
         self.sim, self.optimizer, _, self.step_count, self.average = _build_model(cfg, self.spec, None, self.rng)
-        _place_model(self.sim, cfg, torch.device("cpu"), self.world)
+        _place_model(self.sim, cfg, torch.device("cpu"), self.world, cfg.train.steps)
         self.dtype = "bf16" if self.sim.autocast_used == "bf16" else "fp32"
         self.calls: list[tuple[int, int, int, bool]] = []   # nodes, edges, collision edges, grad
         network = self.sim.run_network

@@ -60,10 +60,11 @@ def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
     return torch.where(((d1 <= 0) & (d2 <= 0))[:, None], a, out)
 
 
-def smallest_per_group(group: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+def smallest_per_group(group: torch.Tensor, value: torch.Tensor, stable: bool = False) -> torch.Tensor:
     """Index of the smallest value in each group (groups in ascending order): sort by value,
-    then stably by group, and take each group's first."""
-    order = torch.argsort(value)
+    then stably by group, and take each group's first. `stable`: of equal values the first, so
+    that the choice does not depend on what else the arrays hold (the unstable sort's does)."""
+    order = torch.argsort(value, stable=stable)
     order = order[torch.argsort(group[order], stable=True)]
     first = torch.ones(len(order), dtype=torch.bool, device=group.device)
     first[1:] = group[order][1:] != group[order][:-1]
@@ -223,34 +224,39 @@ def outward_normals(x: torch.Tensor, tri: torch.Tensor, centre: torch.Tensor) ->
     return normal * torch.where(((v0 - centre) * normal).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(x.dtype)
 
 
-def _pushes(x: torch.Tensor, graph: GraphBatch, centre: torch.Tensor, reach: torch.Tensor):
-    """Every vertex inside another object of its scene: (own, other, push) with push (M, 3) the
-    shortest move of the vertex out of the other's convex hull, through the face whose plane it
-    is least deep behind. Broad phase as collision_edges, then only the vertices within the
-    other's bounding sphere (centre (G, 3), reach (G,)), each against the other's face planes:
+def _pushes(x: torch.Tensor, graph: GraphBatch, centre: torch.Tensor, reach: torch.Tensor, a: torch.Tensor,
+            b: torch.Tensor):
+    """Every vertex of objects a, b (P,) inside the other of its pair: (own, other, push) with push
+    (M, 3) the shortest move of the vertex out of the other's convex hull, through the face whose
+    plane it is least deep behind. Broad phase as collision_edges, then only the vertices within
+    the other's bounding sphere (centre (G, 3), reach (G,)), each against the other's face planes:
     a dot product a face, no closest point (inside a convex mesh the nearest exit is a plane's)."""
-    near = near_pairs(x, graph, 0.0)
-    if near is None:
+    high, low = per_graph(x, graph, "amax"), per_graph(x, graph, "amin")
+    near = ((low[a] - high[b] <= 0) & (low[b] - high[a] <= 0)).all(dim=1)
+    if not near.any():
         return None
-    a, b, low, high = near
+    a, b = a[near], b[near]
     own, other = torch.cat([a, b]), torch.cat([b, a])
     pair, node = vertices_near(x, graph, own, other, low, high, 0.0)
     close = (x[node] - centre[other[pair]]).norm(dim=-1) < reach[other[pair]]
     pair, node = pair[close], node[close]
     if len(node) == 0:
         return None
+    # the face planes of only the objects a vertex is inside the bounds of (a crowd's few pairs)
     tri = graph.faces
-    v0 = x[tri[:, 0]]
-    face_graph = graph.node_graph[tri[:, 0]]
-    normal = outward_normals(x, tri, centre[face_graph])
-    offset = (normal * v0).sum(-1)
-    face_counts = torch.bincount(face_graph, minlength=graph.num_graphs)
+    face_counts = torch.bincount(graph.node_graph[tri[:, 0]], minlength=graph.num_graphs)
     face_start = torch.cumsum(face_counts, 0) - face_counts
-    query, k = ragged_arange(face_counts[other[pair]])
-    face = face_start[other[pair[query]]] + k
+    hosts, slot = torch.unique(other[pair], return_inverse=True)
+    host, k = ragged_arange(face_counts[hosts])
+    faces = tri[face_start[hosts][host] + k]
+    normal = outward_normals(x, faces, centre[hosts][host])
+    offset = (normal * x[faces[:, 0]]).sum(-1)
+    host_start = torch.cumsum(face_counts[hosts], 0) - face_counts[hosts]
+    query, k = ragged_arange(face_counts[hosts][slot])
+    face = host_start[slot[query]] + k
     height = (normal[face] * x[node[query]]).sum(-1) - offset[face]   # < 0 behind the face's plane
     # the face of the largest height (the least deep plane) of each vertex: inside if below zero
-    best = smallest_per_group(query, -height)
+    best = smallest_per_group(query, -height, stable=True)
     best = best[height[best] < 0]
     if len(best) == 0:
         return None
@@ -268,16 +274,22 @@ def separation(x: torch.Tensor, graph: GraphBatch, floor_z: float | None = None,
     two objects share the push in inverse proportion to their bounding volume (heavier moves
     less: the graph holds no masses) and an object in several pairs averages its pushes (Jacobi,
     as position-based dynamics), a few iterations. No push takes an object below the floor.
-    Objects that do not overlap are not moved at all."""
+    Objects that do not overlap are not moved at all. A scene none of whose objects moved in an
+    iteration is done: the next would find the same pushes and move them no more, so it is left
+    out of the rest (the same shifts to the bit; after the first iteration of a crowded batch only
+    a scene or two still overlaps)."""
     shift = torch.zeros(graph.num_graphs, 3, dtype=x.dtype, device=x.device)
-    if graph.faces is None:   # lone objects and graphs without scenes: near_pairs finds no pair
+    if graph.faces is None or graph.graph_scene is None or graph.num_graphs < 2:
         return shift
+    a, b = candidate_pairs(graph)
     centre = graph_centres(x, graph)
     reach = per_graph((x - centre[graph.node_graph]).norm(dim=-1), graph, "amax")
     volume = reach ** 3
+    if floor_z is not None:
+        room = (per_graph(x[:, 2], graph, "amin") - floor_z).clamp(min=0)
     for _ in range(iterations):
         y = x + shift[graph.node_graph]
-        found = _pushes(y, graph, centre + shift, reach)
+        found = _pushes(y, graph, centre + shift, reach, a, b)
         if found is None:
             break
         own, other, push = found
@@ -285,7 +297,7 @@ def separation(x: torch.Tensor, graph: GraphBatch, floor_z: float | None = None,
         # at the other's centre sees three faces as near). As a push of the pair's first object:
         push = torch.where((own < other)[:, None], push, -push)
         own, other = torch.minimum(own, other), torch.maximum(own, other)
-        best = smallest_per_group(own * graph.num_graphs + other, -push.norm(dim=-1))
+        best = smallest_per_group(own * graph.num_graphs + other, -push.norm(dim=-1), stable=True)
         own, other, push = own[best], other[best], push[best] * (1 + 1e-6)
         w_own = (volume[other] / (volume[own] + volume[other]))[:, None]
         if floor_z is not None:
@@ -298,9 +310,15 @@ def separation(x: torch.Tensor, graph: GraphBatch, floor_z: float | None = None,
         total = torch.zeros_like(shift).index_add_(0, moved, step)
         count = torch.zeros(graph.num_graphs, dtype=x.dtype, device=x.device).index_add_(
             0, moved, torch.ones(len(moved), dtype=x.dtype, device=x.device))
-        shift = shift + total / count.clamp(min=1)[:, None]
+        new = shift + total / count.clamp(min=1)[:, None]
         if floor_z is not None:
             # the floor does not give way: a push downwards stops where the lowest vertex meets it
-            room = (per_graph(x[:, 2], graph, "amin") - floor_z).clamp(min=0)
-            shift[:, 2] = torch.maximum(shift[:, 2], -room)
+            new[:, 2] = torch.maximum(new[:, 2], -room)
+        moving = torch.zeros(int(graph.graph_scene.max()) + 1, dtype=torch.bool, device=x.device)
+        moving[graph.graph_scene[(new != shift).any(dim=1)]] = True
+        shift = new
+        live = moving[graph.graph_scene[a]]
+        a, b = a[live], b[live]
+        if len(a) == 0:
+            break
     return shift

@@ -115,11 +115,18 @@ def _distance(t1: torch.Tensor, t2: torch.Tensor) -> torch.Tensor:
 
 
 @functools.cache
+def _compiled(fn):
+    """fn through torch.compile (dynamic shapes): its elementwise work fused, equal to fn to
+    rounding (1e-16). It compiles at its first call (tens of seconds), once a process. On a CPU
+    without the C++ compiler inductor needs, fn itself (gns.speedups.compiled warns of it for
+    the network)."""
+    from gns.speedups import cpp_compiler
+    return torch.compile(fn, dynamic=True) if cpp_compiler() else fn
+
+
 def compiled_distance():
-    """_distance through torch.compile (dynamic shapes): its elementwise work fused, ~6x faster
-    on a CPU (experiments/log.md), equal to _distance to rounding (1e-16). It compiles at its
-    first call (tens of seconds), once a process."""
-    return torch.compile(_distance, dynamic=True)
+    """_distance compiled: ~6x faster on a CPU (experiments/log.md)."""
+    return _compiled(_distance)
 
 
 def _beyond_plane(t1: torch.Tensor, t2: torch.Tensor, radius: float) -> torch.Tensor:
@@ -133,6 +140,11 @@ def _beyond_plane(t1: torch.Tensor, t2: torch.Tensor, radius: float) -> torch.Te
     # a sliver's normal is rounding's direction, not one its triangle lies across
     flat = size <= 1e-9 * u.norm(dim=-1) * v.norm(dim=-1)
     return ~flat & ((height > reach).all(1) | (height < -reach).all(1))
+
+
+def _apart(t1: torch.Tensor, t2: torch.Tensor, radius: float) -> torch.Tensor:
+    """Whether either of triangles t1, t2 (M, 3, 3) lies wholly beyond the radius of the other's plane (M,)."""
+    return _beyond_plane(t1, t2, radius) | _beyond_plane(t2, t1, radius)
 
 
 def _faces_near(graph: GraphBatch, own: torch.Tensor, other: torch.Tensor, low: torch.Tensor,
@@ -149,11 +161,12 @@ def _faces_near(graph: GraphBatch, own: torch.Tensor, other: torch.Tensor, low: 
 
 
 def _geometry(x: torch.Tensor, graph: GraphBatch, receiving: torch.Tensor, sending: torch.Tensor,
-              corner: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+              corner: torch.Tensor, compiled: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The vectors (E, 6), signed distances (E, 1) and sending points p_s (E, 3) of edges to
     vertex `corner` (0-2) of face `receiving` from face `sending`, from positions x."""
     tri_r, tri_s = graph.faces[receiving], graph.faces[sending]
-    p_r, p_s = closest_points_on_triangles(x[tri_r], x[tri_s])
+    closest = _compiled(closest_points_on_triangles) if compiled else closest_points_on_triangles
+    p_r, p_s = closest(x[tri_r], x[tri_s])
     normal = outward_normals(x, tri_s, graph_centres(x, graph)[graph.node_graph[tri_s[:, 0]]])
     d = p_r - p_s
     v = x[tri_r.gather(1, corner[:, None])[:, 0]]
@@ -185,7 +198,7 @@ def _face_edges(x: torch.Tensor, graph: GraphBatch, radius: float, compiled: boo
     boxes = ((face_low[fa] <= face_high[fb] + radius) & (face_low[fb] <= face_high[fa] + radius)).all(dim=1)
     fa, fb = fa[boxes], fb[boxes]
     # a third of the pairs whose boxes meet are ruled out by a plane at a fraction of the exact test's cost
-    apart = _beyond_plane(tri[fa], tri[fb], radius) | _beyond_plane(tri[fb], tri[fa], radius)
+    apart = (_compiled(_apart) if compiled else _apart)(tri[fa], tri[fb], radius)
     fa, fb = fa[~apart], fb[~apart]
     if len(fa) == 0:
         return empty, idx, idx, idx
@@ -205,7 +218,7 @@ def _face_edges(x: torch.Tensor, graph: GraphBatch, radius: float, compiled: boo
     sender_graph = graph.node_graph[graph.faces[sending, 0]]
     best = smallest_per_group(vertex * graph.num_graphs + sender_graph, dist)
     receiving, sending, corner = receiving[best], sending[best], corner[best]
-    vectors, signed, p_s = _geometry(x, graph, receiving, sending, corner)
+    vectors, signed, p_s = _geometry(x, graph, receiving, sending, corner, compiled)
     tri_s = graph.faces[sending]
     nearest = (x[tri_s] - p_s[:, None]).norm(dim=-1).argmin(1)
     senders = tri_s.gather(1, nearest[:, None])[:, 0]
@@ -214,8 +227,9 @@ def _face_edges(x: torch.Tensor, graph: GraphBatch, radius: float, compiled: boo
 
 def face_edges(x: torch.Tensor, graph: GraphBatch, radius: float, compiled: bool = False) -> EdgeSet:
     """Face-face collision edges of positions x (N, 3) within `radius` (see the module's doc):
-    `vectors` (E, 6) = [p_r - p_s, x_r - p_r], `signed` (E, 1). `compiled`: the triangle pairs
-    measured by compiled_distance (a model rolled out with compile)."""
+    `vectors` (E, 6) = [p_r - p_s, x_r - p_r], `signed` (E, 1). `compiled`: the plane test, the
+    distances and the closest points of the triangle pairs through compiled code (a model rolled
+    out with compile; a long training, gns.train.CONTACTS_COMPILE_STEPS)."""
     edges, receiving, sending, corner = _face_edges(x, graph, radius, compiled)
     if not (torch.is_grad_enabled() and x.requires_grad) or len(edges.senders) == 0:
         return edges

@@ -142,6 +142,13 @@ class LearnedSimulator(Stepping, nn.Module):
         self.__dict__["_compiled"] = self.__dict__["_compiled_cache"] if compile else None
         self.__dict__["_frozen"] = self.__dict__["_frozen_cache"] if compile and freeze else None
 
+    def compile_contacts(self, on: bool = True) -> None:
+        """Face edges' triangle distances through compiled code (gns.face_contacts.compiled_distance)
+        whatever the network runs as. Training turns it on for runs long enough to repay the
+        compile: the distances are most of a face-edge training step, the network's own compile
+        does not pay there (experiments/log.md)."""
+        self.__dict__["_compiled_contacts"] = on
+
     def run_network(self, *args: torch.Tensor) -> torch.Tensor:
         wrapper = self.__dict__.get("_parallel")
         compiled = self.__dict__.get("_compiled")
@@ -173,7 +180,8 @@ class LearnedSimulator(Stepping, nn.Module):
             return surface_edges(x, graph, self.layout.collision_radius)
         if self.collision_mode == "face":
             from gns.face_contacts import face_edges
-            return face_edges(x, graph, self.layout.collision_radius, compiled=self.__dict__.get("_compiled") is not None)
+            compiled = self.__dict__.get("_compiled") is not None or self.__dict__.get("_compiled_contacts", False)
+            return face_edges(x, graph, self.layout.collision_radius, compiled=compiled)
         return collision_edges(x, graph, self.layout.collision_radius)
 
     def _inputs(self, history: torch.Tensor, graph: GraphBatch, world: torch.Tensor | None = None,

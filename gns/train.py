@@ -1,13 +1,12 @@
 """The training loop: sample windows, one Adam step on the per-node MSE, validate, checkpoint.
 
-A run folder holds `ckpt-NNNNNN.pt` (the newest `train.keep_checkpoints`), `latest.pt`,
-`metrics.jsonl` (one JSON object a line), `config.json`, `provenance.json` (library versions,
-code commit, the data's path and fingerprint; also in every checkpoint) and, with
-`train.tensorboard`, TensorBoard event files in `tb/`. A checkpoint alone rebuilds the model
-(`load_model`) and resumes training exactly: it holds the model with its normalisers, the
-optimiser, the step, the RNG states, the full config and the dataset's feature spec. The
-learning rate is a function of the step and the train.lr_* keys, so there is no separate
-scheduler state to save.
+A run folder holds `ckpt-NNNNNN.pt` (the newest `train.keep_checkpoints`), `latest.pt`, `metrics.jsonl`
+(one JSON object a line), `config.json`, `provenance.json` (library versions, code commit, the data's
+path and fingerprint; also in every checkpoint) and, with `train.tensorboard`, TensorBoard event files
+in `tb/`. A checkpoint alone rebuilds the model (`load_model`) and resumes training exactly: it holds
+the model with its normalisers, the optimiser, the step, the RNG states, the full config and the
+dataset's feature spec. The learning rate is a function of the step and the train.lr_* keys: there is
+no scheduler state to save.
 """
 from __future__ import annotations
 
@@ -33,6 +32,8 @@ from gns.run_folder import (METRICS, StopRequest, World, check_start, progress_b
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 
+CONTACTS_COMPILE_STEPS = 500   # a compile of tens of seconds repays itself in a few hundred steps (log.md)
+
 
 if TYPE_CHECKING:
     from gns.weight_average import WeightAverage
@@ -50,10 +51,9 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
           overwrite: bool = False, log: Callable[[str], None] = print) -> int:
     """Train until cfg.train.steps; returns the final step.
 
-    Launched by torchrun with WORLD_SIZE > 1, each process trains on its share of every global
-    batch of cfg.train.batch_size windows (DistributedDataParallel; see gns.processes): the
-    same updates as one process with that batch, in 1/WORLD_SIZE of the network time. Only
-    rank 0 writes the run folder and logs.
+    Launched by torchrun with WORLD_SIZE > 1, each process trains on its share of every global batch
+    of cfg.train.batch_size windows (DistributedDataParallel; see gns.processes): the same updates as
+    one process with that batch, in 1/WORLD_SIZE of the network time. Only rank 0 writes and logs.
 
     Raises DataError, CheckpointError or TrainingError with one-line messages. Nothing in the
     run folder changes until the data, config and checkpoint have all been checked.
@@ -67,7 +67,7 @@ def train(data_dir: str | Path, run_dir: str | Path, cfg: Config, resume: bool =
     fingerprint = Dataset(data_dir).fingerprint
     rng = _seed(cfg, log)
     sim, optimizer, spec, step, average = _build_model(cfg, data_spec, resumed, rng)
-    _place_model(sim, cfg, device, world)
+    _place_model(sim, cfg, device, world, cfg.train.steps - step)
     resumed_from, ckpt = resumed if resumed else (None, {})
     finished = False
     try:
@@ -150,11 +150,13 @@ def _build_model(cfg: Config, data_spec: ModelSpec, resumed: tuple[Path, dict] |
     return sim, optimizer, spec, step, average
 
 
-def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world: World) -> None:
+def _place_model(sim: LearnedSimulator, cfg: Config, device: torch.device, world: World, steps: int) -> None:
     """The simulator on its device in training mode, under bf16 autocast and compiled if asked, joined to
-    the other processes' (DistributedDataParallel) when there are several."""
+    the other processes' (DistributedDataParallel) when there are several; face edges' triangle
+    distances compiled with `steps` >= CONTACTS_COMPILE_STEPS to go."""
     sim.to(device).train()
     sim.set_speed(cfg.train.autocast, cfg.train.compile)
+    sim.compile_contacts(sim.collision_mode == "face" and steps >= CONTACTS_COMPILE_STEPS)
     if device.type == "cuda":
         torch.cuda.set_device(device)
     if world.size > 1:
@@ -299,9 +301,8 @@ def _stopped(what: str, step: int, last_good: Path | None) -> str:
     return f"{what} at step {step}; training stopped, {kept}"
 
 
-# One optimiser step of the training and its validation: the learning rate as a function of the
-# step, the per-node MSE averaged over pushforward steps, one Adam step, and the validation loss and
-# short rollouts.
+# One optimiser step and its validation: the learning rate by step, the per-node MSE averaged over
+# pushforward steps, one Adam step, and the validation loss and short rollouts.
 
 
 def learning_rate(cfg: Config, step: int) -> float:

@@ -147,3 +147,20 @@ def test_compiled_triangle_distances_are_the_eager_ones_to_rounding():
     e, c = face_edges(x, graph, 0.15), face_edges(x, graph, 0.15, compiled=True)
     assert torch.equal(e.senders, c.senders) and torch.equal(e.receivers, c.receivers)
     assert torch.allclose(e.vectors, c.vectors, atol=1e-12)
+
+
+@pytest.mark.parametrize("steps", [10, 500])
+def test_long_face_edge_trainings_measure_through_the_compiled_distances(monkeypatch, steps):
+    # a training of hundreds of steps repays the distances' compile, a short one (as here in tests) not
+    import gns
+    import gns.face_contacts
+    from gns.config import build_config
+    from gns.run_folder import World
+    from gns.train import CONTACTS_COMPILE_STEPS, _place_model
+    asked = []
+    monkeypatch.setattr(gns.face_contacts, "face_edges", lambda x, graph, radius, compiled: asked.append(compiled))
+    sim = gns.load("movi_a_multi").simulator
+    _place_model(sim, build_config(), torch.device("cpu"), World(), steps)
+    graph, x, _ = _crossed_cubes(0.05)
+    sim.collision_edges(x, graph)
+    assert asked == [steps >= CONTACTS_COMPILE_STEPS]
