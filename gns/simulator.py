@@ -143,8 +143,8 @@ class LearnedSimulator(Stepping, nn.Module):
         self.__dict__["_frozen"] = self.__dict__["_frozen_cache"] if compile and freeze else None
 
     def compile_contacts(self, on: bool = True) -> None:
-        """Face edges' triangle distances through compiled code (gns.face_contacts.compiled_distance)
-        whatever the network runs as. Training turns it on for runs long enough to repay the
+        """Face edges' triangle-pair tests, distances and closest points through compiled code
+        (gns.face_contacts.face_edges' `compiled`) whatever the network runs as. Training turns it on for runs long enough to repay the
         compile: the distances are most of a face-edge training step, the network's own compile
         does not pay there (experiments/log.md)."""
         self.__dict__["_compiled_contacts"] = on
