@@ -46,6 +46,10 @@ class FeatureConfig:
     collision_radius: float = 0.15     # collision edges between objects closer than this, scene units
     # collision edges vertex-vertex or vertex-to-surface (gns.contacts), or face-face (gns.face_contacts)
     collision_mode: str = "vertex"
+    # collision edges also carry v_r - v_s, the two ends' velocities over the last frame (in the
+    # receiving object's heading): with an object turned to its own heading, the sender's latent
+    # holds its velocity in another frame, so the edge function could not form it
+    collision_velocity: bool = False
     frame_stride: int = 1              # train on every k-th recorded frame: the time step is k / frame_rate
     # a node at each object's centre of mass joined to all its vertices (gns.graph.centre_spokes):
     # every vertex two message-passing steps from every other, whatever the mesh

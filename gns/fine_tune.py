@@ -130,7 +130,7 @@ def _untied(state: dict, sim: LearnedSimulator) -> dict:
 # keys a fine-tuning run (train.init_from) may change: the weights keep their shapes
 FINE_TUNE_FREE = ("features.centre_node", "model.processor_repeats", "features.canonical_heading",
                   "features.surface_edges", "features.lowest_vertices", "features.highest_vertices",
-                  "features.collision_radius", "features.collision_mode")
+                  "features.collision_radius", "features.collision_mode", "features.collision_velocity")
 
 
 def incompatibility(config: dict, trained: ModelSpec, cfg: Config, spec: ModelSpec,

@@ -195,6 +195,7 @@ class EncodeProcessDecode(nn.Module):
 #   collision  collision_relative (C, 3)  d = x_r - x_s across two objects, and |d| (C, 1);
 #         only when the dataset has multi-object scenes (ModelSpec.collision_edges); no rest-shape
 #         features (meaningless across objects); the same with either encoding.
+#         collision_velocity (C, 3)  v_r - v_s over the last frame; with features.collision_velocity
 
 
 STD_EPSILON = 1e-5
@@ -334,6 +335,8 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, colli
         collision = (("collision_relative", 3), ("collision_relative_norm", 1))
         if f.collision_mode == "face":
             collision += (("collision_anchor", 3),)
+        if getattr(f, "collision_velocity", False):
+            collision += (("collision_velocity", 3),)
     return FeatureLayout(tuple(node), tuple(edge), floor_z if f.floor_distance else None, f.floor_clip,
                          collision, float(f.collision_radius), bool(f.floor_signed))
 
@@ -379,20 +382,24 @@ def raw_edge_features(layout: FeatureLayout, history: torch.Tensor, graph: Graph
 
 
 # the collision edge groups that are vectors in the world: turned with the receiving object's heading
-COLLISION_VECTORS = frozenset({"collision_relative", "collision_anchor"})
+COLLISION_VECTORS = frozenset({"collision_relative", "collision_anchor", "collision_velocity"})
 
 
-def raw_collision_features(history: torch.Tensor, edges) -> dict[str, torch.Tensor]:
+def raw_collision_features(history: torch.Tensor, edges, velocity: bool = False) -> dict[str, torch.Tensor]:
     """history (N, 3, 3) float64, collision edges s -> r (a gns.graph.EdgeSet) -> {group:
     (C, width) float32}: d = x_r - x_s and |d|, or for surface edges (gns.contacts) the vertex
     minus its closest surface point and the signed distance, in the same two groups; face edges
-    (gns.face_contacts) add the receiver minus its contact point."""
+    (gns.face_contacts) add the receiver minus its contact point; `velocity` adds v_r - v_s
+    (v = x_t - x_{t-1})."""
     if edges.vectors is not None:
         out = {"collision_relative": edges.vectors[:, :3], "collision_relative_norm": edges.signed}
         if edges.vectors.shape[1] == 6:   # face edges: the receiver from its contact point too
             out["collision_anchor"] = edges.vectors[:, 3:]
-        return {k: v.to(torch.float32) for k, v in out.items()}
-    x_t = history[:, -1]
-    d = x_t[edges.receivers] - x_t[edges.senders]
-    return {"collision_relative": d.to(torch.float32),
-            "collision_relative_norm": d.norm(dim=-1, keepdim=True).to(torch.float32)}
+    else:
+        x_t = history[:, -1]
+        d = x_t[edges.receivers] - x_t[edges.senders]
+        out = {"collision_relative": d, "collision_relative_norm": d.norm(dim=-1, keepdim=True)}
+    if velocity:
+        v = history[:, -1] - history[:, -2]
+        out["collision_velocity"] = v.index_select(0, edges.receivers) - v.index_select(0, edges.senders)
+    return {k: v.to(torch.float32) for k, v in out.items()}

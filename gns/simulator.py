@@ -208,7 +208,7 @@ class LearnedSimulator(Stepping, nn.Module):
         if self.layout.collisions:
             world = history if world is None else world
             c = self.collision_edges(world[:, -1], graph)
-            raw = raw_collision_features(world, c)
+            raw = raw_collision_features(world, c, velocity="collision_velocity" in self.collision_normalizers)
             if turn is not None:
                 from gns.symmetry import turn_about_z
                 for name in COLLISION_VECTORS.intersection(raw):

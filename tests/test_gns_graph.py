@@ -222,14 +222,17 @@ def test_flops_count_collision_edges():
 
 
 @torch.no_grad()
-def test_each_object_is_seen_at_its_own_heading_and_the_scene_stays_exactly_equivariant():
+@pytest.mark.parametrize("velocity", [False, True])
+def test_each_object_is_seen_at_its_own_heading_and_the_scene_stays_exactly_equivariant(velocity):
     """features.canonical_heading turns each object to its own heading: an object far from the
-    others predicts what it predicts alone, whichever way they move; collision vectors are turned
-    into the receiver's heading, so a turn of the whole crowded scene about z turns the answer."""
+    others predicts what it predicts alone, whichever way they move; collision vectors (with
+    features.collision_velocity the relative velocity too) are turned into the receiver's heading,
+    so a turn of the whole crowded scene about z turns the answer."""
     import math
     torch.manual_seed(0)
     sim = LearnedSimulator(ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2, processor_repeats=1),
-                           FeatureConfig(collision_radius=R, canonical_heading=True), replace(SPEC, collision_edges=True))
+                           FeatureConfig(collision_radius=R, canonical_heading=True, collision_velocity=velocity),
+                           replace(SPEC, collision_edges=True))
     graph, x = cubes([[0, 0, 0.5], [1.1, 0, 0.5], [6, 0, 0.5]], [0, 0, 0], angles=[0, 0.1, 0.3])
     moves = torch.tensor([[0.02, 0.01, 0.0], [-0.01, 0.03, 0.0], [0.0, -0.02, 0.01]], dtype=torch.float64)
     step = moves[graph.node_graph]
@@ -250,3 +253,24 @@ def test_each_object_is_seen_at_its_own_heading_and_the_scene_stays_exactly_equi
         q = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
         turned = sim.predict_acceleration(history @ q.T, graph)
         assert float((turned - a @ q.T).abs().max() / a.abs().max()) < 1e-5, angle
+
+
+def test_collision_velocity_is_the_relative_velocity_of_the_two_ends():
+    """features.collision_velocity: v_r - v_s over the last frame, 3 more collision inputs; zero
+    when the whole scene moves as one."""
+    from gns.network import make_layout, raw_collision_features
+    graph, x = cubes([[0, 0, 0.5], [1.1, 0, 0.5]], [0, 0])
+    edges = collision_edges(x, graph, R)
+    assert len(edges.senders) > 0
+    moves = torch.tensor([[0.02, 0.01, 0.0], [-0.01, 0.03, 0.005]], dtype=torch.float64)[graph.node_graph]
+    history = torch.stack([x - 2 * moves, x - moves, x], dim=1)
+    got = raw_collision_features(history, edges, velocity=True)["collision_velocity"]
+    want = (moves[edges.receivers] - moves[edges.senders]).to(torch.float32)
+    torch.testing.assert_close(got, want)
+    assert (want.abs().sum(1) > 0).all()
+    together = torch.stack([x - 2 * moves[:1], x - moves[:1], x], dim=1)
+    assert raw_collision_features(together, edges, velocity=True)["collision_velocity"].abs().max() < 1e-7
+    assert "collision_velocity" not in raw_collision_features(history, edges)
+    widths = [make_layout(FeatureConfig(collision_velocity=v), 0.0, True, collisions=True).collision_size
+              for v in (False, True)]
+    assert widths[1] == widths[0] + 3
