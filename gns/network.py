@@ -194,8 +194,8 @@ class EncodeProcessDecode(nn.Module):
 #   With the absolute encoding edges get one constant zero input (E, 1), unnormalised.
 #   collision  collision_relative (C, 3)  d = x_r - x_s across two objects, and |d| (C, 1);
 #         only when the dataset has multi-object scenes (ModelSpec.collision_edges); no rest-shape
-#         features (meaningless across objects); the same with either encoding.
-#         collision_velocity (C, 3)  v_r - v_s over the last frame; with features.collision_velocity
+#         features (meaningless across objects); the same with either encoding. With
+#         features.collision_velocity also collision_velocity (C, 3): v_r - v_s over the last frame.
 
 
 STD_EPSILON = 1e-5
@@ -226,8 +226,7 @@ class Normalizer(nn.Module):
         size = self.sum.shape[0]
         stats = torch.cat([x.sum(0), (x * x).sum(0), x.new_full((1,), x.shape[0])])
         if dist.is_available() and dist.is_initialized():
-            # one vector, summed over the processes of a multi-process run, so that every process
-            # holds the statistics of the whole global batch (identical to one process training it)
+            # one vector summed over the processes: each holds the whole global batch's statistics
             from gns.processes import sum_over_processes
             stats = sum_over_processes(stats)
         if stats[-1] == 0:
@@ -332,11 +331,9 @@ def make_layout(features_cfg, floor_z: float | None, materials_vary: bool, colli
         raise ConfigError("no node features are on: switch on features.velocity or features.rest_position")
     collision = ()
     if collisions:
-        collision = (("collision_relative", 3), ("collision_relative_norm", 1))
-        if f.collision_mode == "face":
-            collision += (("collision_anchor", 3),)
-        if getattr(f, "collision_velocity", False):
-            collision += (("collision_velocity", 3),)
+        collision = ((("collision_relative", 3), ("collision_relative_norm", 1))
+                     + ((("collision_anchor", 3),) if f.collision_mode == "face" else ())
+                     + ((("collision_velocity", 3),) if getattr(f, "collision_velocity", False) else ()))
     return FeatureLayout(tuple(node), tuple(edge), floor_z if f.floor_distance else None, f.floor_clip,
                          collision, float(f.collision_radius), bool(f.floor_signed))
 
@@ -386,18 +383,16 @@ COLLISION_VECTORS = frozenset({"collision_relative", "collision_anchor", "collis
 
 
 def raw_collision_features(history: torch.Tensor, edges, velocity: bool = False) -> dict[str, torch.Tensor]:
-    """history (N, 3, 3) float64, collision edges s -> r (a gns.graph.EdgeSet) -> {group:
-    (C, width) float32}: d = x_r - x_s and |d|, or for surface edges (gns.contacts) the vertex
-    minus its closest surface point and the signed distance, in the same two groups; face edges
-    (gns.face_contacts) add the receiver minus its contact point; `velocity` adds v_r - v_s
-    (v = x_t - x_{t-1})."""
+    """history (N, 3, 3) float64, collision edges s -> r (a gns.graph.EdgeSet) -> {group: (C, width)
+    float32}: d = x_r - x_s and |d|, or for surface edges (gns.contacts) the vertex minus its closest
+    surface point and the signed distance; face edges (gns.face_contacts) add the receiver minus its
+    contact point; `velocity` adds v_r - v_s (v = x_t - x_{t-1})."""
     if edges.vectors is not None:
         out = {"collision_relative": edges.vectors[:, :3], "collision_relative_norm": edges.signed}
         if edges.vectors.shape[1] == 6:   # face edges: the receiver from its contact point too
             out["collision_anchor"] = edges.vectors[:, 3:]
     else:
-        x_t = history[:, -1]
-        d = x_t[edges.receivers] - x_t[edges.senders]
+        d = history[:, -1].index_select(0, edges.receivers) - history[:, -1].index_select(0, edges.senders)
         out = {"collision_relative": d, "collision_relative_norm": d.norm(dim=-1, keepdim=True)}
     if velocity:
         v = history[:, -1] - history[:, -2]
