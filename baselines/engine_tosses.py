@@ -11,7 +11,8 @@ Each synthetic toss takes a random real training toss as its template: its start
 0-2, baselines.toss.initial_state) turned about the vertical by a random angle (the table is
 level and unbounded, so this is a symmetry), the cube's orientation replaced by a uniformly
 random one with probability `random_orientation`, linear and angular speeds scaled by
-U[1 - speed_jitter, 1 + speed_jitter], raised if a corner would start below the table. The three
+U[1 - speed_jitter, 1 + speed_jitter], its height above the table by U[1 - height_jitter, 1 +
+height_jitter], raised if a corner would start below the table. The three
 given frames are the exact free flight into that state; the engine simulates the rest, as many
 frames as the template has.
 """
@@ -51,7 +52,7 @@ def _start_scene(template: Scene, p: np.ndarray, q: Rotation, v: np.ndarray, w: 
 
 def engine_tosses(templates: Sequence[Scene], engine: str, params, count: int, seed: int, frame_rate: float,
                   gravity: float, random_orientation: float = 0.5, speed_jitter: float = 0.2,
-                  floor_z: float = 0.0) -> list[Scene]:
+                  floor_z: float = 0.0, height_jitter: float = 0.0) -> list[Scene]:
     """`count` tosses of one cube simulated by `engine` ("pybullet" or "mujoco") with `params`,
     started from perturbed starts of the templates (see the module doc). Deterministic in seed."""
     if count < 1 or not templates:
@@ -69,6 +70,8 @@ def engine_tosses(templates: Sequence[Scene], engine: str, params, count: int, s
         p, v, w = turn.apply(p), turn.apply(v), turn.apply(w)
         v = v * rng.uniform(1 - speed_jitter, 1 + speed_jitter)
         w = w * rng.uniform(1 - speed_jitter, 1 + speed_jitter)
+        if height_jitter:   # drawn only when asked, so that older datasets stay the same
+            p = p + [0.0, 0.0, (p[2] - floor_z) * (rng.uniform(1 - height_jitter, 1 + height_jitter) - 1)]
         # keep every corner above the table at the start (and over the 2 frames before it)
         half = 0.5 * float(t.scale[0])
         corners = np.array([[x, y, z] for x in (-half, half) for y in (-half, half) for z in (-half, half)])

@@ -25,17 +25,18 @@ SHARD_SCENES = 100
 
 
 def synthetic_stage(out: Path, real_data: Path, engine: str, params: dict, count: int, seed: int,
-                    real_copies: int = 0) -> Dataset:
+                    real_copies: int = 0, jitter: dict | None = None) -> Dataset:
+    """jitter: engine_tosses' perturbations where they are not its defaults (speed_jitter, height_jitter)."""
     real = Dataset(real_data)
     made_from = {"engine": engine, "params": params, "count": count, "seed": seed,
-                 "real_fingerprint": real.fingerprint, "real_copies": real_copies}
+                 "real_fingerprint": real.fingerprint, "real_copies": real_copies, **({"jitter": jitter} if jitter else {})}
     ds = finished_dataset(out, "made_from", made_from, "synthetic")
     if ds is not None:
         return ds
     say(f"synthetic: {count} {engine} tosses from perturbed starts of {real.num_scenes('train')} real ones"
         + (f", and those real ones {real_copies} times" if real_copies else ""))
     scenes = engine_tosses(real.load("train"), engine, baseline_engine(engine)[0](**params), count, seed,
-                           real.frame_rate, GRAVITY) + real.load("train") * real_copies
+                           real.frame_rate, GRAVITY, **(jitter or {})) + real.load("train") * real_copies
     with atomic_folder(out) as tmp:
         splits = {"train": {"num_scenes": len(scenes), "shards": []}}
         for k in range(0, len(scenes), SHARD_SCENES):

@@ -55,6 +55,24 @@ def test_starts_are_turned_templates(templates):
         assert match
 
 
+def test_height_jitter_scales_the_start_height_and_leaves_other_datasets_unchanged(templates):
+    kw = dict(frame_rate=FRAME_RATE, gravity=GRAVITY, random_orientation=0.0, speed_jitter=0.0)
+    plain = engine_tosses(templates, "pybullet", PUBLISHED, 8, seed=0, **kw)
+    none = engine_tosses(templates, "pybullet", PUBLISHED, 8, seed=0, height_jitter=0.0, **kw)
+    assert all(np.array_equal(a.positions, b.positions) for a, b in zip(plain, none))
+    jittered = engine_tosses(templates, "pybullet", PUBLISHED, 8, seed=0, height_jitter=0.3, **kw)
+    starts = [initial_state(t, FRAME_RATE, GRAVITY) for t in templates]
+    ratios = []
+    for s in jittered:
+        p, _, v, _ = initial_state(s, FRAME_RATE, GRAVITY)
+        # its template: the one of the same speed (no speed jitter)
+        p0 = next(p0 for p0, _, v0, _ in starts if abs(np.linalg.norm(v0) - np.linalg.norm(v)) < 1e-6)
+        raised = abs(lowest_corner_height(s)[:HISTORY].min() - 0.05 * 0.5 * float(s.scale[0])) < 1e-6
+        ratios.append(p[2] / p0[2])
+        assert 0.7 - 1e-9 <= ratios[-1] <= 1.3 + 1e-9 or raised
+    assert max(abs(r - 1) for r in ratios) > 0.02
+
+
 def test_bad_arguments(templates):
     with pytest.raises(ValueError):
         engine_tosses(templates, "pybullet", PUBLISHED, 0, 0, FRAME_RATE, GRAVITY)

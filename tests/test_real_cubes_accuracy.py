@@ -26,10 +26,12 @@ def test_tiny_preset_end_to_end_and_rerun(tmp_path, capsys):
     assert (out / "plots" / "accuracy.png").stat().st_size > 1000
     assert "| 2 | GNS |" in (out / "report.md").read_text() and "lowest and highest seed" in (out / "report.md").read_text()
     # the GNS trained on the real tosses (x2) and 4 tosses of the MuJoCo tuned on them
-    assert row["gns_engine_data"]["num_scenes"] == 1 and row["engine_data"] == {"synthetic": 4, "real_copies": 2}
+    assert row["gns_engine_data"]["num_scenes"] == 1
+    assert row["engine_data"] == {"synthetic": 4, "real_copies": 2, "jitter": real_cubes_accuracy.WIDER_STARTS}
     from datagen.shards import Dataset
     mixed = Dataset(out / "data" / "mujoco_n2_s0")
     assert mixed.num_scenes("train") == 4 + 2 * 2
+    assert mixed.meta["made_from"]["jitter"] == real_cubes_accuracy.WIDER_STARTS     # the engine's starts widened
     assert "tuned-MuJoCo tosses" in (out / "report.md").read_text()
     sim, cfg = load_model(export / "real_cubes_n2.pt")   # the exported form loads alone
     assert cfg.features.frame_stride == 8 and cfg.train.all_phases and cfg.augment.body_symmetry
