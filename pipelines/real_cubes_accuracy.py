@@ -126,8 +126,8 @@ PRESETS = {
     # and 16 tosses (each real toss 40 times beside 2000 tosses of the MuJoCo tuned on the same ones)
     # against both engines identified on the same tosses by a 200-evaluation search. At 8 tosses
     # 40,000 steps: 0.3-1.1 points better than 20,000 on each seed, and the engine's tosses from
-    # WIDER_STARTS: 0.2-1.0 better again on each seed, where at 16 tosses they cost 0.2 and 1.7 points
-    # on two seeds (experiments/log.md). ~25 min of one core per seed at 16 tosses, ~25-40 at 8;
+    # WIDER_STARTS: 0.2-1.0 better again on each seed, where at 16 tosses they cost 0.5 points on
+    # the mean of three (experiments/log.md). ~25 min of one core per seed at 16 tosses, ~25-40 at 8;
     # --workers 2 runs two at a time
     "few": Preset(test=96, valid=32, steps={8: 40000, 16: 20000}, seeds=(0, 1, 2), real_only=False,
                   baseline_budget=200, engine_data={8: (2000, 40), 16: (2000, 40)}, engine_jitter={8: WIDER_STARTS},
