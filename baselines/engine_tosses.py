@@ -12,9 +12,9 @@ Each synthetic toss takes a random real training toss as its template: its start
 level and unbounded, so this is a symmetry), the cube's orientation replaced by a uniformly
 random one with probability `random_orientation`, linear and angular speeds scaled by
 U[1 - speed_jitter, 1 + speed_jitter], its height above the table by U[1 - height_jitter, 1 +
-height_jitter], raised if a corner would start below the table. The three
-given frames are the exact free flight into that state; the engine simulates the rest, as many
-frames as the template has.
+height_jitter], raised if a corner would start below the table. The three given frames are the
+exact free flight into that state; the engine simulates the rest, as many frames as the template
+has.
 """
 from __future__ import annotations
 
