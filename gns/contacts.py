@@ -60,15 +60,22 @@ def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
     return torch.where(((d1 <= 0) & (d2 <= 0))[:, None], a, out)
 
 
-def smallest_per_group(group: torch.Tensor, value: torch.Tensor, stable: bool = False) -> torch.Tensor:
-    """Index of the smallest value in each group (groups in ascending order): sort by value,
-    then stably by group, and take each group's first. `stable`: of equal values the first, so
-    that the choice does not depend on what else the arrays hold (the unstable sort's does)."""
-    order = torch.argsort(value, stable=stable)
-    order = order[torch.argsort(group[order], stable=True)]
-    first = torch.ones(len(order), dtype=torch.bool, device=group.device)
-    first[1:] = group[order][1:] != group[order][:-1]
-    return order[first]
+def smallest_per_group(group: torch.Tensor, value: torch.Tensor, size: int | None = None) -> torch.Tensor:
+    """Index of the smallest value in each group (groups in ascending order); of equal values the
+    first, so that the choice does not depend on what else the arrays hold. `size`: the groups
+    are exactly 0..size-1, each present (no sort at all). Two scatters a group, not two argsorts:
+    a crowded batch's face edges reduce millions of candidates a step."""
+    if size is None:
+        _, slot = torch.unique(group, return_inverse=True)
+        size = int(slot.max()) + 1 if len(slot) else 0
+    else:
+        slot = group
+    value = torch.nan_to_num(value, nan=torch.inf)     # a NaN is no group's smallest
+    low = torch.full((size,), torch.inf, dtype=value.dtype, device=value.device).scatter_reduce(0, slot, value, "amin")
+    at = value == low[slot]
+    index = torch.arange(len(group), device=group.device)
+    return torch.full((size,), len(group), dtype=torch.int64, device=group.device).scatter_reduce(
+        0, slot[at], index[at], "amin")
 
 
 @torch.no_grad()
@@ -224,14 +231,14 @@ def outward_normals(x: torch.Tensor, tri: torch.Tensor, centre: torch.Tensor) ->
     return normal * torch.where(((v0 - centre) * normal).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(x.dtype)
 
 
-def _pushes(x: torch.Tensor, graph: GraphBatch, centre: torch.Tensor, reach: torch.Tensor, a: torch.Tensor,
-            b: torch.Tensor):
+def _pushes(x: torch.Tensor, graph: GraphBatch, centre: torch.Tensor, reach: torch.Tensor, low: torch.Tensor,
+            high: torch.Tensor, a: torch.Tensor, b: torch.Tensor):
     """Every vertex of objects a, b (P,) inside the other of its pair: (own, other, push) with push
     (M, 3) the shortest move of the vertex out of the other's convex hull, through the face whose
     plane it is least deep behind. Broad phase as collision_edges, then only the vertices within
     the other's bounding sphere (centre (G, 3), reach (G,)), each against the other's face planes:
-    a dot product a face, no closest point (inside a convex mesh the nearest exit is a plane's)."""
-    high, low = per_graph(x, graph, "amax"), per_graph(x, graph, "amin")
+    a dot product a face, no closest point (inside a convex mesh the nearest exit is a plane's).
+    low, high (G, 3): every graph's bounds."""
     near = ((low[a] - high[b] <= 0) & (low[b] - high[a] <= 0)).all(dim=1)
     if not near.any():
         return None
@@ -256,7 +263,7 @@ def _pushes(x: torch.Tensor, graph: GraphBatch, centre: torch.Tensor, reach: tor
     face = host_start[slot[query]] + k
     height = (normal[face] * x[node[query]]).sum(-1) - offset[face]   # < 0 behind the face's plane
     # the face of the largest height (the least deep plane) of each vertex: inside if below zero
-    best = smallest_per_group(query, -height, stable=True)
+    best = smallest_per_group(query, -height, size=len(node))
     best = best[height[best] < 0]
     if len(best) == 0:
         return None
@@ -285,11 +292,17 @@ def separation(x: torch.Tensor, graph: GraphBatch, floor_z: float | None = None,
     centre = graph_centres(x, graph)
     reach = per_graph((x - centre[graph.node_graph]).norm(dim=-1), graph, "amax")
     volume = reach ** 3
+    # The bounds and positions of the shifted objects, kept up to date for the objects that moved
+    # only: a shift translates an object's bounds as they are (rounding is monotonic, so the same
+    # to the bit as bounds of the shifted vertices), and after the first iteration few objects move.
+    low0, high0 = per_graph(x, graph, "amin"), per_graph(x, graph, "amax")
+    counts = torch.bincount(graph.node_graph, minlength=graph.num_graphs)
+    starts = torch.cumsum(counts, 0) - counts
+    y = x.clone()
     if floor_z is not None:
-        room = (per_graph(x[:, 2], graph, "amin") - floor_z).clamp(min=0)
+        room = (low0[:, 2] - floor_z).clamp(min=0)
     for _ in range(iterations):
-        y = x + shift[graph.node_graph]
-        found = _pushes(y, graph, centre + shift, reach, a, b)
+        found = _pushes(y, graph, centre + shift, reach, low0 + shift, high0 + shift, a, b)
         if found is None:
             break
         own, other, push = found
@@ -297,12 +310,12 @@ def separation(x: torch.Tensor, graph: GraphBatch, floor_z: float | None = None,
         # at the other's centre sees three faces as near). As a push of the pair's first object:
         push = torch.where((own < other)[:, None], push, -push)
         own, other = torch.minimum(own, other), torch.maximum(own, other)
-        best = smallest_per_group(own * graph.num_graphs + other, -push.norm(dim=-1), stable=True)
+        best = smallest_per_group(own * graph.num_graphs + other, -push.norm(dim=-1))
         own, other, push = own[best], other[best], push[best] * (1 + 1e-6)
         w_own = (volume[other] / (volume[own] + volume[other]))[:, None]
         if floor_z is not None:
             # an object on the floor cannot go down: the other takes that push whole
-            low = per_graph(y[:, 2], graph, "amin") - floor_z < 1e-9
+            low = low0[:, 2] + shift[:, 2] - floor_z < 1e-9
             w_own = torch.where((low[own] & (push[:, 2] < 0))[:, None], 0.0, w_own)
             w_own = torch.where((low[other] & (push[:, 2] > 0))[:, None], 1.0, w_own)
         moved = torch.cat([own, other])
@@ -314,9 +327,12 @@ def separation(x: torch.Tensor, graph: GraphBatch, floor_z: float | None = None,
         if floor_z is not None:
             # the floor does not give way: a push downwards stops where the lowest vertex meets it
             new[:, 2] = torch.maximum(new[:, 2], -room)
+        changed = (new != shift).any(dim=1).nonzero()[:, 0]
         moving = torch.zeros(int(graph.graph_scene.max()) + 1, dtype=torch.bool, device=x.device)
-        moving[graph.graph_scene[(new != shift).any(dim=1)]] = True
+        moving[graph.graph_scene[changed]] = True
         shift = new
+        owner, nodes = ragged_take(counts[changed], starts[changed])
+        y[nodes] = x[nodes] + shift[changed[owner]]
         live = moving[graph.graph_scene[a]]
         a, b = a[live], b[live]
         if len(a) == 0:
