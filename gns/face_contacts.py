@@ -215,28 +215,35 @@ def _face_edges(x: torch.Tensor, graph: GraphBatch, radius: float, compiled: boo
                     torch.zeros(0, 1, dtype=x.dtype, device=x.device))
     if graph.faces is None:
         raise ValueError("face collision edges need the graph's faces")
-    near = near_pairs(x, graph, radius)
+    if graph.graph_scene is None or graph.num_graphs < 2:
+        return empty, idx, idx, idx
+    # Which face pairs are near is decided in float32: half the memory traffic of every gather and
+    # test of the millions of candidate pairs of a crowded batch. Each scene is taken to its own
+    # origin first, so that rounding stays at 1e-7 of the scene's extent wherever the scene is,
+    # which changes only near-ties (module doc). The edges' geometry is then computed from x itself.
+    centre = graph_centres(x, graph)
+    scenes = int(graph.graph_scene.max()) + 1
+    origin = torch.zeros(scenes, 3, dtype=x.dtype, device=x.device).index_add_(0, graph.graph_scene, centre)
+    origin = origin / torch.bincount(graph.graph_scene, minlength=scenes).clamp(min=1)[:, None].to(x.dtype)
+    centre = centre - origin[graph.graph_scene]
+    xs = x - origin[graph.graph_scene[graph.node_graph]]
+    near = near_pairs(xs, graph, radius)
     if near is None:
         return empty, idx, idx, idx
     a, b, low, high = near
-    # Which face pairs are near is decided in float32: half the memory traffic of every gather and
-    # test of the millions of candidate pairs of a crowded batch, and rounding at 1e-7 of the
-    # coordinates changes only ties, whose features are the same either way (module doc). The
-    # edges' geometry is then computed in x's precision.
-    tri = x.to(torch.float32)[graph.faces]
+    tri = xs.to(torch.float32)[graph.faces]
     face_low, face_high = tri.amin(dim=1), tri.amax(dim=1)
-    centre = graph_centres(x, graph)
-    reach = per_graph((x - centre[graph.node_graph]).norm(dim=-1), graph, "amax")
+    reach = per_graph((xs - centre[graph.node_graph]).norm(dim=-1), graph, "amax")
     count_a, faces_a = _faces_near(graph, a, b, low, high, radius, tri, face_low, face_high, centre, reach)
     count_b, faces_b = _faces_near(graph, b, a, low, high, radius, tri, face_low, face_high, centre, reach)
     start_a, start_b = torch.cumsum(count_a, 0) - count_a, torch.cumsum(count_b, 0) - count_b
     pair, local = ragged_arange(count_a * count_b)
+    if len(pair) == 0:
+        return empty, idx, idx, idx
     fa = faces_a[start_a[pair] + torch.div(local, count_b[pair], rounding_mode="floor")]
     fb = faces_b[start_b[pair] + local % count_b[pair]]
     # in chunks: objects overlapping far inside each other (a stability test's 100x sizes) put
     # every face of one near every face of the other, and all pairs at once ran out of memory
-    if len(fa) == 0:
-        return empty, idx, idx, idx
     plausible = _compiled(_plausible) if compiled else _plausible
     keep = torch.cat([plausible(tri, face_low, face_high, fa[k:k + CHUNK], fb[k:k + CHUNK], radius)
                       for k in range(0, len(fa), CHUNK)])
