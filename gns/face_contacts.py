@@ -19,11 +19,13 @@ from one other object only the closest is kept, so a vertex has at most one edge
 and the edge count stays that of the vertices near contacts, as with surface edges.
 
 Phases: object pairs whose bounds, one expanded by the radius, overlap (gns.contacts.near_pairs);
-per pair, the triangles of each inside the other's expanded bounds; per pair, every such triangle
+per pair, the triangles of each inside the other's expanded bounds and within the radius of the
+sphere around the other's vertices; per pair, every such triangle
 of one against every such triangle of the other whose expanded boxes overlap and neither of which
 lies wholly beyond the radius on one side of the other's plane; then the exact
 triangle-triangle distance (the 6 vertex-triangle and 9 edge-edge closest points, and where an
-edge passes through the other triangle). Which edges is decided without gradient; the geometry is computed again from x for the chosen triangles, so a
+edge passes through the other triangle). Which edges is decided without gradient and in float32
+(each scene at its own origin); the geometry is computed again from x for the chosen triangles, so a
 differentiable rollout's gradient flows through the contact features too.
 """
 from __future__ import annotations
@@ -117,7 +119,7 @@ def _distance(t1: torch.Tensor, t2: torch.Tensor) -> torch.Tensor:
 @functools.cache
 def _compiled(fn):
     """fn through torch.compile (dynamic shapes): its elementwise work fused, equal to fn to
-    rounding (1e-16). It compiles at its first call (tens of seconds), once a process. On a CPU
+    rounding. It compiles at its first call (tens of seconds), once a process. On a CPU
     without the C++ compiler inductor needs, fn itself (gns.speedups.compiled warns of it for
     the network)."""
     from gns.speedups import cpp_compiler

@@ -304,7 +304,9 @@ def test_a_symmetrized_model_keeps_a_mirror_symmetric_toss_in_its_plane(run):
     plain = gns.load(run / "run", meshes=meshes).rollout(**toss)
     sym = gns.load(run / "run", meshes=meshes, symmetrize="d2").rollout(**toss)
     assert plain.positions[1:, 0, 1].abs().max() > 1e-6       # the network alone is not mirror-symmetric
-    assert sym.positions[:, 0, 1].abs().max() < 1e-9          # averaged over the floor's mirrors it is
+    # averaged over the floor's mirrors it is, to the rounding of float32 network outputs (which
+    # differs with the row a mirror image takes in the batch: 1.3e-9 after 8 steps on one CPU)
+    assert sym.positions[:, 0, 1].abs().max() < 1e-8
     with pytest.raises(ConfigError, match="symmetrize: unknown symmetry group 'd3'"):
         gns.load(run / "run", symmetrize="d3")
 

@@ -164,3 +164,69 @@ def test_long_face_edge_trainings_measure_through_the_compiled_distances(monkeyp
     graph, x, _ = _crossed_cubes(0.05)
     sim.collision_edges(x, graph)
     assert asked == [steps >= CONTACTS_COMPILE_STEPS]
+
+
+def _crowd(seed=5, scenes=2, objects=4, offset=0.0):
+    """Random poses of MOVi-A's shapes, `objects` a scene packed within ~1.5 of each other (many
+    object pairs within the radius, some overlapping), the scenes `offset` apart along x."""
+    from datagen.scenes import get_shape
+    names = ["beveled_cube", "cylinder", "sphere"]
+    lib = MeshLibrary({n: (get_shape(n).vertices, get_shape(n).faces) for n in names})
+    rng = np.random.default_rng(seed)
+    count = scenes * objects
+    graph = lib.pack(lib.shape_ids([names[i] for i in rng.integers(0, 3, count)]),
+                     torch.from_numpy(rng.choice([0.7, 1.4], count)), torch.full((count,), 0.4),
+                     torch.full((count,), 0.3), torch.arange(scenes).repeat_interleave(objects))
+    from gns.geometry import quat_from_axis_angle, quat_to_matrix
+    pos = torch.from_numpy(rng.uniform(-0.8, 0.8, (count, 1, 3))) + offset
+    pos[:, 0, 0] += 5.0 * torch.arange(scenes).repeat_interleave(objects)
+    rot = torch.stack([torch.from_numpy(quat_to_matrix(quat_from_axis_angle(rng.normal(size=3), rng.uniform(0, np.pi))))
+                       for _ in range(count)])[:, None]
+    return graph, vertices_from_poses(graph, pos, rot)[:, 0]
+
+
+def _closest_by_brute_force(x, graph):
+    """Per (receiving vertex, sending object) of the same scene: the smallest distance between a
+    face at the vertex and a face of the object, every face pair measured in float64."""
+    faces, owner = graph.faces, graph.node_graph[graph.faces[:, 0]]
+    best = {}
+    for a in range(graph.num_graphs):
+        for b in range(graph.num_graphs):
+            if a == b or graph.graph_scene[a] != graph.graph_scene[b]:
+                continue
+            fa, fb = (owner == a).nonzero()[:, 0], (owner == b).nonzero()[:, 0]
+            i, j = fa.repeat_interleave(len(fb)), fb.repeat(len(fa))
+            p, q = closest_points_on_triangles(x[faces[i]], x[faces[j]])
+            dist = (p - q).norm(dim=-1).repeat(3)
+            v = faces[i].T.reshape(-1)                   # each pair at each corner of its receiving face
+            low = torch.full((len(x),), torch.inf, dtype=DTYPE).scatter_reduce(0, v, dist, "amin")
+            best.update({(node, b): float(low[node]) for node in v.unique().tolist()})
+    return best
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e4])
+def test_face_edges_are_the_closest_face_pairs_of_a_brute_force_search(offset):
+    # the search's culls (bounds, the other object's sphere, planes) and its float32 choice of
+    # pairs lose no pair within the radius and keep each vertex's closest, wherever the scene is
+    radius = 0.25
+    graph, x = _crowd(offset=offset)
+    truth = _closest_by_brute_force(x, graph)
+    e = face_edges(x, graph, radius)
+    found = {(int(r), int(graph.node_graph[s])): float(d) for r, s, d in zip(e.receivers, e.senders, e.signed[:, 0].abs())}
+    near = {k for k, d in truth.items() if d < radius - 1e-6}
+    assert len(near) >= 50 and any(truth[k] == 0 for k in near)        # a crowd, objects crossing too
+    assert near <= set(found) and set(found) <= {k for k, d in truth.items() if d < radius + 1e-6}
+    assert max(abs(found[k] - truth[k]) for k in found) < 1e-5 * max(1.0, offset)
+    for r, s in zip(e.receivers, e.senders):          # one edge per vertex and other object
+        assert graph.node_graph[r] != graph.node_graph[s]
+    assert len(found) == len(e.receivers)
+
+
+def test_smallest_per_group_takes_the_first_of_equal_values():
+    from gns.contacts import smallest_per_group
+    group = torch.tensor([7, 3, 7, 3, 9, 7, 3])
+    value = torch.tensor([2.0, 1.0, 1.0, 1.0, float("nan"), 1.0, 5.0])
+    assert smallest_per_group(group, value).tolist() == [1, 2, 4]         # groups 3, 7, 9 in order
+    dense = torch.tensor([1, 0, 1, 0])
+    assert smallest_per_group(dense, torch.tensor([3.0, 2.0, 3.0, 4.0]), size=2).tolist() == [1, 0]
+    assert smallest_per_group(torch.zeros(0, dtype=torch.int64), torch.zeros(0)).tolist() == []
