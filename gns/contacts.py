@@ -19,45 +19,14 @@ import torch
 
 from dataclasses import replace
 
+from gns import triangles
 from gns.graph import EdgeSet, GraphBatch, graph_centres, per_graph, ragged_arange
 
 
-def row_dot(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """(u * v).sum(-1) of (M, 3) rows by einsum: ~2.5x faster on CPU, rounded differently."""
-    return torch.einsum("mi,mi->m", u, v)
-
-
-def _sum_dot(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    return (u * v).sum(-1)
-
-
-def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor,
-                              dot=_sum_dot) -> torch.Tensor:
-    """Closest points (M, 3) of triangles (a, b, c) to points p, all (M, 3): the Voronoi-region
-    test of Ericson, Real-Time Collision Detection, 5.1.5, vectorised with where. `dot`: row_dot
-    for new callers; surface edges keep the plain sum, so that the shipped model's rollouts keep
-    their bits."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    bp = p - b
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    cp = p - c
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    tiny = torch.finfo(p.dtype).tiny
-    # inside the face, by barycentric coordinates
-    denom = (va + vb + vc).clamp(min=tiny)
-    out = a + ab * (vb / denom)[:, None] + ac * (vc / denom)[:, None]
-    # edge regions (bc, ac, ab), then vertex regions (c, b, a): later assignments win
-    w = ((d4 - d3) / ((d4 - d3) + (d5 - d6)).clamp(min=tiny))[:, None]
-    out = torch.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[:, None], b + w * (c - b), out)
-    w = (d2 / (d2 - d6).clamp(min=tiny))[:, None]
-    out = torch.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[:, None], a + w * ac, out)
-    w = (d1 / (d1 - d3).clamp(min=tiny))[:, None]
-    out = torch.where(((vc <= 0) & (d1 >= 0) & (d3 <= 0))[:, None], a + w * ab, out)
-    out = torch.where(((d6 >= 0) & (d5 <= d6))[:, None], c, out)
-    out = torch.where(((d3 >= 0) & (d4 <= d3))[:, None], b, out)
-    return torch.where(((d1 <= 0) & (d2 <= 0))[:, None], a, out)
+def closest_point_on_triangle(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """Closest points (M, 3) of triangles (a, b, c) to points p, all (M, 3): Ericson's
+    Voronoi-region test (gns.triangles, on rows)."""
+    return triangles.rows(triangles.closest_point_on_triangle(*(triangles.columns(v) for v in (p, a, b, c))))
 
 
 def smallest_per_group(group: torch.Tensor, value: torch.Tensor, size: int | None = None) -> torch.Tensor:
