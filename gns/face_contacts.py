@@ -49,21 +49,22 @@ def closest_points_on_segments(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Ten
     return triangles.rows(on_1), triangles.rows(on_2)
 
 
-def _closest_stacked(s1: torch.Tensor, s2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    on_1, on_2 = triangles.closest_points_on_triangles(triangles.vertices(s1), triangles.vertices(s2))
+def _closest_stacked(s1: torch.Tensor, s2: torch.Tensor, compiled: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    on_1, on_2 = triangles.closest_points_on_triangles(triangles.vertices(s1), triangles.vertices(s2), compiled)
     return triangles.rows(on_1), triangles.rows(on_2)
 
 
-def _distance_stacked(s1: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
-    return triangles.triangle_distance(triangles.vertices(s1), triangles.vertices(s2))
+def _distance_stacked(s1: torch.Tensor, s2: torch.Tensor, compiled: bool = False) -> torch.Tensor:
+    return triangles.triangle_distance(triangles.vertices(s1), triangles.vertices(s2), compiled)
 
 
 def closest_points_on_triangles(t1: torch.Tensor, t2: torch.Tensor, compiled: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Closest points (M, 3) on triangles t1 and t2 (M, 3, 3): the nearest of each vertex against
     the other triangle and each edge against each edge; triangles that cross, where an edge of one
     passes through the other, meet there (distance 0). `compiled`: through compiled code."""
-    closest = _compiled(_closest_stacked) if compiled else _closest_stacked
-    return closest(triangles.stacked(t1), triangles.stacked(t2))
+    if compiled:
+        return _compiled(_closest_stacked)(triangles.stacked(t1), triangles.stacked(t2), True)
+    return _closest_stacked(triangles.stacked(t1), triangles.stacked(t2))
 
 
 def _distance(t1: torch.Tensor, t2: torch.Tensor) -> torch.Tensor:
@@ -85,7 +86,7 @@ def compiled_distance():
     """_distance compiled: ~4x faster on a CPU (experiments/log.md). The columns are made
     contiguous before the compiled code is entered, which reads them 4x faster so."""
     measure = _compiled(_distance_stacked)
-    return lambda t1, t2: measure(triangles.stacked(t1), triangles.stacked(t2))
+    return lambda t1, t2: measure(triangles.stacked(t1), triangles.stacked(t2), True)
 
 
 def _beyond_plane(t1: torch.Tensor, t2: torch.Tensor, radius: float) -> torch.Tensor:
