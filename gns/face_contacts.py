@@ -42,13 +42,6 @@ VECTORS = 6   # the width of a face edge's vectors: p_r - p_s, v - p_r
 CHUNK = 1 << 16   # triangle pairs measured at once: ~100 MB of temporaries
 
 
-def closest_points_on_segments(p1: torch.Tensor, q1: torch.Tensor, p2: torch.Tensor,
-                               q2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Closest points of segments p1q1 and p2q2, all (M, 3) (gns.triangles, on rows)."""
-    on_1, on_2 = triangles.closest_points_on_segments(*(triangles.columns(v) for v in (p1, q1, p2, q2)))
-    return triangles.rows(on_1), triangles.rows(on_2)
-
-
 def _closest_stacked(s1: torch.Tensor, s2: torch.Tensor, compiled: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     on_1, on_2 = triangles.closest_points_on_triangles(triangles.vertices(s1), triangles.vertices(s2), compiled)
     return triangles.rows(on_1), triangles.rows(on_2)

@@ -5,7 +5,7 @@ rows: every operation is then elementwise on whole columns, with no reduction ov
 axis and no broadcasting of (M,) against (M, 3). On a CPU that runs the triangle-pair distance of
 face edges ~2.5x faster than the same algebra on rows, eager and compiled (compiled, the columns
 must be contiguous: `stacked` copies them so). The functions for rows (contacts.
-closest_point_on_triangle, face_contacts.closest_points_on_triangles, ...) convert at the edge.
+closest_point_on_triangle, face_contacts.closest_points_on_triangles) convert at the edge.
 """
 from __future__ import annotations
 

@@ -6,8 +6,9 @@ from gns_fixtures import cube_meshes
 
 from gns.contacts import surface_edges
 from gns.data import vertices_from_poses
-from gns.face_contacts import closest_points_on_segments, closest_points_on_triangles, face_edges
+from gns.face_contacts import closest_points_on_triangles, face_edges
 from gns.graph import MeshLibrary
+from gns.triangles import closest_points_on_segments, columns, rows
 
 DTYPE = torch.float64
 
@@ -23,7 +24,7 @@ def test_closest_points_on_segments_are_the_nearest_of_dense_samples():
     m = 400
     p1, q1, p2, q2 = (torch.from_numpy(rng.normal(size=(m, 3))) for _ in range(4))
     q2[:50] = p2[:50] + (q1[:50] - p1[:50]) * 0.7        # parallel segments too
-    a, b = closest_points_on_segments(p1, q1, p2, q2)
+    a, b = (rows(v) for v in closest_points_on_segments(*(columns(v) for v in (p1, q1, p2, q2))))
     s = torch.linspace(0, 1, 801, dtype=DTYPE)
     on1 = p1[:, None] + s[None, :, None] * (q1 - p1)[:, None]
     on2 = p2[:, None] + s[None, :, None] * (q2 - p2)[:, None]
