@@ -59,13 +59,17 @@ def _add_edge_function(module: nn.Module, latent: int, hidden: int, hidden_layer
     module.edge_rest = nn.Sequential(*rest)
 
 
-def _edge_messages(module: nn.Module, nodes, edges, senders, receivers) -> torch.Tensor:
-    # The node parts of the first layer are applied once per node, then gathered per edge:
-    # equal to the concatenated form but O(N) instead of O(E). index_select is the gather
-    # x[idx]; its backward (index_add_) is about twice as fast on CPU.
-    projected = (module.edge_in(edges) + module.receiver_in(nodes).index_select(0, receivers)
-                 + module.sender_in(nodes).index_select(0, senders))
-    return module.edge_rest(projected)
+def _edge_messages(module: nn.Module, nodes, edges, senders, receivers, per_node: bool = True) -> torch.Tensor:
+    # per_node: the node parts of the first layer are applied once per node, then gathered per
+    # edge: equal to the concatenated form but O(N) instead of O(E), for mesh edges (E ~ 2N).
+    # Collision edges are fewer than nodes (a vertex has at most one from each other object, most
+    # have none): there the nodes are gathered first and the layer applied per edge. index_select
+    # is the gather x[idx]; its backward (index_add_) is about twice as fast on CPU.
+    if per_node:
+        return module.edge_rest(module.edge_in(edges) + module.receiver_in(nodes).index_select(0, receivers)
+                                + module.sender_in(nodes).index_select(0, senders))
+    return module.edge_rest(module.edge_in(edges) + module.receiver_in(nodes.index_select(0, receivers))
+                            + module.sender_in(nodes.index_select(0, senders)))
 
 
 EdgeLatents = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # edges (E, D), senders (E,), receivers (E,)
@@ -74,10 +78,9 @@ EdgeLatents = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # edges (E, D), s
 class InteractionBlock(nn.Module):
     """One message-passing update with residuals on nodes and edges (see the module docstring).
 
-    The first layer of f_E acts on [E, V_r, V_s]; its node parts are applied once per node and
-    then gathered per edge, which equals the concatenated form but costs O(N) instead of O(E).
-    The mesh edges' function lives on the block itself and the collision edges' in
-    `self.collision`, so checkpoints keep their parameter names.
+    The first layer of f_E acts on [E, V_r, V_s], split per part (_edge_messages). The mesh
+    edges' function lives on the block itself and the collision edges' in `self.collision`, so
+    checkpoints keep their parameter names.
     """
 
     def __init__(self, latent: int, hidden: int, hidden_layers: int, layer_norm: bool = True,
@@ -95,22 +98,19 @@ class InteractionBlock(nn.Module):
         """nodes (N, D), one (edges, senders, receivers) per edge function -> new nodes (N, D)
         and the edge sets with their new edge latents."""
         summed, updated = [], []
-        for function, (edges, senders, receivers) in zip(self.edge_functions(), edge_sets, strict=True):
-            messages = _edge_messages(function, nodes, edges, senders, receivers)
+        for k, (function, (edges, senders, receivers)) in enumerate(zip(self.edge_functions(), edge_sets, strict=True)):
+            messages = _edge_messages(function, nodes, edges, senders, receivers, per_node=k == 0)
             summed.append(torch.zeros_like(nodes).index_add_(0, receivers, messages))
             updated.append((edges + messages, senders, receivers))
         return nodes + self.node_mlp(torch.cat([nodes, *summed], dim=-1)), updated
 
 
 class EdgeFunction(nn.Module):
-    """f_E(E, V_r, V_s) of a further edge set, first layer split per node as in InteractionBlock."""
+    """The layers of f_E(E, V_r, V_s) of a further edge set (InteractionBlock applies them)."""
 
     def __init__(self, latent: int, hidden: int, hidden_layers: int, layer_norm: bool = True):
         super().__init__()
         _add_edge_function(self, latent, hidden, hidden_layers, layer_norm)
-
-    def forward(self, nodes, edges, senders, receivers) -> torch.Tensor:
-        return _edge_messages(self, nodes, edges, senders, receivers)
 
 
 class EncodeProcessDecode(nn.Module):
@@ -140,8 +140,7 @@ class EncodeProcessDecode(nn.Module):
 
     def forward(self, nodes: torch.Tensor, edges: torch.Tensor, senders: torch.Tensor,
                 receivers: torch.Tensor, collision_edges: torch.Tensor | None = None,
-                collision_senders: torch.Tensor | None = None,
-                collision_receivers: torch.Tensor | None = None) -> torch.Tensor:
+                collision_senders: torch.Tensor | None = None, collision_receivers: torch.Tensor | None = None) -> torch.Tensor:
         """nodes (N, node_in), edges (E, edge_in), senders/receivers (E,) int64 -> (N, out_size).
 
         A network with collisions also takes collision_edges (C, collision_edge_in) and their
@@ -166,8 +165,9 @@ class EncodeProcessDecode(nn.Module):
         counts = [num_edges, num_collision_edges][:len(self.edge_encoders())]
         block_flops = sum(
             linear_flops(b.node_mlp, num_nodes)
-            + sum(linear_flops(f.edge_in, n) + linear_flops(f.edge_rest, n) + linear_flops(f.receiver_in, num_nodes)
-                  + linear_flops(f.sender_in, num_nodes) for f, n in zip(b.edge_functions(), counts))
+            + sum(linear_flops(f.edge_in, n) + linear_flops(f.edge_rest, n) + linear_flops(f.receiver_in, rows)
+                  + linear_flops(f.sender_in, rows)
+                  for f, n, rows in zip(b.edge_functions(), counts, (num_nodes, num_collision_edges)))
             for b in self.blocks)
         encoders = linear_flops(self.node_encoder, num_nodes) + sum(
             linear_flops(enc, n) for enc, n in zip(self.edge_encoders(), counts))

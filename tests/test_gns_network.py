@@ -84,3 +84,20 @@ def test_forward_flops_counts_every_linear_layer():
     block = (2 * e * (4 * 5 + 5 * 4) + 2 * 2 * n * 4 * 5 + 2 * n * (8 * 5 + 5 * 4))
     expected = 2 * n * (3 * 5 + 5 * 4) + 2 * e * (1 * 5 + 5 * 4) + 3 * block + 2 * n * (4 * 5 + 5 * 3)
     assert net.forward_flops(n, e) == expected
+
+
+def test_collision_edges_apply_the_node_parts_per_edge_as_the_mesh_edges_do_per_node():
+    from gns.network import _edge_messages
+    torch.manual_seed(0)
+    net = EncodeProcessDecode(node_in=3, edge_in=1, out_size=3, latent=4, hidden=5, hidden_layers=1,
+                              message_passing_steps=1, collision_edge_in=2).double()
+    function = net.blocks[0].collision
+    nodes, edges = torch.randn(9, 4, dtype=torch.float64), torch.randn(3, 4, dtype=torch.float64)
+    senders, receivers = torch.tensor([0, 8, 8]), torch.tensor([5, 5, 1])
+    per_edge = _edge_messages(function, nodes, edges, senders, receivers, per_node=False)
+    per_node = _edge_messages(function, nodes, edges, senders, receivers, per_node=True)
+    torch.testing.assert_close(per_edge, per_node, rtol=1e-12, atol=1e-12)
+    # counted as run: the collision set's node parts once per collision edge, not per node
+    n, e, c = 9, 5, 3
+    encoder, block = 2 * 5 + 5 * 4, 3 * 4 * 5 + 5 * 4
+    assert net.forward_flops(n, e, c) - net.forward_flops(n, e, 0) == 2 * c * (encoder + block)
