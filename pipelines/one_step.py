@@ -177,7 +177,7 @@ def main(argv=None) -> int:
                                                         args.autocast, args.physics)))
     if status:
         return status
-    print(f"{'':14s}{'steps':>7s}  {'position % of size (median)':29s}{'rotation deg (50/90/99%)':28s}spin ratio")
+    print(f"{'':14s}{'steps':>7s}  {'position % of size (median)':29s}{'rotation deg (50/90/99%)':32s}spin ratio")
     for name in ("contact", "airborne", "objects_near"):
         for who, r in ((name.replace("_", " "), res.get(name)), ("  PyBullet", res.get("physics", {}).get(name))):
             if r and r["steps"]:
@@ -185,7 +185,7 @@ def main(argv=None) -> int:
                 position = f"{r['position_error_pct']:.3g} ({r['position_median_pct']:.3g})"
                 rotation = f"{r['rotation_error_deg']:.3g} ({p50:.3g} / {p90:.3g} / {p99:.3g})"
                 spin = f"{r['spin_ratio']:.3f}" if "spin_ratio" in r else ""
-                print(f"{who:14s}{r['steps']:7d}  {position:29s}{rotation:28s}{spin}")
+                print(f"{who:14s}{r['steps']:7d}  {position:29s}{rotation:32s}{spin}")
     if "physics" in res:
         print("PyBullet: the dataset's engine stepped from each step's history (velocities by finite differences)")
     print(f"contact steps hold {100 * res['contact_share_of_rotation_error']:.0f}% of the one-step rotation error")
