@@ -36,8 +36,9 @@ bench_train = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(bench_train)
 
 
-def concatenated_edge_messages(module, nodes, edges, senders, receivers):
-    """The textbook first edge layer: [E, V_r, V_s] gathered per edge, then one Linear (O(E))."""
+def concatenated_edge_messages(module, nodes, edges, senders, receivers, per_node: bool = True):
+    """The textbook first edge layer: [E, V_r, V_s] gathered per edge, then one Linear (O(E)),
+    for every edge set (`per_node`, which part of gns.network._edge_messages applies, is moot)."""
     w = torch.cat([module.edge_in.weight, module.receiver_in.weight, module.sender_in.weight], dim=1)
     x = torch.cat([edges, nodes[receivers], nodes[senders]], dim=1)
     return module.edge_rest(F.linear(x, w, module.edge_in.bias))
