@@ -43,6 +43,18 @@ from gns.spec import ModelSpec
 CONTACT = TrainConfig.contact_threshold  # |a - g| > CONTACT |g|: the step is in contact (gns.data.in_contact)
 
 
+def toss_settings(ds) -> tuple[dict, int, float, int]:
+    """The config, seed, frame rate and physics steps a frame of a `datagen toss` dataset, or the
+    DataError that --physics cannot run on it (checked before the model pass, so it comes first)."""
+    if ds.meta.get("generator") != "datagen toss" or "config" not in ds.meta:
+        raise DataError(f"{ds.root}: --physics needs a dataset made by `datagen toss` (its config rebuilds the scenes)")
+    cfg, rate = ds.meta["config"], float(ds.frame_rate)
+    sub = round(float(cfg["physics"]["rate"]) / rate)
+    if abs(sub * rate - float(cfg["physics"]["rate"])) > 1e-9:
+        raise DataError(f"{ds.root}: read at {rate} fps, which does not divide its physics rate {cfg['physics']['rate']} Hz")
+    return cfg, int(ds.meta["seed"]), rate, sub
+
+
 def physics_from_history(ds, scenes: list, frames: int) -> tuple[np.ndarray, np.ndarray]:
     """PyBullet as `datagen toss` made the dataset, one frame from each frame t in 2 .. frames-2
     of every scene, started from the recorded poses at t with velocities from frames t-1 and t:
@@ -54,13 +66,7 @@ def physics_from_history(ds, scenes: list, frames: int) -> tuple[np.ndarray, np.
     from datagen.scenes import sample_scene
     from datagen.shards import wxyz, xyzw
     from datagen.toss import build_world
-    if ds.meta.get("generator") != "datagen toss" or "config" not in ds.meta:
-        raise DataError(f"{ds.root}: --physics needs a dataset made by `datagen toss` (its config rebuilds the scenes)")
-    cfg, seed = ds.meta["config"], int(ds.meta["seed"])
-    rate = float(ds.frame_rate)
-    sub = round(float(cfg["physics"]["rate"]) / rate)
-    if abs(sub * rate - float(cfg["physics"]["rate"])) > 1e-9:
-        raise DataError(f"{ds.root}: read at {rate} fps, which does not divide its physics rate {cfg['physics']['rate']} Hz")
+    cfg, seed, rate, sub = toss_settings(ds)
     lag = np.asarray(cfg["physics"]["gravity"], float) * (1 - 1 / sub) / (2 * rate)
     pos_err, rot_err, client = [], [], pb.connect(pb.DIRECT)
     try:
@@ -102,6 +108,8 @@ def one_step_errors(run, data, split: str = "test", limit: int | None = None, sy
     sim.eval()
     spec = ModelSpec.from_dict(saved["spec"])
     ds, scenes = load_split(data, split, limit, spec.frame_rate)
+    if physics:
+        toss_settings(ds)
     tracks = ObjectTracks(scenes, sim.mesh_library(ds.meshes), name=f"{split} split")
     frames = int(tracks.length.min())
     which = torch.arange(tracks.num_tracks)

@@ -73,7 +73,7 @@ def test_physics_from_the_history_is_exact_in_flight_and_not_through_a_bounce(tm
 
 
 @pytest.mark.filterwarnings("ignore:outside training")
-def test_a_collision_model_gets_its_objects_near_steps_beside_physics_and_other_data_one_error_line(tmp_path, capsys):
+def test_a_collision_model_gets_its_objects_near_steps_beside_physics_and_other_data_one_error_line(tmp_path, capsys, monkeypatch):
     data = _tosses(tmp_path / "multi", "scene.frames=8", "scene.shapes=['beveled_cube', 'sphere']",
                    'scene.objects="3-4"', train=3, test=2)
     train(data, tmp_path / "run", tiny("train.steps=2", "valid.every=0", "features.centre_node=true",
@@ -86,6 +86,11 @@ def test_a_collision_model_gets_its_objects_near_steps_beside_physics_and_other_
     assert main(["--run", str(tmp_path / "run"), "--data", str(data), "--physics"]) == 0
     assert "objects near" in capsys.readouterr().out
     cubes = write_toss_dataset(tmp_path / "cubes", train=3, valid=2, frames=12)
+    from gns.simulator import LearnedSimulator
+
+    def no_model_pass(*args, **kwargs):
+        raise AssertionError("the model ran before the dataset was checked")
+    monkeypatch.setattr(LearnedSimulator, "predict_next", no_model_pass)   # the error comes first
     assert main(["--run", str(tmp_path / "run"), "--data", str(cubes), "--split", "valid", "--physics"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--physics needs a dataset made by `datagen toss`" in err[0]
