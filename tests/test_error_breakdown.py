@@ -66,10 +66,31 @@ def test_meeting_labels_split_objects_by_their_first_meeting_with_another():
                ["metal"] * 3, np.ones(3), np.ones(3), np.ones(3), np.ones(3))
     labels = meeting_labels([sc], {"cube": cube})[0]
     radius_sum = 2 * np.sqrt(3) / 2                           # bounding spheres touch below this distance
-    first = int(np.argmax(np.abs(x[:, 0, 0]) < radius_sum))
+    # on the way to frame t the gap is |x_t| less the radii and half of the 0.6 the object moves a frame
+    first = int(np.argmax(np.abs(x[:, 0, 0]) < radius_sum + 0.3))
     assert labels[:, 2].tolist() == [0] * T
     assert labels[:, 0].tolist() == [1] * first + [2] * (T - first) == labels[:, 1].tolist()
     errors = [{"position_error_pct": np.arange(T * 3, dtype=float).reshape(T, 3),
                "rotation_error_deg": np.ones((T, 3))}]
     rows = by_meeting(errors, [labels])
     assert [r["group"] for r in rows][0].startswith("never") and abs(sum(r["share_of_frames"] for r in rows) - 1) < 1e-12
+
+
+def test_objects_that_meet_between_two_frames_are_not_counted_as_never_near():
+    import numpy as np
+    from datagen.shards import Scene
+    from pipelines.error_breakdown import meeting_labels, swept_touch
+    cube = (np.array([[x, y, z] for x in (-.5, .5) for y in (-.5, .5) for z in (-.5, .5)]), np.zeros((0, 3), int))
+    T = 4
+    x = np.zeros((T, 2, 3))
+    x[:, 0, 0] = [-6.0, -2.0, 2.0, 6.0]     # object 0 flies past object 1 (at the origin), 4 a frame,
+    x[:, 0, 1] = 0.5                        # 0.5 off its centre: the spheres (radius 0.87) meet between frames
+    sc = Scene(x, np.tile([1.0, 0, 0, 0], (T, 2, 1)), np.zeros((T, 2, 3)), np.zeros((T, 2, 3)), ["cube"] * 2,
+               ["metal"] * 2, np.ones(2), np.ones(2), np.ones(2), np.ones(2))
+    assert not (np.linalg.norm(x[:, 0] - x[:, 1], axis=-1) < np.sqrt(3)).any()   # never touching at a frame
+    # within reach from frame 1 on: the path from frame 0 ends 2.06 away, less than the radii and half the move
+    assert swept_touch(sc, {"cube": cube}).tolist() == [[False, False], [True, True], [True, True], [True, True]]
+    assert meeting_labels([sc], {"cube": cube})[0].tolist() == [[1, 1], [2, 2], [2, 2], [2, 2]]
+    x[:, 0, 1] = 5.0                        # the same flight 5 to the side: farther than radii and half a move
+    assert not swept_touch(sc, {"cube": cube}).any()
+    assert (meeting_labels([sc], {"cube": cube})[0] == 0).all()
