@@ -62,7 +62,7 @@ def swept_touch(sc, meshes: dict) -> np.ndarray:
     that bends within the frame, a bounce off the floor, strays from its chord by up to half its
     length). At 12 fps a thrown object covers half a size a frame, so two can meet and part
     between recorded frames: judged at the frames alone, the objects of 100 crowded scenes that
-    never met scored 20.4% position error under `movi_a` (10.8% on single-object scenes), and PyBullet
+    never met scored 20.5% position error under `movi_a` (10.8% on single-object scenes), and PyBullet
     alone took the worst of them metres off their recorded paths; judged this way, 11.5%
     (experiments/log.md)."""
     gap = bounding_gaps(sc, meshes)                                   # (T, N, N) at the frames
