@@ -11,8 +11,9 @@ Rolls out a split as `gns eval` does and prints three tables:
   on trajectories that are right?);
 - rotation by true spin: the same binned by the true turn per frame;
 - in scenes of several objects, by meeting: object-frames of objects that never come near another
-  (their bounding spheres never touch in the truth, at a frame or between two), and of the others before and after their
-  first meeting (is the error the contacts between objects', or what follows them?).
+  (their bounding spheres never touch in the truth, at a frame or between two), and of the others
+  before and after their first meeting (is the error the contacts between objects', or what
+  follows them?).
 `--split train` on a model's own training scenes against `--split test` tells overfitting
 from underfitting (experiments/log.md).
 """
@@ -70,8 +71,6 @@ def swept_touch(sc, meshes: dict) -> np.ndarray:
     reach = np.linalg.norm(offset, axis=-1) - gap                     # the two radii (inf on the diagonal)
     d0, step = offset[:-1], offset[1:] - offset[:-1]
     s = np.clip(-(d0 * step).sum(-1) / np.maximum((step * step).sum(-1), 1e-300), 0.0, 1.0)
-    # nearest on the way, less half of the two centres' moves: a path that bends within the
-    # frame (a bounce off the floor) strays from the straight line by up to half its length
     moved = np.linalg.norm(sc.positions[1:] - sc.positions[:-1], axis=-1)          # (T-1, N)
     between = np.linalg.norm(d0 + s[..., None] * step, axis=-1) - reach[1:] - (moved[:, :, None] + moved[:, None]) / 2
     return np.concatenate([gap[:1] < 0, (np.minimum(gap[1:], between) < 0)]).any(axis=2)
