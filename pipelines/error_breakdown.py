@@ -62,10 +62,8 @@ def swept_touch(sc, meshes: dict) -> np.ndarray:
     t-1 to t: the gap between the two centres' straight paths, less half of the two moves (a path
     that bends within the frame, a bounce off the floor, strays from its chord by up to half its
     length). At 12 fps a thrown object covers half a size a frame, so two can meet and part
-    between recorded frames: judged at the frames alone, the objects of 100 crowded scenes that
-    never met scored 20.5% position error under `movi_a` (10.8% on single-object scenes), and PyBullet
-    alone took the worst of them metres off their recorded paths; judged this way, 11.5%
-    (experiments/log.md)."""
+    between recorded frames; judged at the frames alone, such objects were counted as never
+    meeting (experiments/log.md, 2026-12-07)."""
     gap = bounding_gaps(sc, meshes)                                   # (T, N, N) at the frames
     offset = sc.positions[:, :, None] - sc.positions[:, None]         # (T, N, N, 3) between centres
     reach = np.linalg.norm(offset, axis=-1) - gap                     # the two radii (inf on the diagonal)
