@@ -8,7 +8,8 @@ A checkpoint is a `torch.save` dict of format CHECKPOINT_FORMAT: "format", "step
 "optimizer", "rng" and "train_seconds" (the seconds of training that reached it, resumed segments
 summed), and with `train.ema_decay` "trained" (the weights training goes on from;
 "model" then holds their moving average, gns.weight_average). An exported model
-(gns.zoo.export_model) drops the last three. docs/model.md documents the keys.
+(gns.zoo.export_model) drops the last three, and may carry "contact": the exported model of
+its contact network (LearnedSimulator.set_contact_model). docs/model.md documents the keys.
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ CHECKPOINT_FORMAT = 1
 LATEST = "latest.pt"
 TRAINED = "trained"
 TRAIN_SECONDS = "train_seconds"
+CONTACT = "contact"   # an exported model's contact network (gns.zoo.export_model), a checkpoint dict itself
 
 
 def checkpoint_of(run: str | Path) -> Path:
@@ -186,6 +188,13 @@ def load_model(checkpoint: str | Path | dict, device: str | torch.device = "cpu"
     if options is not None and (options.autocast != "none" or options.compile):
         # rollouts only: freezing takes the weights as they are now, which a rollout keeps
         sim.set_speed(options.autocast, options.compile, freeze=options.compile)
+    if CONTACT in ckpt:
+        where = "" if isinstance(checkpoint, dict) else f"{checkpoint}: "
+        contact = load_model(ckpt[CONTACT], device, options)[0]
+        try:
+            sim.set_contact_model(contact)
+        except ValueError as e:
+            raise CheckpointError(f"{where}{e}") from None
     return sim, cfg
 
 

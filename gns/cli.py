@@ -259,8 +259,10 @@ def cmd_export(args: argparse.Namespace) -> None:
     from gns.checkpoint import checkpoint_of
     from gns.zoo import export_model
 
-    out = export_model(checkpoint_of(args.run_dir), args.out, overwrite=args.overwrite)
-    print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB): model, config and training ranges, no optimiser state")
+    contact = None if args.contact is None else checkpoint_of(args.contact)
+    out = export_model(checkpoint_of(args.run_dir), args.out, overwrite=args.overwrite, contact=contact)
+    print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB): model, config and training ranges, no optimiser state"
+          + ("; with its contact network" if contact else ""))
 
 
 def add_export_parser(sub) -> None:
@@ -271,6 +273,9 @@ def add_export_parser(sub) -> None:
     x.add_argument("--out", required=True, metavar="FILE", help="output .pt file")
     x.add_argument("--overwrite", action="store_true",
                    help="replace an earlier exported model at FILE (never a run's checkpoint or another file)")
+    x.add_argument("--contact", metavar="RUN",
+                   help="a second model of the same graphs (run folder or .pt) that rolls out the objects "
+                        "touching another: a contact network (docs/model.md)")
     x.set_defaults(run=cmd_export)
 
 

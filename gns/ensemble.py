@@ -29,9 +29,10 @@ def _surface_free(settings: dict, other: LearnedSimulator) -> dict:
     return settings
 
 
-def check_members(model: LearnedSimulator, members: Sequence[LearnedSimulator]) -> None:
+def check_members(model: LearnedSimulator, members: Sequence[LearnedSimulator], role: str = "ensemble member") -> None:
     """ValueError naming the first member that reads other graphs than `model`: another network
-    mesh, floor, collision edges, time step or nodes seen (LearnedSimulator.set_ensemble)."""
+    mesh, floor, collision edges, time step or nodes seen (LearnedSimulator.set_ensemble, and
+    set_contact_model with `role` "contact network")."""
     for k, m in enumerate(members, 1):
         for what, mine, theirs in (("network mesh (features.centre_node, surface_edges)",
                                     _surface_free(model._graph_settings, m), _surface_free(m._graph_settings, model)),
@@ -45,7 +46,8 @@ def check_members(model: LearnedSimulator, members: Sequence[LearnedSimulator]) 
                                     (model.lowest_vertices, model.highest_vertices),
                                     (m.lowest_vertices, m.highest_vertices))):
             if mine != theirs:
-                raise ValueError(f"ensemble member {k} differs from the model in its {what}: "
+                who = f"{role} {k}" if role == "ensemble member" else role
+                raise ValueError(f"{who} differs from the model in its {what}: "
                                  f"{theirs} there, {mine} in the model")
 
 

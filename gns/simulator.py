@@ -16,14 +16,13 @@ from dataclasses import replace
 import torch
 from torch import nn
 
-from gns.network import (COLLISION_VECTORS, FeatureLayout, Normalizer, make_layout, raw_collision_features, raw_edge_features,
-                         raw_node_features)
 from gns.config import ConfigError
-from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes, select_graph_nodes, select_nodes
-from gns.network import EncodeProcessDecode
-from gns.spec import OptionsError, RolloutOptions
+from gns.contact_network import check_contact, split_acceleration
 from gns.geometry import acceleration_of, fit_packed, integrate, posed, shape_match_packed
-from gns.spec import ModelSpec
+from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes, select_graph_nodes, select_nodes
+from gns.network import (COLLISION_VECTORS, EncodeProcessDecode, FeatureLayout, Normalizer, make_layout,
+                         raw_collision_features, raw_edge_features, raw_node_features)
+from gns.spec import ModelSpec, OptionsError, RolloutOptions
 from gns.stepping import Stepping
 
 # the options applied when a model is loaded (gns.checkpoint.load_simulator), not per rollout
@@ -36,6 +35,7 @@ class LearnedSimulator(Stepping, nn.Module):
 
     autocast: torch.dtype | None = None  # the network (only) runs in this dtype under autocast (train.autocast)
     autocast_used: str = "none"  # what set_speed took: "none" or "bf16" ("auto" resolved)
+    contact_model: "LearnedSimulator | None" = None  # set_contact_model
 
     def __init__(self, model_cfg, features_cfg, spec: ModelSpec | Mapping, options: RolloutOptions | None = None):
         super().__init__()
@@ -144,9 +144,9 @@ class LearnedSimulator(Stepping, nn.Module):
 
     def compile_contacts(self, on: bool = True) -> None:
         """Face edges' triangle-pair tests, distances and closest points through compiled code
-        (gns.face_contacts.face_edges' `compiled`) whatever the network runs as. Training turns it on for runs long enough to repay the
-        compile: the distances are most of a face-edge training step, the network's own compile
-        does not pay there (experiments/log.md)."""
+        (gns.face_contacts.face_edges' `compiled`) whatever the network runs as. Training turns it
+        on for runs long enough to repay the compile: the distances are most of a face-edge
+        training step, the network's own compile does not pay there (experiments/log.md)."""
         self.__dict__["_compiled_contacts"] = on
 
     def run_network(self, *args: torch.Tensor) -> torch.Tensor:
@@ -264,10 +264,20 @@ class LearnedSimulator(Stepping, nn.Module):
         """The ensemble members set by set_ensemble (empty without)."""
         return list(self.__dict__.get("_members") or ())
 
+    def set_contact_model(self, contact: "LearnedSimulator") -> None:
+        """Roll out the objects in contact with `contact`, a contact network (gns.contact_network)."""
+        check_contact(self, contact)
+        self.__dict__["contact_model"] = contact   # kept out of the module tree, as ensemble members are
+
     def predict_acceleration(self, history: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         """(N, 3, 3) float64 -> acceleration (N, 3) float64, scene units per frame^2: this model's
         prediction, averaged with its ensemble members' (set_ensemble) if any, each symmetrized
-        as this model is asked to be."""
+        as this model is asked to be; its contact network's for the objects in contact."""
+        if self.contact_model is not None:
+            return split_acceleration(self, self.contact_model, history, graph)
+        return self._own_acceleration(history, graph)
+
+    def _own_acceleration(self, history: torch.Tensor, graph: GraphBatch) -> torch.Tensor:
         acc = self._predict_one(history, graph, self.symmetrize, self.options.body_frames)
         members = self.__dict__.get("_members")
         if not members:  # the rollout's hot path: no extra tensor work without an ensemble

@@ -106,9 +106,18 @@ def format_card(name: str) -> str:
     return "\n".join(out)
 
 
-def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool = False) -> Path:
+def _slim(ckpt: dict) -> dict:
+    # an exported model's contact network goes along (gns.checkpoint.CONTACT)
+    return {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance", "train_seconds",
+                                 "contact") if k in ckpt}
+
+
+def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool = False,
+                 contact: str | Path | None = None) -> Path:
     """A checkpoint without the optimiser and random state (about half the size): enough to
-    roll out and evaluate (load_model), not to resume training.
+    roll out and evaluate (load_model), not to resume training. With `contact` (another
+    checkpoint of the same graphs) that model goes in as the contact network: it rolls out the
+    objects in contact (LearnedSimulator.set_contact_model), checked by loading the two here.
 
     An existing `out` is replaced only with `overwrite` and only if it is itself an exported
     model: a full checkpoint (a run's latest.pt, say) or another file is never replaced."""
@@ -127,7 +136,11 @@ def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool =
             raise DataError(f"{out} exists and is not an exported gns model; refusing to replace it")
     check_writable(out.parent, "output folder")
     out.parent.mkdir(parents=True, exist_ok=True)
-    slim = {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance", "train_seconds") if k in ckpt}
+    slim = _slim(ckpt)
+    if contact is not None:
+        from gns.checkpoint import CONTACT, load_model
+        slim[CONTACT] = _slim(read_checkpoint(contact))
+        load_model(slim)   # CheckpointError now, not when it is used, if the two do not go together
     with atomic_file(out, mode=0o644) as tmp:  # an exported model is meant to be shared
         torch.save(slim, tmp)
     return out

@@ -7,6 +7,9 @@ A recipe is data: the training data it needs, the model preset, settings shared 
 then stages. Each stage starts from the last one's weights (train.init_from) and inherits its
 settings, changing only those it names; a stage with `cycles = n` is one schedule of n warm
 restarts (each cycle from the last one's weights, the learning rate restarted, the next seed).
+A stage with `contact = true` trains a contact network (LearnedSimulator.set_contact_model) from
+the last run's weights: the model is then the last other run, with the last contact run rolling
+out its objects in contact.
 Every stage and cycle is a run folder of its own (OUT/runs/NAME[_k]); a rerun skips what is done
 and resumes what was interrupted. At the end the model is exported to OUT/model.pt and scored on
 the data's test split with each zoo card's rollout options (OUT/report.md, OUT/results.json).
@@ -34,6 +37,7 @@ class Run:
     steps: int
     seed: int
     overrides: tuple[str, ...]   # gns train --set, on top of the model preset
+    contact: bool = False        # trains the contact network
 
 
 @dataclass(frozen=True)
@@ -90,9 +94,11 @@ def load_recipe(name: str) -> Recipe:
         sets = tuple(f"{k}={_value(v)}" for k, v in settings.items())
         for k in range(cycles):
             runs.append(Run(stage["name"] if cycles == 1 else f"{stage['name']}_{k + 1}", int(stage["steps"]),
-                            int(stage["seed"]) + k, sets))
+                            int(stage["seed"]) + k, sets, bool(stage.get("contact", False))))
     if not runs:
         raise DataError(f"{where}: no [[stage]]")
+    if all(r.contact for r in runs):
+        raise DataError(f"{where}: every stage trains a contact network; the model itself needs one")
     return Recipe(path.stem, tuple(raw.get("zoo", ())), raw.get("model", "gns_cpu"), raw.get("cost", ""),
                   raw.get("data", {}), tuple(runs))
 
@@ -163,20 +169,26 @@ def data_stage_of(recipe: Recipe, out: Path, data: Path | None, src: Path | None
 
 
 def train_recipe(recipe: Recipe, out: Path, data: Path | None = None, src: Path | None = None,
-                 workers: int = 2) -> tuple[Path, Path | None]:
-    """Every run of the recipe in order; returns the last run's checkpoint and the test data."""
+                 workers: int = 2) -> tuple[Path, Path | None, Path | None]:
+    """Every run of the recipe in order; returns the model's checkpoint (the last run's that is not
+    a contact network's), its contact network's (the last contact run's, or None) and the test data."""
     from pipelines.common import say, train_stage
     ds, test = data_stage_of(recipe, out, data, src, workers)
-    previous = None
+    previous = ckpt = contact = None
     for k, r in enumerate(recipe.runs):
-        say(f"recipe {recipe.name}: run {k + 1} of {len(recipe.runs)}, {r.name} ({r.steps} steps, seed {r.seed})")
-        ckpt = train_stage(ds.root, out / "runs" / r.name, recipe.model.removeprefix("gns_"),
-                           run_overrides(r, previous))
-        previous = ckpt.parent
-    return ckpt, test
+        say(f"recipe {recipe.name}: run {k + 1} of {len(recipe.runs)}, {r.name} ({r.steps} steps, seed {r.seed}"
+            f"{', the contact network' if r.contact else ''})")
+        trained = train_stage(ds.root, out / "runs" / r.name, recipe.model.removeprefix("gns_"),
+                              run_overrides(r, previous))
+        previous = trained.parent
+        if r.contact:
+            contact = trained
+        else:
+            ckpt = trained
+    return ckpt, contact, test
 
 
-def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None) -> dict | None:
+def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None, contact: Path | None = None) -> dict | None:
     """The exported model scored as each zoo card says (its rollout options, on the recipe's test
     data), or with the default options for a recipe outside the zoo; None, the model exported
     unscored, when the data has no test scenes."""
@@ -186,7 +198,7 @@ def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None) -> dict | No
     from gns.spec import RolloutOptions
     from gns.zoo import export_model
     from gns.evaluate import write_json
-    model = export_model(ckpt, out / "model.pt", overwrite=True)
+    model = export_model(ckpt, out / "model.pt", overwrite=True, contact=contact)
     if test is not None and Dataset(test).num_scenes("test") == 0:
         say(f"model: {model}; not scored: {test} has no test scenes")
         return None
@@ -240,8 +252,8 @@ def main(argv=None) -> int:
     def stages():
         recipe = load_recipe(a.recipe)
         out = a.out or Path("runs") / f"recipe_{recipe.name}"
-        ckpt, test = train_recipe(recipe, out, a.data, a.src, a.workers)
-        if score(recipe, out, ckpt, test) is not None:
+        ckpt, contact, test = train_recipe(recipe, out, a.data, a.src, a.workers)
+        if score(recipe, out, ckpt, test, contact) is not None:
             say(f"report: {out / 'report.md'}")
     return guarded(stages)
 

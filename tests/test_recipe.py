@@ -51,9 +51,29 @@ def test_a_recipe_whose_data_has_no_test_split_exports_its_model_unscored(tmp_pa
     assert "not scored" in capsys.readouterr().err
 
 
+def test_a_contact_stage_trains_the_contact_network_the_model_carries(tmp_path):
+    """A stage with contact = true goes on from the run before it; the model is the last other
+    run's, with the contact run's network inside (gns.checkpoint.CONTACT)."""
+    from gns.checkpoint import CONTACT, load_model
+    text = (config_dir() / "recipes" / "tiny.toml").read_text()
+    text = text[:text.index("[[stage]]\nname = \"b\"")].replace('frames = 8 }', 'frames = 8, objects = "2" }')
+    text = text.replace("[settings.valid]", "[settings.features]\ncollision_mode = \"vertex\"\n\n[settings.valid]")
+    text += "\n[[stage]]\nname = \"touch\"\nsteps = 4\nseed = 5\ncontact = true\n"
+    (tmp_path / "r.toml").write_text(text)
+    out = tmp_path / "out"
+    assert recipe_main([str(tmp_path / "r.toml"), "--out", str(out), "--workers", "1"]) == 0
+    touch = read_checkpoint(out / "runs" / "touch" / "latest.pt")
+    assert touch["config"]["train"]["init_from"] == str(out / "runs" / "a") and touch["step"] == 4
+    model = read_checkpoint(out / "model.pt")
+    assert model["step"] == 12 and model[CONTACT]["step"] == 4
+    assert load_model(out / "model.pt")[0].contact_model is not None
+    assert (out / "results.json").is_file()
+
+
 @pytest.mark.parametrize("text, message", [
     ("zoo = []\n", "no [[stage]]"),
     ("[[stage]]\nname = 'a'\nsteps = 3\n", "stage 1 has no seed"),
+    ("[[stage]]\nname = 'a'\nsteps = 3\nseed = 0\ncontact = true\n", "every stage trains a contact network"),
     ("[data]\nkind = 'x'\n[[stage]]\nname = 'a'\nsteps = 3\nseed = 0\n", "unknown data kind 'x'"),
     ("[data]\nkind = 'contactnets'\n[[stage]]\nname = 'a'\nsteps = 3\nseed = 0\n", "give --src"),
     ("[[stage\n", "not valid TOML"),

@@ -45,17 +45,24 @@ def test_the_zoo_is_a_few_models_named_by_purpose_each_with_a_complete_card():
 @pytest.mark.parametrize("name", sorted(set(zoo.names())))
 def test_each_zoo_model_is_reproduced_by_its_named_recipe(name):
     """The card's recipe exists, lists the model, and its last run trains with exactly the settings
-    stored in the shipped weights (bar the bookkeeping that does not change what a run learns)."""
+    stored in the shipped weights (bar the bookkeeping that does not change what a run learns);
+    with a contact network, its last run of each kind: the model's and the contact network's."""
+    from gns.checkpoint import CONTACT
     c = zoo.card(name)
     recipe_name = c.data["recipe"]["command"].split()[3]
     assert recipe_name in recipe_names()
     recipe = load_recipe(recipe_name)
     assert name in recipe.zoo
-    ckpt = read_checkpoint(c.file)
-    last = recipe.runs[-1]
-    cfg = build_config(path=config_dir() / f"{recipe.model}.toml", overrides=run_overrides(last, None))
-    assert config_differences(ckpt["config"], cfg, ignore=SETTINGS_FREE + ("train.init_from",)) == []
-    assert ckpt["seed"] == last.seed and ckpt["step"] == last.steps
+    shipped = read_checkpoint(c.file)
+    contact_runs = [r for r in recipe.runs if r.contact]
+    assert (CONTACT in shipped) == bool(contact_runs)
+    pairs = [(shipped, [r for r in recipe.runs if not r.contact][-1])]
+    if contact_runs:
+        pairs.append((shipped[CONTACT], contact_runs[-1]))
+    for ckpt, last in pairs:
+        cfg = build_config(path=config_dir() / f"{recipe.model}.toml", overrides=run_overrides(last, None))
+        assert config_differences(ckpt["config"], cfg, ignore=SETTINGS_FREE + ("train.init_from",)) == []
+        assert ckpt["seed"] == last.seed and ckpt["step"] == last.steps
 
 
 def test_the_movi_a_recipe_is_one_schedule_of_warm_restarts_after_its_stages():
