@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from plumbing import atomic_file, check_writable, DataError
-from gns.checkpoint import CheckpointError, is_exported, read_checkpoint
+from gns.checkpoint import CONTACT, CheckpointError, is_exported, read_checkpoint
 from gns.spec import RolloutOptions
 
 
@@ -107,9 +107,9 @@ def format_card(name: str) -> str:
 
 
 def _slim(ckpt: dict) -> dict:
-    # an exported model's contact network goes along (gns.checkpoint.CONTACT)
+    # an exported model's contact network goes along
     return {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance", "train_seconds",
-                                 "contact") if k in ckpt}
+                                 CONTACT) if k in ckpt}
 
 
 def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool = False,
@@ -138,7 +138,7 @@ def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool =
     out.parent.mkdir(parents=True, exist_ok=True)
     slim = _slim(ckpt)
     if contact is not None:
-        from gns.checkpoint import CONTACT, load_model
+        from gns.checkpoint import load_model
         slim[CONTACT] = _slim(read_checkpoint(contact))
         load_model(slim)   # CheckpointError now, not when it is used, if the two do not go together
     with atomic_file(out, mode=0o644) as tmp:  # an exported model is meant to be shared
