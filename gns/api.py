@@ -156,7 +156,8 @@ class Model:
 
     def __repr__(self) -> str:
         return (f"gns.Model({self.source!r}, {self.frame_rate:g} steps/s, shapes {self.shapes}, "
-                f"materials {'yes' if self.uses_materials else 'no'}, collisions {'yes' if self.collisions else 'no'}, "
+                f"materials {'yes' if self.uses_materials else 'no'}, collisions {'yes' if self.collisions else 'no'}"
+                f"{' and a contact network' if self.simulator.contact_model is not None else ''}, "
                 f"device {self.device})")
 
     def _quat_in(self, q: torch.Tensor) -> torch.Tensor:
