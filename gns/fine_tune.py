@@ -12,11 +12,12 @@ must match.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 
 import torch
 
-from gns.checkpoint import CheckpointError, checkpoint_of, read_checkpoint
+from gns.checkpoint import CONTACT, CheckpointError, checkpoint_of, read_checkpoint
 from gns.config import ARCHITECTURE_SECTIONS, Config, ConfigError, ModelConfig, config_differences, without_removed
 from gns.network import Normalizer
 from gns.simulator import LearnedSimulator
@@ -53,6 +54,9 @@ def init_from(sim: LearnedSimulator, source: str, cfg: Config, spec: ModelSpec) 
     problem = "; ".join(p for p in problems if p)
     if problem:
         raise CheckpointError(f"cannot start from {path} (train.init_from): {problem}")
+    if CONTACT in init:
+        warnings.warn(f"{path} (train.init_from) carries a contact network: training starts from the model's own "
+                      "network, without it", stacklevel=2)
     state = _untied(init["model"], sim)
     if _grows(trained, spec):
         state = _grown(state, sim)

@@ -58,10 +58,15 @@ def test_a_scene_without_contact_rolls_out_exactly_as_the_model_alone():
     assert torch.equal(alone, both)
 
 
-def _save(sim, cfg, spec, path):
-    """sim as a checkpoint file, its feature layout in its spec as training writes it."""
-    spec = replace(spec, **{f"{k}_features": tuple(n for n, _ in getattr(sim.layout, f"{k}_groups"))
+def _laid_out(sim, spec):
+    """spec with sim's feature layout, as training writes it."""
+    return replace(spec, **{f"{k}_features": tuple(n for n, _ in getattr(sim.layout, f"{k}_groups"))
                             for k in ("node", "edge", "collision")})
+
+
+def _save(sim, cfg, spec, path):
+    """sim as a checkpoint file."""
+    spec = _laid_out(sim, spec)
     torch.save({"format": 1, "step": 3, "seed": 0, "config": config_to_dict(cfg), "spec": spec.to_dict(),
                 "model": sim.state_dict(), "provenance": {}}, path)
     return path
@@ -88,6 +93,12 @@ def test_an_exported_model_carries_its_contact_network_and_refuses_one_of_other_
     # re-exported, the contact network goes along
     again = export_model(tmp_path / "m.pt", tmp_path / "m2.pt")
     assert CONTACT in read_checkpoint(again)
+    # fine-tuning starts from the model's own network, and says that the contact network stays behind
+    from gns.fine_tune import init_from
+    fresh = build_simulator(cfg, spec)
+    with pytest.warns(UserWarning, match="carries a contact network"):
+        init_from(fresh, str(tmp_path / "m.pt"), cfg, _laid_out(fresh, spec))
+    assert all(torch.equal(a_, b_) for a_, b_ in zip(fresh.network.parameters(), base.network.parameters()))
     # a contact network that finds collision edges within another radius reads other graphs
     far = tiny(*overrides, "features.collision_radius=0.5")
     torch.manual_seed(0)
