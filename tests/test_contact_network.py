@@ -5,11 +5,15 @@ from dataclasses import replace
 
 import pytest
 import torch
+from gns_fixtures import rolled_out
 from test_gns_lowest_vertices import _simulator, _stacked_scene
 from test_gns_train import tiny
 
 from gns.checkpoint import CheckpointError, CONTACT, build_simulator, load_model, read_checkpoint
+from gns.cli import main as gns_main
 from gns.config import config_to_dict
+from gns.fine_tune import init_from
+from gns.graph import select_graphs
 from gns.spec import Floor, ModelSpec
 from gns.zoo import export_model
 
@@ -44,10 +48,8 @@ def test_objects_in_contact_take_the_contact_networks_acceleration_and_the_other
 
 
 def test_a_scene_without_contact_rolls_out_exactly_as_the_model_alone():
-    from gns_fixtures import rolled_out
     base, contact = _pair()
     x_t, graph = _stacked_scene()
-    from gns.graph import select_graphs
     # the far cube and the lone sphere
     sub, nodes = select_graphs(graph, torch.tensor([False, False, True, True]))
     history = _history(x_t)[nodes]
@@ -73,7 +75,6 @@ def _save(sim, cfg, spec, path):
 
 
 def test_an_exported_model_carries_its_contact_network_and_refuses_one_of_other_graphs(tmp_path, capsys):
-    from gns.cli import main as gns_main
     spec = ModelSpec(floor=Floor(z=0.0), frame_rate=12.0, gravity=(0.0, 0.0, -10.0), collision_edges=True)
     overrides = ("features.lowest_vertices=6", "features.centre_node=true", "features.surface_edges=false",
                  "features.collision_mode=vertex")
@@ -94,7 +95,6 @@ def test_an_exported_model_carries_its_contact_network_and_refuses_one_of_other_
     again = export_model(tmp_path / "m.pt", tmp_path / "m2.pt")
     assert CONTACT in read_checkpoint(again)
     # fine-tuning starts from the model's own network, and says that the contact network stays behind
-    from gns.fine_tune import init_from
     fresh = build_simulator(cfg, spec)
     with pytest.warns(UserWarning, match="carries a contact network"):
         init_from(fresh, str(tmp_path / "m.pt"), cfg, _laid_out(fresh, spec))
