@@ -32,8 +32,8 @@ from typing import Iterator
 
 from plumbing import atomic_file, DataError
 from plumbing import file_sha256
-from .shards import (METADATA_FILE, SHARED, SPLITS, clear_dataset, dataset_files, shard_name, write_metadata,
-                     write_shard_image)
+from .shards import (METADATA_FILE, SHARED, SPLITS, clear_dataset, dataset_files, own_temporary, shard_name,
+                     write_metadata, write_shard_image)
 
 CLAIM_FILE = ".datagen-toss.claim"
 LOCK_FILE = ".datagen-toss.lock"
@@ -327,6 +327,15 @@ def to_make(out: Path, tasks: list[ShardTask], recorded: dict[str, str], what: s
     return todo
 
 
+def remove_temporaries(out: Path, names: list[str], whole_run: bool) -> None:
+    """Remove the temporary files of the shards `names` (atomic_file's `.<name>.<random>.tmp`)
+    and, in a whole run, whose claim is exclusive, every temporary file of the tool's own."""
+    for p in out.glob(".*.tmp"):
+        target = p.name[1:-len(".tmp")].rpartition(".")[0]
+        if target in names or (whole_run and own_temporary(p.name)):
+            p.unlink(missing_ok=True)
+
+
 def prepare_output(out: Path, meta: dict, tasks: list[ShardTask], resume: bool, overwrite: bool) -> list[ShardTask]:
     """Make the claimed folder of a whole run ready and write its plan; returns the shards to make.
     --resume verifies the shards it keeps before anything is rewritten."""
@@ -339,8 +348,7 @@ def prepare_output(out: Path, meta: dict, tasks: list[ShardTask], resume: bool, 
         old = same_plan(out, meta, "resume")
         recorded = recorded_checksums(old)
         todo = to_make(out, tasks, recorded, "resume")
-        for stale in out.glob(".*.tmp"):    # the claim is exclusive: no other run is writing these
-            stale.unlink(missing_ok=True)
+        remove_temporaries(out, [], whole_run=True)
         if not todo and old.get("complete") is True:
             return []                       # verified and complete: nothing to rewrite
         written = {t.name: recorded[t.name] for t in tasks if t not in todo}

@@ -77,7 +77,7 @@ def dataset_files(root: str | Path) -> list[Path]:
     root = Path(root)
     if not root.is_dir():
         return []
-    return sorted(p for p in root.iterdir() if p.is_file() and (_own(p.name) or _own_temporary(p.name)))
+    return sorted(p for p in root.iterdir() if p.is_file() and (_own(p.name) or own_temporary(p.name)))
 
 
 def _own(name: str) -> bool:
@@ -87,7 +87,7 @@ def _own(name: str) -> bool:
     return name == METADATA_FILE or (split in SPLITS and index.isdigit() and shard_name(split, int(index)) == name)
 
 
-def _own_temporary(name: str) -> bool:
+def own_temporary(name: str) -> bool:
     """Whether a file name is atomic_file's temporary `.<name>.<random>.tmp` of an _own name."""
     return name.startswith(".") and name.endswith(".tmp") and _own(name[1:-len(".tmp")].rpartition(".")[0])
 

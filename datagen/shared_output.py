@@ -13,7 +13,7 @@ from pathlib import Path
 
 from plumbing import DataError
 from .output import (WRITTEN, ShardTask, check_output, plan_difference, plan_of, read_metadata, recorded_checksums,
-                     same_plan, to_make)
+                     remove_temporaries, same_plan, to_make)
 from .shards import METADATA_FILE, write_metadata
 
 
@@ -36,9 +36,7 @@ def prepare_shared_output(out: Path, meta: dict, mine: list[ShardTask]) -> list[
     first part, and every other part compares its plan with it. Returns this part's shards to make."""
     check_output(out, meta, True, False, False)
     # Only this part's own leftovers: another part's temporary files may be shards being written.
-    for task in mine:
-        for stale in out.glob(f".{task.name}.*.tmp"):
-            stale.unlink(missing_ok=True)
+    remove_temporaries(out, [t.name for t in mine], whole_run=False)
     if not (out / METADATA_FILE).exists():
         write_metadata(out, {**meta, WRITTEN: {}})
         return list(mine)

@@ -134,6 +134,37 @@ def test_existing_output_is_refused_then_overwritten(dataset, tmp_path, capsys):
     assert Dataset(out).meta["seed"] == 9
 
 
+@pytest.mark.skipif(os.name != "posix", reason="signals between processes")
+def test_sigterm_stops_the_pool_and_leaves_only_whole_shards(tmp_path):
+    """SIGTERM to a run on a process pool: one error line, the workers gone, no temporary file of
+    a worker stopped mid-write, and every shard left is whole (its recorded checksum)."""
+    import hashlib
+    import json
+    import signal
+    import subprocess
+    import sys
+    import time
+    from datagen.output import recorded_checksums
+    out = tmp_path / "d"
+    proc = subprocess.Popen([sys.executable, "-m", "datagen.cli", "toss", "--out", str(out), "--scenes", "4000",
+                             "--valid", "0", "--test", "0", "--frames", "12", "--scenes-per-shard", "2",
+                             "--workers", "2", "--quiet"], stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while len(list(out.glob("*.h5"))) < 2:      # shards written: both workers are busy
+        assert time.monotonic() - t0 < 300 and proc.poll() is None
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert err.strip().splitlines() == ["error: interrupted; no partial shard was left (rerun with --resume to finish)"]
+    assert not list(out.glob(".*.tmp"))
+    recorded = recorded_checksums(json.loads((out / "metadata.json").read_text()))
+    kept = sorted(out.glob("*.h5"))
+    assert 2 <= len(kept) < 2000
+    for p in kept:
+        assert hashlib.sha256(p.read_bytes()).hexdigest() == recorded[p.name]
+
+
 def test_interrupted_run_leaves_no_partial_shard_and_resumes(tmp_path, capsys, monkeypatch):
     out = tmp_path / "d"
     real = gen_mod.simulate

@@ -195,8 +195,10 @@ def test_keeping_freed_heap_memory_changes_no_byte(reference, tmp_path):
     with glibc's defaults (DATAGEN_KEEP_HEAP=0, a fresh process) writes the same dataset."""
     import os
     out = tmp_path / "default_heap"
-    subprocess.run([sys.executable, "-m", "datagen.cli", "toss", "--out", str(out), *SMALL, "--seed", "7",
-                    "--workers", "2"], env={**os.environ, "DATAGEN_KEEP_HEAP": "0"}, check=True)
+    run = subprocess.run([sys.executable, "-m", "datagen.cli", "toss", "--out", str(out), *SMALL, "--seed", "7",
+                          "--workers", "2"], env={**os.environ, "DATAGEN_KEEP_HEAP": "0"}, check=True,
+                         capture_output=True, text=True)
+    assert run.stderr == ""     # --quiet, and the pool's workers stop without a word
     ours, theirs = files(out), files(reference)
     strip = lambda b: {k: v for k, v in json.loads(b).items() if k != "provenance"}  # noqa: E731
     assert strip(ours.pop("metadata.json")) == strip(theirs.pop("metadata.json"))
