@@ -63,6 +63,12 @@ def test_each_zoo_model_is_reproduced_by_its_named_recipe(name):
         cfg = build_config(path=config_dir() / f"{recipe.model}.toml", overrides=run_overrides(last, None))
         assert config_differences(ckpt["config"], cfg, ignore=SETTINGS_FREE + ("train.init_from",)) == []
         assert ckpt["seed"] == last.seed and ckpt["step"] == last.steps
+        # the weights name where they came from as the card's recipe command lays it out, never a
+        # folder of the machine they were trained on
+        k = recipe.runs.index(last)
+        started = f"runs/zoo/{recipe.name}/runs/{recipe.runs[k - 1].name}" if k else cfg.train.init_from
+        assert ckpt["config"]["train"]["init_from"] == started
+        assert ckpt["provenance"]["data"]["path"].startswith((f"runs/zoo/{recipe.name}/", "data/"))
 
 
 def test_the_movi_a_recipe_is_one_schedule_of_warm_restarts_after_its_stages():
