@@ -1,35 +1,29 @@
 """Training speed of the shipped recipes, as they train, against the matmul rate at their own shapes.
 
-Recipes (configs/recipes/<name>.toml, `--recipe`): the first run of the recipe, set up and stepped
-with gns.train's own helpers: its model preset and settings (batch size, features and node
-selection, contact windows, rigid loss, weight average, autocast with "auto" resolved here,
-compile, threads), from train.init_from's weights where they are found here (movi_a_multi: the
-shipped movi_a), else from fresh ones. A timed step is the training loop's: draw the batch, one
-Adam step, the weight average's update.
+Recipes (configs/recipes/<name>.toml, `--recipe`): the first run of the recipe, or the one named
+after a colon (movi_a:pushforward), set up and stepped with gns.train's own helpers: its model
+preset and settings (batch size, features and node selection, contact windows, pushforward steps,
+rigid loss, weight average, autocast with "auto" resolved here, compile, threads), from
+train.init_from's weights where they are found here (movi_a_multi: the shipped movi_a), else from
+fresh ones. A timed step is the training loop's: draw the batch, one Adam step, the weight average's.
 
-    python benchmarks/bench_train_recipes.py --recipe movi_a,movi_a_multi,real_cubes --src data/contactnets --rounds 2
+    python benchmarks/bench_train_recipes.py --recipe movi_a,movi_a:pushforward,movi_a_multi --rounds 2
     python benchmarks/bench_train_recipes.py --recipe real_cubes --src data/contactnets --shapes
 
-- GFLOP/step: every 2-D matrix product (aten mm and addmm) the step runs, forward and backward,
-  counted (2 per multiply-add) on an eager replay of a timed step of each distinct set of graph
-  sizes; so the count is of the graph the network sees (after features.lowest_vertices'
-  selection, with the collision edges it finds) and of the products autograd actually runs
-  (none for frozen weights, none for the input layers' gradients with respect to the data).
-- matmul at the batch's shapes ("shapes"): the products of the first round's median step (by
-  FLOPs), each distinct one (its op, shapes, strides and dtype: bfloat16 where the recipe trains
-  under autocast) timed alone in a loop on random operands of the same layout (best of 5 runs of
-  at least 10 ms, and best over the rounds: it is timed after each round), with the same threads.
-  The rate is that step's FLOPs over the sum of its products' times, and the fraction, achieved /
-  that rate, is the share of the step's wall time its matrix products would take on their own:
-  100% would be a step that is nothing but its matrix products, each as fast as it runs alone.
+- GFLOP/step: every 2-D matrix product (aten mm and addmm) the step runs, forward and backward
+  (2 per multiply-add), on an eager replay of a timed step of each distinct set of graph sizes:
+  the graph the network sees (after node selection, with its collision edges) and the products
+  autograd runs (none for frozen weights or for the input layers' gradients for the data).
+- matmul at the batch's shapes ("shapes"): the first round's median step's products (by FLOPs),
+  each distinct one (op, shapes, strides, dtype) timed alone on random operands of that layout
+  (best of 5 runs of at least 10 ms, best over the rounds), with the same threads. The fraction,
+  achieved / that rate, is the share of the step's time its products would take on their own:
+  100% is a step that is nothing but its matrix products, each as fast as it runs alone.
 - 1024^3: the same threads' rate for a 1024 x 1024 product in the recipe's dtype, for scale.
 
-Data: a datagen recipe's first --scenes training scenes, generated as the recipe generates them
-(scenes are keyed by seed, split and index, so they are the first scenes of its dataset; cached
-in --cache); a ContactNets recipe's tosses imported from --src as the recipe imports them (its
-MuJoCo tosses are not made: the real ones have the same graphs). Without --src, or with
---synthetic, ballistic tosses of the recipe's shapes, one object a scene; the row's data column
-says which.
+Data: a datagen recipe's first --scenes training scenes as the recipe makes them (cached in --cache);
+a ContactNets recipe's real tosses from --src. Without --src, or with --synthetic, ballistic tosses
+of the recipe's shapes, one object a scene (the row's data column says which).
 """
 from __future__ import annotations
 
@@ -128,14 +122,14 @@ class RecordProducts(TorchDispatchMode):
         return func(*args, **kwargs)
 
 
-def recipe_config(recipe, threads: int | None, batch: int | None):
-    """The config of the recipe's first run and a note on what differs from it. Its
+def recipe_config(recipe, run, threads: int | None, batch: int | None):
+    """The config of the recipe's run `run` and a note on what differs from it. Its
     train.init_from is kept where it names weights found here (movi_a_multi grows onto the
     shipped movi_a, and train.collisions_only freezes those weights and their normalisers), else
     left out with collisions_only: fresh weights train at the same speed."""
     from gns.checkpoint import CheckpointError, checkpoint_of
     from pipelines.recipe import run_overrides
-    overrides, note = list(run_overrides(recipe.runs[0], None)), ""
+    overrides, note = list(run_overrides(run, None)), ""
     start = next((o.split("=", 1)[1].strip('"') for o in overrides if o.startswith("train.init_from=")), None)
     if start is not None:
         try:
@@ -196,14 +190,20 @@ def recipe_data(recipe, cfg, scenes: int, src: Path | None, cache: Path, synthet
 
 
 class RecipeRun:
-    """A recipe's first run set up as gns.train sets it up (gns.train's own helpers), ready to step."""
+    """A recipe's run (`recipe` or `recipe:run`; its first run by default) set up as gns.train sets it
+    up (gns.train's own helpers), ready to step."""
 
     def __init__(self, name: str, threads: int | None, batch: int | None, scenes: int, src: Path | None,
                  cache: Path, synthetic: bool):
         from gns.train import _build_model, _place_model
         from pipelines.recipe import load_recipe
+        self.name = name
+        name, _, stage = name.partition(":")
         self.recipe = load_recipe(name)
-        cfg, note = recipe_config(self.recipe, threads, batch)
+        runs = [r for r in self.recipe.runs if r.name == stage] if stage else self.recipe.runs
+        if not runs:
+            raise SystemExit(f"error: recipe {name} has no run {stage!r} ({', '.join(r.name for r in self.recipe.runs)})")
+        cfg, note = recipe_config(self.recipe, runs[0], threads, batch)
         self.cfg = cfg
         self.threads = cfg.train.threads or os.cpu_count()
         self.spec, self.tracks, self.tag, self.source = recipe_data(self.recipe, cfg, scenes, src, cache, synthetic)
@@ -302,7 +302,7 @@ def bench_recipes(names: list[str], args) -> list[dict]:
     for run in runs:
         # compiling happens here, in the first steps, untimed
         warm = run.timed(args.warmup)["elapsed"]
-        print(f"{run.recipe.name}: warm-up {args.warmup} steps in {warm:.1f} s", flush=True)
+        print(f"{run.name}: warm-up {args.warmup} steps in {warm:.1f} s", flush=True)
     timings: list[list[dict]] = [[] for _ in runs]
     references: list[Reference] = []
     for _ in range(args.rounds):
@@ -318,7 +318,7 @@ def bench_recipes(names: list[str], args) -> list[dict]:
             references[i].time()
     if args.shapes:
         for run, ref in zip(runs, references):
-            ref.show(f"{run.recipe.name}, {run.threads} thread{'s' if run.threads > 1 else ''}")
+            ref.show(f"{run.name}, {run.threads} thread{'s' if run.threads > 1 else ''}")
     peaks: dict = {}
     rows = []
     for run, rounds, ref in zip(runs, timings, references):
@@ -337,7 +337,7 @@ def bench_recipes(names: list[str], args) -> list[dict]:
         calls = [c for step in best["calls"] for c in step]
         nodes, edges, collisions = (sum(c[k] for c in calls) / len(calls) for k in range(3))
         steps, elapsed = best["steps"], best["elapsed"]
-        rows.append({"recipe": run.recipe.name, "dtype": run.dtype + ("+compile" if run.cfg.train.compile else ""),
+        rows.append({"recipe": run.name, "dtype": run.dtype + ("+compile" if run.cfg.train.compile else ""),
                      "threads": run.threads, "batch": run.cfg.train.batch_size, "nodes": nodes, "edges": edges,
                      "collisions": collisions, "steps_per_sec": steps / elapsed,
                      "drawing": best["drawing"] / elapsed, "gflop_per_step": flops / steps / 1e9,
@@ -371,7 +371,8 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--recipe", action="append", default=[],
-                   help="a recipe of configs/recipes (repeatable or a comma list): time its first run as it trains")
+                   help="a recipe of configs/recipes, or RECIPE:RUN (repeatable or a comma list): time its first "
+                        "run, or the one named, as it trains")
     p.add_argument("--steps", type=int, default=20, help="timed steps per recipe and round")
     p.add_argument("--warmup", type=int, default=3, help="untimed steps per recipe")
     p.add_argument("--threads", type=int, help="torch threads for every recipe (default: its own)")

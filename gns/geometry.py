@@ -236,6 +236,15 @@ def fit_packed(x: torch.Tensor, rest: torch.Tensor, node_graph: torch.Tensor,
     return rot, cx - (rot @ cr[:, :, None])[..., 0]
 
 
+def placed_around(part: torch.Tensor, seen: tuple, graph) -> torch.Tensor:
+    """Every vertex of `graph` (a GraphBatch) at the pose shape matching fits to `part`, the
+    positions of the nodes `seen` = (their graph, their indices), which keep their own: where a
+    network moved some nodes of each object (LearnedSimulator.network_nodes)."""
+    sub, nodes = seen
+    rot, t = fit_packed(part, sub.rest, sub.node_graph, sub.num_graphs)
+    return posed(rot, t, graph.node_graph, graph.rest).index_put((nodes,), part)
+
+
 def shape_match_packed(x: torch.Tensor, rest: torch.Tensor, node_graph: torch.Tensor,
                        num_graphs: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """`shape_match` for a packed batch with different vertex counts per graph.

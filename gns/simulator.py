@@ -18,7 +18,7 @@ from torch import nn
 
 from gns.config import ConfigError
 from gns.contact_network import check_contact, split_acceleration
-from gns.geometry import acceleration_of, fit_packed, integrate, posed, shape_match_packed
+from gns.geometry import acceleration_of, fit_packed, integrate, placed_around, shape_match_packed
 from gns.graph import EdgeSet, GraphBatch, MeshLibrary, graph_settings, lowest_nodes, select_graph_nodes, select_nodes
 from gns.network import (COLLISION_VECTORS, EncodeProcessDecode, FeatureLayout, Normalizer, make_layout,
                          raw_collision_features, raw_edge_features, raw_node_features)
@@ -115,12 +115,10 @@ class LearnedSimulator(Stepping, nn.Module):
         self.__dict__["_parallel"] = wrapper
 
     def set_speed(self, autocast: str = "none", compile: bool = False, freeze: bool = False) -> None:
-        """How the network runs: autocast "bf16" (the network only, under bfloat16 autocast) or
-        "none"; `compile` through torch.compile (dynamic shapes: every batch has its own node and
-        edge counts), compiled once and reused when switched on again. The compiled module is
-        kept out of the module tree like `distribute`, so state_dict keys and checkpoints are
-        unchanged. The first calls compile (tens of seconds on a CPU). autocast "auto": bf16 if it
-        measures faster here (gns.speedups); `self.autocast_used` says which was taken.
+        """How the network runs: autocast "bf16" (the network only, under bfloat16 autocast), "none",
+        or "auto" (bf16 if it measures faster here, gns.speedups; `self.autocast_used` says which);
+        `compile` through torch.compile (dynamic shapes), compiled once (tens of seconds on a CPU)
+        and kept out of the module tree like `distribute`, so checkpoints are unchanged.
 
         `freeze` (with `compile`, for rollouts of a trained model only): inductor's freezing, which
         takes the weights as constants at the first call and lays them out for the CPU's matrix
@@ -246,15 +244,12 @@ class LearnedSimulator(Stepping, nn.Module):
         return self.target_normalizer(acc).to(torch.float32)
 
     def set_ensemble(self, members: Sequence["LearnedSimulator"]) -> None:
-        """Average every step's predicted acceleration with these models' (an ensemble: runs
-        trained apart, e.g. other seeds or other recipes; each carries its own normalisers and
-        speed settings and computes its own node and edge features from the shared graphs).
-        They must read the same graphs: the same network mesh, floor, collision edges and time
-        step; ValueError names the first difference. Node and edge features may
-        differ (e.g. the floor seen from farther): free flight then waits until every member's
-        floor feature is clear (free_flight_clip). With centre nodes on both, a member may differ in
-        features.surface_edges alone: it reads each step's graph with its own mesh edges, rebuilt
-        from the faces (gns.ensemble.with_surface_edges)."""
+        """Average every step's predicted acceleration with these models' (an ensemble of runs
+        trained apart; each has its own normalisers, speed settings and features of the shared
+        graphs). They must read the same graphs (network mesh, floor, collision edges, time step;
+        ValueError names the first difference). Features may differ (free flight then waits for
+        every member's floor feature: free_flight_clip); with centre nodes, features.surface_edges
+        too (gns.ensemble.with_surface_edges rebuilds a member's mesh edges from the faces)."""
         from gns.ensemble import check_members
         check_members(self, members)
         self.__dict__["_members"] = list(members)
@@ -344,10 +339,7 @@ class LearnedSimulator(Stepping, nn.Module):
         if seen is None:
             return self._predict_next(x_tm2, x_tm1, x_t, graph)
         sub, nodes = seen
-        part = self._predict_next(*(f.index_select(0, nodes) for f in (x_tm2, x_tm1, x_t)), sub)
-        rot, t = fit_packed(part, sub.rest, sub.node_graph, sub.num_graphs)
-        x = posed(rot, t, graph.node_graph, graph.rest)
-        return x.index_put((nodes,), part)
+        return placed_around(self._predict_next(*(f.index_select(0, nodes) for f in (x_tm2, x_tm1, x_t)), sub), seen, graph)
 
     def fitted_poses(self, x_tm2: torch.Tensor, x_tm1: torch.Tensor, x_t: torch.Tensor, graph: GraphBatch,
                      graphs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor] | None:
@@ -367,7 +359,8 @@ class LearnedSimulator(Stepping, nn.Module):
         history = torch.stack([x_tm2, x_tm1, x_t], dim=1)
         return integrate(x_tm1, x_t, self.predict_acceleration(history, graph))
 
-    def loss(self, history: torch.Tensor, target: torch.Tensor, graph: GraphBatch, rigid: float = 0.0) -> torch.Tensor:
+    def loss(self, history: torch.Tensor, target: torch.Tensor, graph: GraphBatch, rigid: float = 0.0,
+             next_frame: list | None = None) -> torch.Tensor:
         """Per-node MSE of the normalised acceleration: mean over nodes of the sum over x, y, z.
 
         history (N, 3, 3) float64 (possibly noisy) inputs; target (N, 3) float64 positions at t+1
@@ -375,8 +368,12 @@ class LearnedSimulator(Stepping, nn.Module):
         rigid > 0 adds rigid x the same loss of the shape-matched prediction against the
         shape-matched target (train.rigid_loss): what a rollout keeps of a step. Shape matching
         runs through the differentiable polar factor (`gns.geometry._rotation_differentiable`).
+        `next_frame` (a list) receives predict_next's positions at t+1 from this forward pass,
+        detached (pushforward's next input), for a model in training: one network, no symmetries.
         """
-        seen = self.network_nodes(history[:, -1], graph)
+        if next_frame is not None and (self.contact_model or self.members or self.symmetrize or self.options.body_frames):
+            raise ValueError("next_frame: with a contact network, ensemble or symmetries predict_next is another pass")
+        whole, seen = graph, self.network_nodes(history[:, -1], graph)
         if seen is not None:   # the loss of the nodes the network sees (predict_next)
             graph, nodes = seen
             history, target = history[nodes], target[nodes]
@@ -387,6 +384,9 @@ class LearnedSimulator(Stepping, nn.Module):
             accel = (target - prior).to(torch.float32)
         target_norm = self.target_normalizer(accel, accumulate=self.training)
         output = self(history, graph)
+        if next_frame is not None:
+            part = integrate(history[:, -2], history[:, -1], self.target_normalizer.inverse(output.detach().double()))
+            next_frame.append(part if seen is None else placed_around(part, seen, whole))
         per = ((output - target_norm) ** 2).sum(-1)
         if rigid > 0:
             # the prediction and the truth as rollouts keep them, differenced in normalised units

@@ -354,12 +354,12 @@ def unrolled_loss(sim: LearnedSimulator, batch: Batch, rigid_loss: float = 0.0) 
     total = 0.0
     for k in range(targets.shape[1]):
         history = torch.stack(frames[-HISTORY:], dim=1)
-        total = total + sim.loss(history, targets[:, k], batch.graph, rigid_loss)
-        if k + 1 < targets.shape[1]:
-            with torch.no_grad():
-                x = sim.predict_next(*frames[-HISTORY:], batch.graph)
-                x = shape_match_packed(x, batch.graph.rest, batch.graph.node_graph, batch.graph.num_graphs)[2]
-            frames.append(x)
+        # the next input from this step's own forward pass: predict_next's, without a second pass
+        following: list | None = [] if k + 1 < targets.shape[1] else None
+        total = total + sim.loss(history, targets[:, k], batch.graph, rigid_loss, following)
+        if following is not None:
+            g = batch.graph
+            frames.append(shape_match_packed(following[0], g.rest, g.node_graph, g.num_graphs)[2])
     return total / targets.shape[1]
 
 

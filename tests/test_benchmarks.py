@@ -2,6 +2,8 @@
 import importlib.util
 from pathlib import Path
 
+import pytest
+
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_train.py"
 
 
@@ -92,6 +94,14 @@ def test_bench_train_times_a_recipe_against_the_matmul_rate_of_its_own_shapes(tm
     forward = run.sim.network.forward_flops(n, e, c)
     assert grad
     assert 2.5 * forward < flops < 3 * forward
+
+    # a later run of the recipe by name: its own settings (two pushforward steps: two calls a step)
+    later = bench.RecipeRun("tiny:b_1", None, None, 3, None, tmp_path, False)
+    assert later.cfg.train.unroll_steps == 2 and run.cfg.train.unroll_steps == 1
+    later.step()
+    assert len(later.calls) == 2
+    with pytest.raises(SystemExit, match=r"no run 'c' \(a, b_1, b_2\)"):
+        bench.RecipeRun("tiny:c", None, None, 3, None, tmp_path, False)
 
 
 def test_bench_learned_vs_physics_times_pybullet_and_each_variant_on_the_same_scenes(tmp_path, capsys):

@@ -95,22 +95,30 @@ def test_unrolled_windows_carry_the_true_future(tmp_path):
         assert torch.allclose(b3.targets[:, k], later.target)
 
 
-def test_unrolled_loss_is_the_mean_of_one_step_losses_on_its_own_predictions(tmp_path):
+@pytest.mark.parametrize("features", [(), ("features.lowest_vertices=3", "features.highest_vertices=1",
+                                             "features.centre_node=true")])
+@pytest.mark.parametrize("rigid", [0.0, 1.0])
+def test_unrolled_loss_is_the_mean_of_one_step_losses_on_its_own_predictions(tmp_path, features, rigid):
+    """Step 2 starts from predict_next's positions (shape-matched, detached): unrolled_loss takes
+    them from step 1's own forward pass, also where the network sees only some of the nodes."""
     ds = Dataset(write_toss_dataset(tmp_path, train=3, valid=0, frames=10))
     from gns.data import feature_spec
     scenes = ds.load("train")
-    cfg = build_config(path=TINY)
+    cfg = build_config(path=TINY, overrides=list(features))
     sim = build_simulator(cfg, feature_spec(ds, scenes)).eval()   # eval: normalisers frozen
-    tracks = ObjectTracks(scenes, MeshLibrary(ds.meshes), unroll=2)
+    lib = sim.mesh_library(ds.meshes)
+    tracks = ObjectTracks(scenes, lib, unroll=2)
     batch = tracks.batch(torch.tensor([0, 5]))
     g = batch.graph
-    first = sim.loss(batch.history, batch.target, g)
+    first = sim.loss(batch.history, batch.target, g, rigid)
     with torch.no_grad():
         x = shape_match_packed(sim.predict_next(*batch.history.unbind(1), g), g.rest, g.node_graph, g.num_graphs)[2]
-    second = sim.loss(torch.stack([batch.history[:, 1], batch.history[:, 2], x], 1), batch.future[:, 0], g)
-    assert torch.allclose(unrolled_loss(sim, batch), (first + second) / 2)
-    one = ObjectTracks(scenes, MeshLibrary(ds.meshes)).batch(torch.tensor([0, 5]))
-    assert torch.allclose(unrolled_loss(sim, one), sim.loss(one.history, one.target, one.graph))
+    second = sim.loss(torch.stack([batch.history[:, 1], batch.history[:, 2], x], 1), batch.future[:, 0], g, rigid)
+    unrolled = unrolled_loss(sim, batch, rigid)
+    assert torch.allclose(unrolled, (first + second) / 2, rtol=1e-6, atol=0)
+    assert not torch.allclose(first, second, rtol=1e-3)     # the two steps differ: the second one counts
+    one = ObjectTracks(scenes, lib).batch(torch.tensor([0, 5]))
+    assert torch.allclose(unrolled_loss(sim, one, rigid), sim.loss(one.history, one.target, one.graph, rigid))
 
 
 def test_training_with_both_levers_resumes_exactly(tmp_path):
