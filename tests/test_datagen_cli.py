@@ -140,22 +140,12 @@ def test_sigterm_stops_the_pool_and_leaves_only_whole_shards(tmp_path):
     a worker stopped mid-write, and every shard left is whole (its recorded checksum)."""
     import hashlib
     import json
-    import signal
-    import subprocess
-    import sys
-    import time
     from datagen.output import recorded_checksums
+    from datagen_helpers import sigterm_toss
     out = tmp_path / "d"
-    proc = subprocess.Popen([sys.executable, "-m", "datagen.cli", "toss", "--out", str(out), "--scenes", "4000",
-                             "--valid", "0", "--test", "0", "--frames", "12", "--scenes-per-shard", "2",
-                             "--workers", "2", "--quiet"], stderr=subprocess.PIPE, text=True)
-    t0 = time.monotonic()
-    while len(list(out.glob("*.h5"))) < 2:      # shards written: both workers are busy
-        assert time.monotonic() - t0 < 300 and proc.poll() is None
-        time.sleep(0.02)
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 2
+    status, err = sigterm_toss(out, "--scenes", "4000", "--valid", "0", "--test", "0", "--frames", "12",
+                               "--scenes-per-shard", "2", "--workers", "2", "--quiet", shards=2)
+    assert status == 2
     assert err.strip().splitlines() == ["error: interrupted; no partial shard was left (rerun with --resume to finish)"]
     assert not list(out.glob(".*.tmp"))
     recorded = recorded_checksums(json.loads((out / "metadata.json").read_text()))

@@ -87,21 +87,10 @@ def test_bad_input_is_one_error_line(tmp_path, capsys):
 
 @pytest.mark.skipif(os.name != "posix", reason="signals between processes")
 def test_sigterm_stops_the_workers_and_leaves_no_shard(tmp_path):
-    import signal
-    import subprocess
-    import sys
-    import time
+    from datagen_helpers import sigterm_toss
     out = tmp_path / "tosses"
-    root = Path(__file__).resolve().parents[1]
-    proc = subprocess.Popen([sys.executable, "-m", "datagen.cli", "toss", "--engine", "mujoco", "--scenes", "20000",
-                             "--workers", "2", "--quiet", "--scenes-per-shard", "50", "--out", str(out)],
-                            cwd=root, stderr=subprocess.PIPE, text=True)
-    t0 = time.monotonic()
-    while not list(out.glob("*.h5")):      # a shard written: the workers are running
-        assert time.monotonic() - t0 < 300 and proc.poll() is None
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 2
+    status, err = sigterm_toss(out, "--engine", "mujoco", "--scenes", "20000", "--workers", "2", "--quiet",
+                               "--scenes-per-shard", "50")
+    assert status == 2
     assert err.strip().splitlines() == ["error: interrupted; its shards were removed (rerun the same command)"]
     assert not list(out.glob("*.h5")) and not (out / "metadata.json").exists()
