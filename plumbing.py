@@ -66,6 +66,16 @@ def sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def leave_signals_to_parent() -> None:
+    """For a pool worker (its initializer): SIGTERM kills it at once and Ctrl-C is left to the
+    parent, which stops the pool. A forked worker would otherwise keep sigterm_as_interrupt's
+    handler: stopping the pool, even at a normal end, raised inside the pool's own queue locks,
+    printed a traceback per worker and could leave the parent waiting on a lock a dead one held."""
+    import signal
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 # --- safe writes and output checks
 
 @contextmanager

@@ -30,10 +30,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
-from plumbing import atomic_file, DataError
-from plumbing import file_sha256
+from plumbing import atomic_file, DataError, file_sha256
 from .shards import (METADATA_FILE, SHARED, SPLITS, clear_dataset, dataset_files, own_temporary, shard_name,
-                     write_metadata, write_shard_image)
+                     temporary_target, write_metadata, write_shard_image)
 
 CLAIM_FILE = ".datagen-toss.claim"
 LOCK_FILE = ".datagen-toss.lock"
@@ -328,12 +327,22 @@ def to_make(out: Path, tasks: list[ShardTask], recorded: dict[str, str], what: s
 
 
 def remove_temporaries(out: Path, names: list[str], whole_run: bool) -> None:
-    """Remove the temporary files of the shards `names` (atomic_file's `.<name>.<random>.tmp`)
-    and, in a whole run, whose claim is exclusive, every temporary file of the tool's own."""
+    """Remove the temporary files of `names` and, in a whole run (an exclusive claim), all of ours."""
     for p in out.glob(".*.tmp"):
-        target = p.name[1:-len(".tmp")].rpartition(".")[0]
-        if target in names or (whole_run and own_temporary(p.name)):
+        if temporary_target(p.name) in names or (whole_run and own_temporary(p.name)):
             p.unlink(missing_ok=True)
+
+
+@contextmanager
+def temporaries_removed_on_failure(out: Path, names: list[str], whole_run: bool) -> Iterator[None]:
+    """If the block writing the shards `names` fails or is stopped, the temporary files its stopped
+    workers left are removed (the plan is written under the plan lock only: one seen there is theirs)."""
+    try:
+        yield
+    except BaseException:
+        with plan_lock(out):
+            remove_temporaries(out, [*names, METADATA_FILE], whole_run)
+        raise
 
 
 def prepare_output(out: Path, meta: dict, tasks: list[ShardTask], resume: bool, overwrite: bool) -> list[ShardTask]:

@@ -87,9 +87,15 @@ def _own(name: str) -> bool:
     return name == METADATA_FILE or (split in SPLITS and index.isdigit() and shard_name(split, int(index)) == name)
 
 
+def temporary_target(name: str) -> str | None:
+    """The file an atomic_file temporary `.<name>.<random>.tmp` becomes, None for another name."""
+    return name[1:-len(".tmp")].rpartition(".")[0] if name.startswith(".") and name.endswith(".tmp") else None
+
+
 def own_temporary(name: str) -> bool:
-    """Whether a file name is atomic_file's temporary `.<name>.<random>.tmp` of an _own name."""
-    return name.startswith(".") and name.endswith(".tmp") and _own(name[1:-len(".tmp")].rpartition(".")[0])
+    """Whether a file name is atomic_file's temporary of an _own name."""
+    target = temporary_target(name)
+    return target is not None and _own(target)
 
 
 def clear_dataset(root: str | Path) -> None:

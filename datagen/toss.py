@@ -26,11 +26,11 @@ import numpy as np
 from tqdm import tqdm
 
 from . import __version__
-from plumbing import DataError
-from .output import (Busy, ShardTask, check_output, claim, commit_shard, finalise, plan, plan_lock, plan_of,
-                     remove_temporaries, start_output)
+from plumbing import DataError, leave_signals_to_parent
+from .output import (Busy, ShardTask, check_output, claim, commit_shard, finalise, plan, plan_of, start_output,
+                     temporaries_removed_on_failure)
 from .scenes import FLOOR_HALF_WIDTH, SceneSpec, check_floor_covers, get_shape, sample_scene
-from .shards import METADATA_FILE, SPLITS, Scene, continuous, shard_image, write_error, wxyz, xyzw
+from .shards import SPLITS, Scene, continuous, shard_image, write_error, wxyz, xyzw
 
 
 def _import_pybullet_quietly():
@@ -333,19 +333,8 @@ def _shard_results(todo: list[ShardTask], cfg: dict, seed: int, out: Path, worke
         threaded = "torch" in sys.modules or "ray" in sys.modules
         methods = mp.get_all_start_methods()
         method = ("forkserver" if threaded and "forkserver" in methods else "fork") if "fork" in methods else "spawn"
-        with mp.get_context(method).Pool(min(workers, len(todo)), initializer=_worker_signals) as pool:
+        with mp.get_context(method).Pool(min(workers, len(todo)), initializer=leave_signals_to_parent) as pool:
             yield from pool.imap_unordered(run_task, jobs)
-
-
-def _worker_signals() -> None:
-    """A pool worker dies at once when the pool stops it (SIGTERM) and leaves Ctrl-C to the parent,
-    which stops the pool and removes what the workers left half-written. A forked worker would
-    otherwise keep the parent's SIGTERM-as-interrupt handler: stopping the pool, even at a normal
-    end, then raised inside the pool's own queue locks, printed a traceback per worker and could
-    leave the parent waiting on a lock a dead worker held."""
-    import signal
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _make_shards(mine: list[ShardTask], todo: list[ShardTask], cfg: dict, seed: int, out: Path, workers: int,
@@ -398,15 +387,8 @@ def generate(cfg: dict, seed: int, counts: dict[str, int], out: str | Path, work
                 # A part skips its shards already written (and verified), so a requeued array
                 # task redoes only what is missing; a whole run does so only with --resume.
                 todo = start_output(out, meta, mine, sharded, resume, overwrite)
-                try:
+                with temporaries_removed_on_failure(out, [t.name for t in todo], whole_run=not sharded):
                     tunnelled = _make_shards(mine, todo, cfg, seed, out, workers, ray, plan_of(meta), progress)
-                except BaseException:
-                    # A worker stopped mid-write cannot remove its own temporary file. The plan is
-                    # only written under the plan lock, so a temporary one seen under it is a dead
-                    # worker's too.
-                    with plan_lock(out):
-                        remove_temporaries(out, [t.name for t in todo] + [METADATA_FILE], whole_run=not sharded)
-                    raise
                 _warn_tunnelled(tunnelled)
                 return finalise(out, meta, tasks)
         except Busy:

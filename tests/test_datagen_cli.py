@@ -1,13 +1,17 @@
 """`datagen toss` / `datagen inspect` end to end: determinism, the format, and bad input."""
 import errno
+import hashlib
+import json
 import os
 
 import h5py
 import numpy as np
 import pytest
+from datagen_helpers import sigterm_toss
 
 from datagen import toss as gen_mod
 from datagen.cli import main
+from datagen.output import recorded_checksums
 from datagen.shards import Dataset, Scene, write_shard
 
 SMALL = ["--scenes", "6", "--valid", "2", "--test", "2", "--frames", "8", "--scenes-per-shard", "3", "--quiet"]
@@ -138,10 +142,6 @@ def test_existing_output_is_refused_then_overwritten(dataset, tmp_path, capsys):
 def test_sigterm_stops_the_pool_and_leaves_only_whole_shards(tmp_path):
     """SIGTERM to a run on a process pool: one error line, the workers gone, no temporary file of
     a worker stopped mid-write, and every shard left is whole (its recorded checksum)."""
-    import hashlib
-    import json
-    from datagen.output import recorded_checksums
-    from datagen_helpers import sigterm_toss
     out = tmp_path / "d"
     status, err = sigterm_toss(out, "--scenes", "4000", "--valid", "0", "--test", "0", "--frames", "12",
                                "--scenes-per-shard", "2", "--workers", "2", "--quiet", shards=2)
