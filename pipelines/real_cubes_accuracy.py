@@ -18,9 +18,9 @@ A GNS with a time step of k frames starts from frames 0, k and 2k: it sees the t
 
 Presets: `accuracy` trains at 16, 64 and 256 tosses with seed 0 (~1 h of one core); `few` at 8 and 16
 tosses with three seeds, only the GNS that also trains on the tuned MuJoCo's tosses, the engines'
-search at 200 evaluations (79 min on 2 cores with --workers 2, another training beside it, before
-the 8-toss trainings doubled to 40,000 steps: ~10 more minutes of one core each); `tiny`
-is the test suite's.
+search at 200 evaluations, 40,000 steps each (the three 16-toss units took 73 min on 2 cores with
+--workers 2, another pipeline sharing them; the 8-toss units about as long); `tiny` is the test
+suite's.
 
 Stages are skipped on a rerun when done (datasets, trainings by step, fits and evaluations by
 what they were made from). Writes report.md, results.json, plots/accuracy.png; with --export,
@@ -124,12 +124,12 @@ PRESETS = {
                        levers={16: SYMMETRIC, 64: MANY_TOSSES, 256: MANY_TOSSES}, engine_levers={16: MANY_TOSSES}),
     # few tosses (the paper's Fig. 4 left end), three seeds: the recipe of the zoo's real_cubes_16 at 8
     # and 16 tosses (each real toss 40 times beside 2000 tosses of the MuJoCo tuned on the same ones)
-    # against both engines identified on the same tosses by a 200-evaluation search. At 8 tosses
-    # 40,000 steps: 0.3-1.1 points better than 20,000 on each seed, and the engine's tosses from
-    # WIDER_STARTS: 0.2-1.0 better again on each seed, where at 16 tosses they cost 0.5 points on
-    # the mean of three (experiments/log.md). ~25 min of one core per seed at 16 tosses, ~25-40 at 8;
-    # --workers 2 runs two at a time
-    "few": Preset(test=96, valid=32, steps={8: 40000, 16: 20000}, seeds=(0, 1, 2), real_only=False,
+    # against both engines identified on the same tosses by a 200-evaluation search. 40,000 steps:
+    # 0.2-1.1 points better than 20,000 on each seed at both sizes; at 8 tosses the engine's tosses
+    # from WIDER_STARTS: 0.2-1.0 better again on each seed, where at 16 tosses they cost 0.5 points on
+    # the mean of three (experiments/log.md). ~25-40 min of one core per seed and size; --workers 2
+    # runs two at a time
+    "few": Preset(test=96, valid=32, steps={8: 40000, 16: 40000}, seeds=(0, 1, 2), real_only=False,
                   baseline_budget=200, engine_data={8: (2000, 40), 16: (2000, 40)}, engine_jitter={8: WIDER_STARTS},
                   engine_levers={8: MANY_TOSSES, 16: MANY_TOSSES}),
 }
