@@ -19,7 +19,7 @@ A GNS with a time step of k frames starts from frames 0, k and 2k: it sees the t
 Presets: `accuracy` trains at 16, 64 and 256 tosses with seed 0 (~1 h of one core); `few` at 8 and 16
 tosses with three seeds, only the GNS that also trains on the tuned MuJoCo's tosses, the engines'
 search at 200 evaluations, 40,000 steps each (the three 16-toss units took 73 min on 2 cores with
---workers 2, another pipeline sharing them; the 8-toss units about as long); `tiny` is the test
+--workers 2, another pipeline sharing them; the 8-toss units 56 min alone); `tiny` is the test
 suite's.
 
 Stages are skipped on a rerun when done (datasets, trainings by step, fits and evaluations by
