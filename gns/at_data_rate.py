@@ -24,24 +24,44 @@ def check_protocol(protocol: str, data: str | Path) -> None:
                         f"{rate:g} (datagen toss --set scene.frame_rate=240 scene.frames=461 records MOVi-A's 2 s)")
 
 
-def upsample_scene(pred: Scene, stride: int, true: Scene, frame_rate: float) -> tuple[Scene, Scene]:
-    """A rollout made at every `stride`-th frame, interpolated to every frame of the full-rate
-    truth it covers: centres by a cubic spline (exact for free flight's parabolas; a bounce's
-    kink rings by a small fraction of one coarse step's motion), rotations by slerp. Returns (predicted, true), both cut to the frames up to the last predicted one, so a
-    model with a coarser time step is scored at the same instants as one at the data's rate.
-    frame_rate is the truth's (fine) rate."""
+def reader_of(saved: dict, between: str = "learned"):
+    """The reader between steps (gns.between) a model file holds, for `between` "learned"; None
+    (read by the spline) for "spline" or a file without one."""
+    if between not in ("learned", "spline"):
+        raise DataError(f"between must be 'learned' or 'spline', got {between!r}")
+    if between == "spline" or not saved.get("between"):
+        return None
+    from gns.between import BetweenReader
+    return BetweenReader.from_state(saved["between"])
+
+
+def upsample_scene(pred: Scene, stride: int, true: Scene, frame_rate: float, reader=None) -> tuple[Scene, Scene]:
+    """A rollout made at every `stride`-th frame, read at every frame of the full-rate truth it
+    covers: by `reader` (a gns.between.BetweenReader of this stride) if given, else centres by a
+    cubic spline (exact for free flight's parabolas; a bounce's kink rings by a small fraction of
+    one coarse step's motion) and rotations by slerp. Returns (predicted, true), both cut to the
+    frames up to the last predicted one, so a model with a coarser time step is scored at the
+    same instants as one at the data's rate. frame_rate is the truth's (fine) rate."""
     from scipy.interpolate import CubicSpline
     from scipy.spatial.transform import Slerp
 
     coarse = np.arange(pred.num_frames) * stride
     fine = np.arange(coarse[-1] + 1)
-    positions = CubicSpline(coarse, pred.positions, axis=0)(fine) if len(coarse) > 2 else \
-        np.stack([np.interp(fine, coarse, c) for c in pred.positions.reshape(len(coarse), -1).T], -1).reshape(
-            len(fine), *pred.positions.shape[1:])
-    quaternions = np.empty((len(fine), pred.num_objects, 4))
-    for n in range(pred.num_objects):
-        slerp = Slerp(coarse, rotation(pred.quaternions[:, n]))
-        quaternions[:, n] = continuous(wxyz(slerp(fine).as_quat()))
+    if reader is not None:
+        if reader.stride != stride:
+            raise DataError(f"the model's reader between steps reads a step of {reader.stride} frames, "
+                            f"the rollout's step is {stride}")
+        positions, quaternions = reader.read(pred.positions, pred.quaternions, pred.scale)
+    elif len(coarse) > 2:
+        positions = CubicSpline(coarse, pred.positions, axis=0)(fine)
+    else:
+        positions = np.stack([np.interp(fine, coarse, c) for c in pred.positions.reshape(len(coarse), -1).T],
+                             -1).reshape(len(fine), *pred.positions.shape[1:])
+    if reader is None:
+        quaternions = np.empty((len(fine), pred.num_objects, 4))
+        for n in range(pred.num_objects):
+            slerp = Slerp(coarse, rotation(pred.quaternions[:, n]))
+            quaternions[:, n] = continuous(wxyz(slerp(fine).as_quat()))
     dt = 1.0 / frame_rate
     velocities = np.zeros_like(positions)
     velocities[1:] = (positions[1:] - positions[:-1]) / dt
@@ -51,7 +71,8 @@ def upsample_scene(pred: Scene, stride: int, true: Scene, frame_rate: float) -> 
                       angular_velocities=angular_velocities(quaternions, dt), shape=list(pred.shape),
                       material=list(pred.material), scale=pred.scale.copy(), mass=pred.mass.copy(),
                       friction=pred.friction.copy(), restitution=pred.restitution.copy(),
-                      attrs={**pred.attrs, "upsampled_from_stride": stride})
+                      attrs={**pred.attrs, "upsampled_from_stride": stride,
+                             "read_between": "spline" if reader is None else "learned"})
     truth = Scene(*(getattr(true, k)[:cut] for k in ("positions", "quaternions", "velocities", "angular_velocities")),
                   list(true.shape), list(true.material), true.scale, true.mass, true.friction, true.restitution,
                   dict(true.attrs))

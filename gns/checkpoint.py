@@ -30,6 +30,7 @@ LATEST = "latest.pt"
 TRAINED = "trained"
 TRAIN_SECONDS = "train_seconds"
 CONTACT = "contact"   # an exported model's contact network (gns.zoo.export_model), a checkpoint dict itself
+BETWEEN = "between"   # an exported strided model's reader of the frames between its steps (gns.between)
 
 
 def checkpoint_of(run: str | Path) -> Path:

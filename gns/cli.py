@@ -89,7 +89,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
         check_json_output(args.json, "position_error_pct", "gns eval")
     results, *_ = evaluate_run(args.run_dir, args.data, args.split, args.limit, _rollout_options(args),
                                plots_dir=args.plots, at_data_rate=_at_data_rate(args), device=args.device,
-                               protocol=args.protocol)
+                               protocol=args.protocol, between=args.between)
     print(format_table(results))
     print(f"rollouts: {results['wall_seconds_per_simulated_second']:.3g} s of wall clock per simulated second "
           f"per scene, {results['num_scenes']} scenes batched"
@@ -248,6 +248,10 @@ def add_eval_parsers(sub) -> None:
                    help="a model trained at every k-th frame is scored at every frame of the data (its poses "
                         "interpolated), the instants any other simulator is scored at; default: a zoo model as "
                         "its card's [eval] at_data_rate says, any other at its own frames")
+    e.add_argument("--between", choices=["learned", "spline"], default="learned",
+                   help="with --at-data-rate, how the frames between the model's steps are read: by the reader "
+                        "its file holds (gns export --between; a cubic spline where it holds none), or by the "
+                        "spline (default: learned)")
     e.add_argument("--protocol", choices=["240hz"],
                    help="240hz: later MOVi-A work's protocol on scenes recorded at 240 Hz (translation and rotation "
                         "RMSE at 50, 75 and 100 frames after the last given one; implies --at-data-rate)")
@@ -260,9 +264,10 @@ def cmd_export(args: argparse.Namespace) -> None:
     from gns.zoo import export_model
 
     contact = None if args.contact is None else checkpoint_of(args.contact)
-    out = export_model(checkpoint_of(args.run_dir), args.out, overwrite=args.overwrite, contact=contact)
+    out = export_model(checkpoint_of(args.run_dir), args.out, overwrite=args.overwrite, contact=contact,
+                       between=args.between)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB): model, config and training ranges, no optimiser state"
-          + ("; with its contact network" if contact else ""))
+          + ("; with its contact network" if contact else "") + ("; with its reader between steps" if args.between else ""))
 
 
 def add_export_parser(sub) -> None:
@@ -276,6 +281,9 @@ def add_export_parser(sub) -> None:
     x.add_argument("--contact", metavar="RUN",
                    help="a second model of the same graphs (run folder or .pt) that rolls out the objects "
                         "touching another: a contact network (docs/model.md)")
+    x.add_argument("--between", metavar="DATA",
+                   help="a model that steps k recorded frames: fit its reader of the frames between its steps "
+                        "(gns eval --at-data-rate reads by it) on DATA's train split, recorded at the data's rate")
     x.set_defaults(run=cmd_export)
 
 

@@ -239,14 +239,16 @@ def options_record(sim: LearnedSimulator) -> dict:
 def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: int | None = None,
                  options: RolloutOptions | None = None, plots_dir: str | Path | None = None, progress: bool = True,
                  at_data_rate: bool = False, device: str = "cpu", protocol: str | None = None,
-                 **changes) -> tuple[dict, list, list, Dataset]:
+                 between: str = "learned", **changes) -> tuple[dict, list, list, Dataset]:
     """Roll out every scene of a split from its first 3 frames and score it, rolled out with
     `options` (default: gns.checkpoint.default_options(run), a zoo model's scored ones), with `changes`
     (RolloutOptions fields, e.g. symmetrize="d1") on top.
 
     A model trained at every k-th frame rolls out at its own rate from frames 0, k, 2k; it is
     scored at those frames, or with `at_data_rate` at every frame of the data (its poses
-    interpolated, gns.at_data_rate.upsample_scene), i.e. at the same instants as any other simulator.
+    interpolated, gns.at_data_rate.upsample_scene), i.e. at the same instants as any other simulator:
+    with `between` "learned" by the reader between steps the model file holds (gns.between), by a
+    cubic spline where it holds none or with "spline".
 
     protocol="240hz": the protocol of later MOVi-A work (scenes recorded at 240 Hz, errors at 50,
     75 and 100 frames of 240 Hz after the last given frame, RMSE in metres and degrees): the data
@@ -276,17 +278,20 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     if diverged:
         _warn(diverged_line(diverged, len(scenes) + len(diverged), "left out of the metrics"))
     model_stride = ds.stride
+    read_by = None
     if at_data_rate and ds.stride > 1:
-        from gns.at_data_rate import upsample_scene
+        from gns.at_data_rate import reader_of, upsample_scene
         full = Dataset(data)
         truth = full.load(split, limit)
-        pairs = [upsample_scene(p, ds.stride, truth[i], full.frame_rate) for p, i in zip(pred, kept, strict=True)]
+        reader = reader_of(saved, between)
+        read_by = "spline" if reader is None else "learned"
+        pairs = [upsample_scene(p, ds.stride, truth[i], full.frame_rate, reader) for p, i in zip(pred, kept, strict=True)]
         pred, scenes, ds = [p for p, _ in pairs], [t for _, t in pairs], full
     given = (HISTORY - 1) * model_stride + 1 if at_data_rate else HISTORY   # frames up to the last given one
     horizons = PROTOCOLS[protocol] if protocol else DEFAULT_HORIZONS
     results = score_predictions(pred, scenes, ds, seconds, plots_dir, horizons=horizons, num_given=given)
     results.update(run=str(run), protocol=protocol, checkpoint=str(ckpt), data=str(data), split=split, outside_training=warnings,
-                   diverged_scenes=diverged, num_diverged=len(diverged), at_data_rate=at_data_rate,
+                   diverged_scenes=diverged, num_diverged=len(diverged), at_data_rate=at_data_rate, read_between=read_by,
                    model_stride=model_stride, object_steps=counts, warmup_seconds=warmup, device=str(device),
                    **options_record(sim), **provenance_of(saved, ds))
     return results, pred, scenes, ds

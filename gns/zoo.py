@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from plumbing import atomic_file, check_writable, DataError
-from gns.checkpoint import CONTACT, CheckpointError, is_exported, read_checkpoint
+from gns.checkpoint import BETWEEN, CONTACT, CheckpointError, is_exported, read_checkpoint
 from gns.spec import RolloutOptions
 
 
@@ -109,15 +109,17 @@ def format_card(name: str) -> str:
 def _slim(ckpt: dict) -> dict:
     # an exported model's contact network goes along
     return {k: ckpt[k] for k in ("format", "step", "seed", "config", "spec", "model", "provenance", "train_seconds",
-                                 CONTACT) if k in ckpt}
+                                 CONTACT, BETWEEN) if k in ckpt}
 
 
 def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool = False,
-                 contact: str | Path | None = None) -> Path:
+                 contact: str | Path | None = None, between: str | Path | None = None) -> Path:
     """A checkpoint without the optimiser and random state (about half the size): enough to
     roll out and evaluate (load_model), not to resume training. With `contact` (another
     checkpoint of the same graphs) that model goes in as the contact network: it rolls out the
     objects in contact (LearnedSimulator.set_contact_model), checked by loading the two here.
+    With `between` (a dataset recorded at the data's rate) a strided model gets its reader of the
+    frames between its steps, fitted on that data's train split (gns.between).
 
     An existing `out` is replaced only with `overwrite` and only if it is itself an exported
     model: a full checkpoint (a run's latest.pt, say) or another file is never replaced."""
@@ -141,6 +143,9 @@ def export_model(checkpoint_path: str | Path, out: str | Path, overwrite: bool =
         from gns.checkpoint import load_model
         slim[CONTACT] = _slim(read_checkpoint(contact))
         load_model(slim)   # CheckpointError now, not when it is used, if the two do not go together
+    if between is not None:
+        from gns.between import fit_on_data
+        slim[BETWEEN] = fit_on_data(slim, between, progress=True)
     with atomic_file(out, mode=0o644) as tmp:  # an exported model is meant to be shared
         torch.save(slim, tmp)
     return out

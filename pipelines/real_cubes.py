@@ -246,9 +246,10 @@ def gns_eval_stage(path: Path, ckpt: Path, data: Path, costs: Costs, shape_match
     if _scored_on(results, data):
         return results
     t0 = time.perf_counter()
-    # at every recorded frame (a strided model's poses interpolated), the instants the engines are scored at
+    # at every recorded frame, the instants the engines are scored at; read between steps by the
+    # spline for every model, the shipped file (which holds a learned reader) as the runs beside it
     results, *_ = evaluate_run(ckpt, data, "test", shape_matching=shape_matching, plots_dir=plots_dir, progress=False,
-                               at_data_rate=True)
+                               at_data_rate=True, between="spline")
     results["checkpoint_step"] = int(read_checkpoint(ckpt)["step"])
     write_json(path, results)
     costs.add(f"eval {path.stem}", time.perf_counter() - t0)

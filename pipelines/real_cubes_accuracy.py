@@ -11,7 +11,8 @@ cube's symmetries as augmentation, at 64 and 256, and for the 16-toss GNS also t
 MuJoCo's tosses, the loss on the shape-matched step, the floor seen from farther and ten
 message-passing steps), and both engines are identified on the same tosses
 (pipelines/real_cubes_baselines.py). Everything is scored on the same test tosses at every
-recorded frame (the GNS's poses interpolated between its steps).
+recorded frame (the GNS's poses between its steps read by its reader, gns.between, fitted on
+its own training data).
 A GNS with a time step of k frames starts from frames 0, k and 2k: it sees the truth up to frame
 2k, where the engines see frames 0-2. So the engines are also scored starting from frame 2k
 (their state estimated on frames 0..2k), and the report gives each engine's better score.
@@ -30,6 +31,7 @@ the trained models as small files (gns export) named real_cubes_n<N>.pt and real
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -143,10 +145,13 @@ def gns_settings(p: Preset, n: int, engine_data: bool = False) -> list[str]:
     return [f"train.steps={steps}", f"train.lr_decay_steps={max(1, steps // 3)}", *p.train, *levers]
 
 
-def gns_stage(path: Path, run: Path, data: Path) -> dict:
+def gns_stage(path: Path, run: Path, test: Path, train_data: Path) -> dict:
+    """A run's GNS scored on the test tosses at every recorded frame: exported beside its run
+    folder (RUN.pt) with its reader between steps fitted on its training data."""
     results = done(path, run / "latest.pt")
-    if results is None:
-        results, *_ = evaluate_run(run, data, "test", symmetrize=True, at_data_rate=True, progress=False)
+    if results is None or results.get("read_between") != "learned":
+        model = export_model(run / "latest.pt", run.with_suffix(".pt"), overwrite=True, between=train_data)
+        results, *_ = evaluate_run(model, test, "test", symmetrize=True, at_data_rate=True, progress=False)
         results["checkpoint_step"] = int(read_checkpoint(run / "latest.pt")["step"])
         write_json(path, results)
     return results
@@ -185,7 +190,7 @@ def unit_stage(preset: str, src: Path, out: Path, split: dict, n: int, s: int, e
     if p.real_only:
         run_dir = out / "runs" / f"gns_{tag}"
         train_stage(data, run_dir, p.model, gns_settings(p, n) + seed_args)
-        row["gns"] = summary(gns_stage(out / "eval" / f"gns_{tag}.json", run_dir, test))
+        row["gns"] = summary(gns_stage(out / "eval" / f"gns_{tag}.json", run_dir, test, data))
     for e in engines:
         params = base["fits"][e][f"n{n}_s{s}"]["params"]
         first3 = summary(base["evals"][e][f"n{n}_s{s}"])
@@ -200,7 +205,8 @@ def unit_stage(preset: str, src: Path, out: Path, split: dict, n: int, s: int, e
                                 p.engine_jitter.get(n))
         mixed_run = out / "runs" / f"gns_mujoco_{tag}"
         train_stage(mixed.root, mixed_run, p.model, gns_settings(p, n, engine_data=True) + seed_args)
-        row["gns_engine_data"] = summary(gns_stage(out / "eval" / f"gns_mujoco_{tag}.json", mixed_run, test))
+        row["gns_engine_data"] = summary(gns_stage(out / "eval" / f"gns_mujoco_{tag}.json", mixed_run, test,
+                                                   mixed.root))
         row["engine_data"] = {"synthetic": count, "real_copies": copies,
                               **({"jitter": p.engine_jitter[n]} if n in p.engine_jitter else {})}
     return row
@@ -241,11 +247,12 @@ def run(preset: str, src: Path, out: Path, export: Path | None = None, workers: 
     rows = {n: over_seeds([done_rows[(n, s)] for s in p.seeds]) for n in p.steps}
     if export is not None:
         for n in p.steps:
+            # the files gns_stage scored: the model with its reader between steps
+            export.mkdir(parents=True, exist_ok=True)
             if p.real_only:
-                export_model(out / "runs" / f"gns_n{n}" / "latest.pt", export / f"real_cubes_n{n}.pt", overwrite=True)
+                shutil.copyfile(out / "runs" / f"gns_n{n}.pt", export / f"real_cubes_n{n}.pt")
             if "gns_engine_data" in rows[n]:
-                export_model(out / "runs" / f"gns_mujoco_n{n}" / "latest.pt",
-                             export / f"real_cubes_mujoco_n{n}.pt", overwrite=True)
+                shutil.copyfile(out / "runs" / f"gns_mujoco_n{n}.pt", export / f"real_cubes_mujoco_n{n}.pt")
     results = {"preset": preset, "src": str(src), "stride": STRIDE, "engines": engines, "seeds": list(p.seeds),
                "published": summary(published),
                "sizes": {str(n): r for n, r in rows.items()}}

@@ -12,7 +12,9 @@ the last run's weights: the model is then the last other run, with the last cont
 out its objects in contact.
 Every stage and cycle is a run folder of its own (OUT/runs/NAME[_k]); a rerun skips what is done
 and resumes what was interrupted. At the end the model is exported to OUT/model.pt and scored on
-the data's test split with each zoo card's rollout options (OUT/report.md, OUT/results.json).
+the data's test split with each zoo card's rollout options (OUT/report.md, OUT/results.json); with
+`between = true` the export holds the reader of the frames between a strided model's steps,
+fitted on the training data (gns.between).
 """
 from __future__ import annotations
 
@@ -48,6 +50,7 @@ class Recipe:
     cost: str
     data: dict
     runs: tuple[Run, ...]
+    between: bool = False        # export with the reader between steps fitted on the training data
 
 
 def _value(v) -> str:
@@ -100,7 +103,7 @@ def load_recipe(name: str) -> Recipe:
     if all(r.contact for r in runs):
         raise DataError(f"{where}: every stage trains a contact network; the model itself needs one")
     return Recipe(path.stem, tuple(raw.get("zoo", ())), raw.get("model", "gns_cpu"), raw.get("cost", ""),
-                  raw.get("data", {}), tuple(runs))
+                  raw.get("data", {}), tuple(runs), bool(raw.get("between", False)))
 
 
 def run_overrides(run: Run, previous: Path | None) -> list[str]:
@@ -169,9 +172,10 @@ def data_stage_of(recipe: Recipe, out: Path, data: Path | None, src: Path | None
 
 
 def train_recipe(recipe: Recipe, out: Path, data: Path | None = None, src: Path | None = None,
-                 workers: int = 2) -> tuple[Path, Path | None, Path | None]:
+                 workers: int = 2) -> tuple[Path, Path | None, Path | None, Path]:
     """Every run of the recipe in order; returns the model's checkpoint (the last run's that is not
-    a contact network's), its contact network's (the last contact run's, or None) and the test data."""
+    a contact network's), its contact network's (the last contact run's, or None), the test data
+    and the training data."""
     from pipelines.common import say, train_stage
     ds, test = data_stage_of(recipe, out, data, src, workers)
     previous = ckpt = contact = None
@@ -185,10 +189,11 @@ def train_recipe(recipe: Recipe, out: Path, data: Path | None = None, src: Path 
             contact = trained
         else:
             ckpt = trained
-    return ckpt, contact, test
+    return ckpt, contact, test, ds.root
 
 
-def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None, contact: Path | None = None) -> dict | None:
+def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None, contact: Path | None = None,
+          train_data: Path | None = None) -> dict | None:
     """The exported model scored as each zoo card says (its rollout options, on the recipe's test
     data), or with the default options for a recipe outside the zoo; None, the model exported
     unscored, when the data has no test scenes."""
@@ -198,7 +203,8 @@ def score(recipe: Recipe, out: Path, ckpt: Path, test: Path | None, contact: Pat
     from gns.spec import RolloutOptions
     from gns.zoo import export_model
     from gns.evaluate import write_json
-    model = export_model(ckpt, out / "model.pt", overwrite=True, contact=contact)
+    model = export_model(ckpt, out / "model.pt", overwrite=True, contact=contact,
+                         between=train_data if recipe.between else None)
     if test is not None and Dataset(test).num_scenes("test") == 0:
         say(f"model: {model}; not scored: {test} has no test scenes")
         return None
@@ -252,8 +258,8 @@ def main(argv=None) -> int:
     def stages():
         recipe = load_recipe(a.recipe)
         out = a.out or Path("runs") / f"recipe_{recipe.name}"
-        ckpt, contact, test = train_recipe(recipe, out, a.data, a.src, a.workers)
-        if score(recipe, out, ckpt, test, contact) is not None:
+        ckpt, contact, test, train_data = train_recipe(recipe, out, a.data, a.src, a.workers)
+        if score(recipe, out, ckpt, test, contact, train_data) is not None:
             say(f"report: {out / 'report.md'}")
     return guarded(stages)
 

@@ -38,6 +38,10 @@ def test_tiny_preset_end_to_end_and_rerun(tmp_path, capsys):
     assert cfg.train.rigid_loss == 1 and cfg.features.floor_clip == 1.5 and cfg.features.floor_signed
     assert cfg.model.message_passing_steps == 10
     load_model(export / "real_cubes_mujoco_n2.pt")
+    # each GNS scored and exported with its reader between steps, fitted on its own training data
+    from gns.checkpoint import read_checkpoint
+    assert json.loads((out / "eval" / "gns_n2.json").read_text())["read_between"] == "learned"
+    assert read_checkpoint(export / "real_cubes_mujoco_n2.pt")["between"]["data_fingerprint"] == mixed.fingerprint
     capsys.readouterr()
     before = (out / "eval" / "gns_n2.json").stat().st_mtime_ns
     assert real_cubes_accuracy.main(args) == 0                 # everything done: nothing retrained

@@ -5,6 +5,7 @@ import json
 import pytest
 
 from plumbing import config_dir
+from datagen.shards import Dataset
 from gns.checkpoint import read_checkpoint
 from gns.config import build_config, config_differences, config_to_dict
 from pipelines.common import SETTINGS_FREE
@@ -68,6 +69,22 @@ def test_a_contact_stage_trains_the_contact_network_the_model_carries(tmp_path):
     assert model["step"] == 12 and model[CONTACT]["step"] == 4
     assert load_model(out / "model.pt")[0].contact_model is not None
     assert (out / "results.json").is_file()
+
+
+def test_a_recipe_with_between_exports_a_strided_model_with_its_reader(tmp_path):
+    """between = true: the exported model holds its reader between steps (gns.between), fitted on
+    the recipe's training data, and the recipe's scores read by it (a card's at_data_rate)."""
+    from gns.checkpoint import BETWEEN
+    text = (config_dir() / "recipes" / "tiny.toml").read_text()
+    text = text[:text.index("[[stage]]\nname = \"b\"")].replace("frames = 8 }", "frames = 16 }")
+    text = text.replace('cost = "seconds"', 'cost = "seconds"\nbetween = true')
+    text = text.replace("[settings.valid]", "[settings.features]\nframe_stride = 2\n\n[settings.valid]")
+    (tmp_path / "r.toml").write_text(text)
+    out = tmp_path / "out"
+    assert recipe_main([str(tmp_path / "r.toml"), "--out", str(out), "--workers", "1"]) == 0
+    model = read_checkpoint(out / "model.pt")
+    assert model[BETWEEN]["stride"] == 2
+    assert model[BETWEEN]["data_fingerprint"] == Dataset(out / "data").fingerprint
 
 
 @pytest.mark.parametrize("text, message", [

@@ -138,6 +138,8 @@ def test_the_real_cube_models_roll_out_real_tosses(tmp_path, name):
     results = json.loads((tmp_path / "r.json").read_text())
     assert results["num_scenes"] == 3 and results["at_data_rate"]
     assert results["rollout_options"]["symmetrize"] == "d2"
+    # both files hold their reader between steps (gns export --between)
+    assert results["read_between"] == "learned"
     assert results["position_error_pct"] < 30 and results["rotation_error_deg"] < 30
     assert results["penetration_pct"] < 5
 
