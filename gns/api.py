@@ -119,6 +119,7 @@ class Trajectory:
     vertices: torch.Tensor         # (steps + 1, N, 3)
     vertex_object: torch.Tensor    # (N,)
     dt: float
+    scales: torch.Tensor | None = None   # (B,) the objects' scales, for Model.every_frame
 
     @property
     def times(self) -> torch.Tensor:
@@ -129,11 +130,12 @@ class Model:
     """A trained simulator with what using it needs: meshes, time step, gravity, training ranges."""
 
     def __init__(self, simulator: LearnedSimulator, config: Config, spec: ModelSpec, meshes: dict,
-                 device: torch.device, quaternion_order: str = "wxyz", source: str = ""):
+                 device: torch.device, quaternion_order: str = "wxyz", source: str = "", between: dict | None = None):
         if quaternion_order not in ("wxyz", "xyzw"):
             raise ConfigError(f"quaternion_order must be 'wxyz' or 'xyzw', got {quaternion_order!r}")
         self.simulator, self.config, self.spec, self.device = simulator, config, spec, device
         self.quaternion_order, self.source = quaternion_order, source
+        self._between = between   # the file's reader between steps (gns.between), if it holds one
         self.meshes = meshes
         # the graphs the network was trained on (centre nodes, spokes)
         self._library = simulator.mesh_library(meshes)
@@ -302,8 +304,27 @@ class Model:
             states = [state]
             for _ in range(steps):
                 states.append(self.step(states[-1]))
+            scale = torch.as_tensor(scales, dtype=torch.float64).detach().reshape(-1).expand(len(shapes)).clone()
             return Trajectory(torch.stack([s.positions for s in states]), torch.stack([s.quaternions for s in states]),
-                              torch.stack([s.vertices for s in states]), state.vertex_object, self.dt)
+                              torch.stack([s.vertices for s in states]), state.vertex_object, self.dt, scale)
+
+    def every_frame(self, trajectory: Trajectory, between: str = "learned") -> tuple[torch.Tensor, torch.Tensor, float]:
+        """A rollout of a model that steps k recorded frames (frame_stride k > 1; real_cubes' k is 8)
+        read at every recorded frame, as `gns eval --at-data-rate` scores it: by the reader between
+        steps the model file holds (gns export --between), else, or with between="spline", a cubic
+        spline through the centres and slerp between the orientations. Returns the centres
+        ((T - 1) k + 1, B, 3), the quaternions (.., B, 4, this model's order) and their frame time
+        dt / k; the model's own frames are kept."""
+        from gns.at_data_rate import reader_of, read_every_frame
+        k = int(self.frame_stride)
+        if trajectory.scales is None:
+            raise DataError("this trajectory has no scales: every_frame reads a Model.rollout's")
+        reader = reader_of({"between": self._between}, between) if k > 1 else None
+        q = self._quat_in(trajectory.quaternions.detach()).cpu().numpy().astype(np.float64)
+        positions, quats = read_every_frame(trajectory.positions.detach().cpu().numpy().astype(np.float64), q,
+                                            trajectory.scales.cpu().numpy(), k, reader)
+        quats = self._quat_out(torch.from_numpy(quats))
+        return torch.from_numpy(positions), quats, trajectory.dt / k
 
 
 def _meshes_of(spec: ModelSpec, where: str) -> dict:
@@ -349,4 +370,5 @@ def load(model: str | Path, device: str | torch.device = "cpu", quaternion_order
     spec = ModelSpec.from_dict(ckpt["spec"])
     found = meshes if meshes is not None else _meshes_of(spec, str(path))
     return Model(sim, cfg, spec, {k: (np.asarray(v, np.float64), np.asarray(f, np.int64))
-                                         for k, (v, f) in found.items()}, device, quaternion_order, str(model))
+                                         for k, (v, f) in found.items()}, device, quaternion_order, str(model),
+                 between=ckpt.get("between"))

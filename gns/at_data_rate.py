@@ -35,38 +35,49 @@ def reader_of(saved: dict, between: str = "learned"):
     return BetweenReader.from_state(saved["between"])
 
 
-def upsample_scene(pred: Scene, stride: int, true: Scene, frame_rate: float, reader=None) -> tuple[Scene, Scene]:
-    """A rollout made at every `stride`-th frame, read at every frame of the full-rate truth it
-    covers: by `reader` (a gns.between.BetweenReader of this stride) if given, else centres by a
-    cubic spline (exact for free flight's parabolas; a bounce's kink rings by a small fraction of
-    one coarse step's motion) and rotations by slerp. Returns (predicted, true), both cut to the
-    frames up to the last predicted one, so a model with a coarser time step is scored at the
-    same instants as one at the data's rate. frame_rate is the truth's (fine) rate."""
+def read_every_frame(positions: np.ndarray, quaternions: np.ndarray, scale: np.ndarray, stride: int,
+                     reader=None) -> tuple[np.ndarray, np.ndarray]:
+    """Poses at every `stride`-th frame, centres (T, N, 3) and wxyz quaternions (T, N, 4) of
+    objects of scales (N,), read at every frame between: by `reader` (a gns.between.BetweenReader
+    of this stride) if given, else centres by a cubic spline (exact for free flight's parabolas; a
+    bounce's kink rings by a small fraction of one coarse step's motion) and rotations by slerp.
+    Returns ((T - 1) stride + 1, N, 3) and (.., N, 4), equal to the input at its own frames."""
     from scipy.interpolate import CubicSpline
     from scipy.spatial.transform import Slerp
 
-    coarse = np.arange(pred.num_frames) * stride
-    fine = np.arange(coarse[-1] + 1)
     if reader is not None:
         if reader.stride != stride:
             raise DataError(f"the model's reader between steps reads a step of {reader.stride} frames, "
                             f"the rollout's step is {stride}")
-        positions, quaternions = reader.read(pred.positions, pred.quaternions, pred.scale)
-    elif len(coarse) > 2:
-        positions = CubicSpline(coarse, pred.positions, axis=0)(fine)
+        return reader.read(positions, quaternions, scale)
+    coarse = np.arange(len(positions)) * stride
+    fine = np.arange(coarse[-1] + 1)
+    if len(coarse) > 2:
+        fine_positions = CubicSpline(coarse, positions, axis=0)(fine)
     else:
-        positions = np.stack([np.interp(fine, coarse, c) for c in pred.positions.reshape(len(coarse), -1).T],
-                             -1).reshape(len(fine), *pred.positions.shape[1:])
-    if reader is None:
-        quaternions = np.empty((len(fine), pred.num_objects, 4))
-        for n in range(pred.num_objects):
-            slerp = Slerp(coarse, rotation(pred.quaternions[:, n]))
-            quaternions[:, n] = continuous(wxyz(slerp(fine).as_quat()))
+        fine_positions = np.stack([np.interp(fine, coarse, c) for c in positions.reshape(len(coarse), -1).T],
+                                  -1).reshape(len(fine), *positions.shape[1:])
+    fine_quaternions = np.empty((len(fine), positions.shape[1], 4))
+    for n in range(positions.shape[1]):
+        if len(coarse) < 2:
+            fine_quaternions[:, n] = quaternions[:, n]
+            continue
+        slerp = Slerp(coarse, rotation(quaternions[:, n]))
+        fine_quaternions[:, n] = continuous(wxyz(slerp(fine).as_quat()))
+    return fine_positions, fine_quaternions
+
+
+def upsample_scene(pred: Scene, stride: int, true: Scene, frame_rate: float, reader=None) -> tuple[Scene, Scene]:
+    """A rollout made at every `stride`-th frame, read at every frame of the full-rate truth it
+    covers (read_every_frame). Returns (predicted, true), both cut to the frames up to the last
+    predicted one, so a model with a coarser time step is scored at the same instants as one at
+    the data's rate. frame_rate is the truth's (fine) rate."""
+    positions, quaternions = read_every_frame(pred.positions, pred.quaternions, pred.scale, stride, reader)
     dt = 1.0 / frame_rate
     velocities = np.zeros_like(positions)
     velocities[1:] = (positions[1:] - positions[:-1]) / dt
     velocities[0] = true.velocities[0]
-    cut = len(fine)
+    cut = len(positions)
     upsampled = Scene(positions=positions, quaternions=quaternions, velocities=velocities,
                       angular_velocities=angular_velocities(quaternions, dt), shape=list(pred.shape),
                       material=list(pred.material), scale=pred.scale.copy(), mass=pred.mass.copy(),

@@ -87,3 +87,24 @@ def test_export_fits_the_reader_and_eval_reads_by_it(tmp_path):
     (other / "metadata.json").write_text(meta)
     with pytest.raises(DataError, match="recorded at 30"):
         export_model(run / "latest.pt", tmp_path / "other.pt", between=other)
+
+
+def test_the_python_api_reads_a_rollout_at_every_recorded_frame():
+    import gns
+    import torch
+    for order in ("wxyz", "xyzw"):
+        model = gns.load("real_cubes", quaternion_order=order)
+        q0 = [1.0, 0, 0, 0] if order == "wxyz" else [0, 0, 0, 1.0]
+        out = model.rollout(["cube"], positions=[[0, 0, 3.0]], quaternions=[q0], velocities=[[5.0, 0, 0]],
+                            angular_velocities=[[0, 3.0, 0]], steps=12, scales=2.0)
+        positions, quaternions, dt = model.every_frame(out)
+        assert positions.shape == (12 * 8 + 1, 1, 3) and quaternions.shape == (12 * 8 + 1, 1, 4)
+        assert dt == pytest.approx(out.dt / 8)
+        torch.testing.assert_close(positions[::8], out.positions.double(), rtol=0, atol=1e-9)
+        torch.testing.assert_close(quaternions[::8], out.quaternions.double(), rtol=0, atol=1e-6)
+        spline, _, _ = model.every_frame(out, between="spline")
+        assert (positions - spline).abs().max() > 1e-3      # the file's reader, not the spline
+        # free flight first: both read the parabola between the first steps alike
+        assert (positions[:9] - spline[:9]).abs().max() < 0.05
+    with pytest.raises(DataError, match="'learned' or 'spline'"):
+        model.every_frame(out, between="akima")
