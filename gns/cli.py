@@ -73,7 +73,7 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     _threads(args.threads)
     options = _rollout_options(args)
     done, written, seconds, warmup = rollout_run(args.run_dir, args.data, args.out, args.split, args.limit, options,
-                                                 args.device, args.overwrite)
+                                                 args.device, args.overwrite, _at_data_rate(args), args.between)
     print(f"rolled out {done} scenes in {seconds:.2f} s"
           + (f" (after {warmup:.1f} s compiling, not counted)" if warmup is not None else "")
           + f"; wrote {written} to {args.out}")
@@ -238,25 +238,32 @@ def add_eval_parsers(sub) -> None:
     _add_rollout_args(r)
     r.add_argument("--out", required=True, metavar="DIR", help="output folder for the rolled-out dataset")
     r.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    _add_reading_args(r)
     r.set_defaults(run=cmd_rollout)
     e = sub.add_parser("eval", help="roll out and score: position %%, rotation degrees, penetration %%",
                        description="Roll out a split and print the metrics of docs/metrics.md (averaged over "
                                    "frames, then scenes), at fixed horizons and by shape, size and material.")
     _add_rollout_args(e)
     e.add_argument("--json", metavar="FILE", help="also write the results as JSON")
-    e.add_argument("--at-data-rate", action=argparse.BooleanOptionalAction,
-                   help="a model trained at every k-th frame is scored at every frame of the data (its poses "
-                        "interpolated), the instants any other simulator is scored at; default: a zoo model as "
-                        "its card's [eval] at_data_rate says, any other at its own frames")
-    e.add_argument("--between", choices=["learned", "spline"], default="learned",
-                   help="with --at-data-rate, how the frames between the model's steps are read: by the reader "
-                        "its file holds (gns export --between; a cubic spline where it holds none), or by the "
-                        "spline (default: learned)")
+    _add_reading_args(e)
     e.add_argument("--protocol", choices=["240hz"],
                    help="240hz: later MOVi-A work's protocol on scenes recorded at 240 Hz (translation and rotation "
                         "RMSE at 50, 75 and 100 frames after the last given one; implies --at-data-rate)")
     e.add_argument("--plots", metavar="DIR", help="write trajectory plots, error against time and a GIF here")
     e.set_defaults(run=cmd_eval)
+
+
+def _add_reading_args(p) -> None:
+    """--at-data-rate and --between of gns eval and gns rollout."""
+    p.add_argument("--at-data-rate", action=argparse.BooleanOptionalAction,
+                   help="a model trained at every k-th frame is read at every frame of the data (its poses "
+                        "between its steps read as --between says), the instants any other simulator is scored "
+                        "at; default: a zoo model as its card's [eval] at_data_rate says, any other at its own frames")
+    p.add_argument("--between", choices=["learned", "spline"], default="learned",
+                   help="with --at-data-rate, how the frames between the model's steps are read: by the reader "
+                        "its file holds (gns export --between; a cubic spline where it holds none), or by the "
+                        "spline (default: learned)")
+
 
 
 def cmd_export(args: argparse.Namespace) -> None:

@@ -19,10 +19,13 @@ from gns.spec import ModelSpec, RolloutOptions
 
 def rollout_run(run: str | Path, data: str | Path, out: str | Path, split: str = "test", limit: int | None = None,
                 options: RolloutOptions | None = None, device: str = "cpu",
-                overwrite: bool = False) -> tuple[int, int, float, float | None]:
+                overwrite: bool = False, at_data_rate: bool = False,
+                between: str = "learned") -> tuple[int, int, float, float | None]:
     """Roll out the scenes of a split with the model of `run` (options: how) and write them to
-    `out`; diverged rollouts are left out, named in a warning and in the metadata. Returns (scenes
-    rolled out, scenes written, seconds, seconds of a compiled model's warm-up or None)."""
+    `out`; diverged rollouts are left out, named in a warning and in the metadata. With
+    `at_data_rate` a model that steps k recorded frames is written at every recorded frame, read
+    between its steps as `gns eval --at-data-rate` reads it (`between`). Returns (scenes rolled
+    out, scenes written, seconds, seconds of a compiled model's warm-up or None)."""
     device = parse_device(device, "--device")
     check_output(out, overwrite, data)
     ckpt = checkpoint_of(run)
@@ -37,8 +40,17 @@ def rollout_run(run: str | Path, data: str | Path, out: str | Path, split: str =
                             f"nothing written to {out}")
     if diverged:
         print(diverged_line(diverged, len(pred), f"not written (listed in {out}/metadata.json)"), file=sys.stderr)
-    info = {"run": str(run), "checkpoint": str(ckpt), "step": int(saved["step"]),
-            "data": str(data), "split": split, "given_frames": 3, "seconds": seconds,
+    given, read_by = 3, None
+    if at_data_rate and ds.stride > 1:
+        from gns.at_data_rate import reader_of, upsample_scene
+        reader = reader_of(saved, between)
+        read_by, full = ("spline" if reader is None else "learned"), Dataset(data)
+        truth = full.load(split, limit)
+        pred = [p if "diverged_at_frame" in p.attrs else upsample_scene(p, ds.stride, truth[i], full.frame_rate, reader)[0]
+                for i, p in enumerate(pred)]
+        ds, given = full, 2 * ds.stride + 1
+    info = {"run": str(run), "checkpoint": str(ckpt), "step": int(saved["step"]), "read_between": read_by,
+            "data": str(data), "split": split, "given_frames": given, "seconds": seconds,
             "warmup_seconds": warmup, "object_steps": sim.rollout_counts, **options_record(sim),
             **provenance_of(saved, ds)}
     write_rollouts(out, pred, ds, split, info, overwrite=overwrite)

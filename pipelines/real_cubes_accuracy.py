@@ -25,7 +25,7 @@ suite's.
 
 Stages are skipped on a rerun when done (datasets, trainings by step, fits and evaluations by
 what they were made from). Writes report.md, results.json, plots/accuracy.png; with --export,
-the trained models as small files (gns export) named real_cubes_n<N>.pt and real_cubes_mujoco_n<N>.pt
+the trained models as small files (gns export, each with its reader between steps) named real_cubes_n<N>.pt and real_cubes_mujoco_n<N>.pt
 (the zoo's real_cubes is real_cubes_n256, its real_cubes_16 real_cubes_mujoco_n16).
 """
 from __future__ import annotations

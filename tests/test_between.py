@@ -77,6 +77,17 @@ def test_export_fits_the_reader_and_eval_reads_by_it(tmp_path):
     assert learned["position_error_pct"] != spline["position_error_pct"]
     own, *_ = evaluate_run(model, data, "valid", progress=False)
     assert own["read_between"] is None            # at its own frames nothing is read between
+    # gns rollout writes the same reading: every recorded frame, the model's own ones kept
+    from datagen.shards import Dataset
+    from gns.rollout_dataset import rollout_run
+    rollout_run(model, data, tmp_path / "every", "valid", at_data_rate=True)
+    rollout_run(model, data, tmp_path / "own", "valid")
+    every, own = Dataset(tmp_path / "every"), Dataset(tmp_path / "own")
+    assert every.frame_rate == FRAME_RATE and own.frame_rate == FRAME_RATE / 2
+    assert every.meta["rollout"]["read_between"] == "learned" and every.meta["rollout"]["given_frames"] == 5
+    a, b = every.load("valid")[0], own.load("valid")[0]
+    assert a.num_frames == 2 * b.num_frames - 1
+    np.testing.assert_allclose(a.positions[::2], b.positions, rtol=0, atol=1e-12)
     # a model that steps every frame has nothing between; data at another rate is refused
     train(data, tmp_path / "plain", tiny("train.steps=1", "valid.every=0"), log=quiet)
     with pytest.raises(DataError, match="every recorded frame"):
