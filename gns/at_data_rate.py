@@ -1,6 +1,7 @@
 """A model trained at every k-th recorded frame scored at every frame of the data (`gns eval
 --at-data-rate`, and the 240hz protocol, which implies it), the instants any other simulator is
-scored at: its rollout interpolated between the frames it predicted. Loaded only when asked for.
+scored at: its rollout read between the frames it predicted (by the model file's reader, gns.between, or
+a cubic spline). Loaded only when asked for.
 """
 from __future__ import annotations
 

@@ -246,7 +246,7 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
 
     A model trained at every k-th frame rolls out at its own rate from frames 0, k, 2k; it is
     scored at those frames, or with `at_data_rate` at every frame of the data (its poses
-    interpolated, gns.at_data_rate.upsample_scene), i.e. at the same instants as any other simulator:
+    read between its steps, gns.at_data_rate.upsample_scene), i.e. at the same instants as any other simulator:
     with `between` "learned" by the reader between steps the model file holds (gns.between), by a
     cubic spline where it holds none or with "spline".
 
