@@ -28,10 +28,12 @@ from torch import nn
 from plumbing import DataError
 
 HIDDEN = 256
-# Adam steps of BATCH intervals, the learning rate falling to 0 on a cosine: ~30 passes over 256
-# real tosses (60 fitted no better on held-out tosses), ~3 over 2000 simulated ones, ~10 s of one
-# thread either way
-STEPS = 3000
+# Adam steps of BATCH intervals, the learning rate falling to 0 on a cosine over PASSES passes
+# through the intervals (60 fitted 256 real tosses no better on held-out ones; 3 passes over a
+# few-toss GNS's 2000 engine tosses were 0.02-0.12 points worse on all six runs), at most
+# MAX_STEPS: ~10 s of one thread for 256 tosses, ~90 s for 2000 and more
+PASSES = 30
+MAX_STEPS = 30000
 BATCH = 256
 LR = 1e-3
 FRAMES = 4           # the model's frames a reading of one interval looks at: j - 1 .. j + 2
@@ -172,10 +174,13 @@ def training_pairs(scenes, stride: int) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(X), np.concatenate(Y)
 
 
-def fit(scenes, stride: int, seed: int = 0, steps: int = STEPS, progress: bool = False) -> BetweenReader:
+def fit(scenes, stride: int, seed: int = 0, steps: int | None = None, progress: bool = False) -> BetweenReader:
     """A reader fitted on full-rate scenes (a dataset's train split, read at stride 1), on one
-    thread: the same reader from the same data and seed on any machine's core count."""
+    thread: the same reader from the same data and seed on any machine's core count. `steps`
+    default: PASSES passes over the intervals, at most MAX_STEPS."""
     X, Y = training_pairs(scenes, stride)
+    if steps is None:
+        steps = min(MAX_STEPS, -(-PASSES * len(X) // BATCH))
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -224,4 +229,4 @@ def fit_on_data(ckpt: dict, data: str | Path, progress: bool = False) -> dict:
         raise DataError(f"{data}: no train split to fit the reader between steps on")
     seed = int(ckpt.get("seed", 0))
     reader = fit(ds.load("train"), stride, seed=seed, progress=progress)
-    return reader.to_state(data_fingerprint=ds.fingerprint, seed=seed, steps=STEPS)
+    return reader.to_state(data_fingerprint=ds.fingerprint, seed=seed)
