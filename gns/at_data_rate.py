@@ -89,3 +89,16 @@ def upsample_scene(pred: Scene, stride: int, true: Scene, frame_rate: float, rea
                   list(true.shape), list(true.material), true.scale, true.mass, true.friction, true.restitution,
                   dict(true.attrs))
     return upsampled, truth
+
+
+def read_split_at_data_rate(pred: list[Scene], which: list[int], saved: dict, between: str, data: str | Path,
+                            split: str, limit: int | None, stride: int) -> tuple[list[tuple[Scene, Scene]], Dataset, str]:
+    """Rollouts `pred` at every `stride`-th frame of the split's scenes `which` (their indices in
+    it), each read at every recorded frame by the model file's reader (`between`, reader_of):
+    the (predicted, true) pairs of upsample_scene, the full-rate dataset, and how they were read
+    ("learned" or "spline")."""
+    reader = reader_of(saved, between)
+    full = Dataset(data)
+    truth = full.load(split, limit)
+    pairs = [upsample_scene(p, stride, truth[i], full.frame_rate, reader) for p, i in zip(pred, which, strict=True)]
+    return pairs, full, "spline" if reader is None else "learned"

@@ -84,14 +84,18 @@ def _chord(positions: np.ndarray, rot, stride: int):
     return centres, Slerp(np.arange(T), rot)(times)
 
 
+def _check_stride(stride: int) -> None:
+    if stride < 2:
+        raise DataError("the model steps every recorded frame: there are no frames between its steps to read")
+
+
 class BetweenReader(nn.Module):
     """Poses between a strided model's frames (module docstring). `stride`: the model's step in
     recorded frames."""
 
     def __init__(self, stride: int, hidden: int = HIDDEN):
         super().__init__()
-        if stride < 2:
-            raise DataError("the model steps every recorded frame: there are no frames between its steps to read")
+        _check_stride(stride)
         self.stride, self.hidden = int(stride), int(hidden)
         out = 6 * (self.stride - 1)
         self.mlp = nn.Sequential(nn.Linear(FEATURES, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
@@ -218,8 +222,7 @@ def fit_on_data(ckpt: dict, data: str | Path, progress: bool = False) -> dict:
     from datagen.shards import Dataset
     from gns.spec import ModelSpec
     stride = int(ckpt["config"]["features"].get("frame_stride", 1))
-    if stride < 2:
-        raise DataError("the model steps every recorded frame: there are no frames between its steps to read")
+    _check_stride(stride)   # before the data are read
     ds = Dataset(data)
     want = ModelSpec.from_dict(ckpt["spec"]).frame_rate * stride
     if abs(ds.frame_rate - want) > 1e-6 * want:

@@ -265,7 +265,6 @@ def _add_reading_args(p) -> None:
                         "spline (default: learned)")
 
 
-
 def cmd_export(args: argparse.Namespace) -> None:
     from gns.checkpoint import checkpoint_of
     from gns.zoo import export_model

@@ -280,13 +280,9 @@ def evaluate_run(run: str | Path, data: str | Path, split: str = "test", limit: 
     model_stride = ds.stride
     read_by = None
     if at_data_rate and ds.stride > 1:
-        from gns.at_data_rate import reader_of, upsample_scene
-        full = Dataset(data)
-        truth = full.load(split, limit)
-        reader = reader_of(saved, between)
-        read_by = "spline" if reader is None else "learned"
-        pairs = [upsample_scene(p, ds.stride, truth[i], full.frame_rate, reader) for p, i in zip(pred, kept, strict=True)]
-        pred, scenes, ds = [p for p, _ in pairs], [t for _, t in pairs], full
+        from gns.at_data_rate import read_split_at_data_rate
+        pairs, ds, read_by = read_split_at_data_rate(pred, kept, saved, between, data, split, limit, ds.stride)
+        pred, scenes = [p for p, _ in pairs], [t for _, t in pairs]
     given = (HISTORY - 1) * model_stride + 1 if at_data_rate else HISTORY   # frames up to the last given one
     horizons = PROTOCOLS[protocol] if protocol else DEFAULT_HORIZONS
     results = score_predictions(pred, scenes, ds, seconds, plots_dir, horizons=horizons, num_given=given)

@@ -42,12 +42,12 @@ def rollout_run(run: str | Path, data: str | Path, out: str | Path, split: str =
         print(diverged_line(diverged, len(pred), f"not written (listed in {out}/metadata.json)"), file=sys.stderr)
     given, read_by = 3, None
     if at_data_rate and ds.stride > 1:
-        from gns.at_data_rate import reader_of, upsample_scene
-        reader = reader_of(saved, between)
-        read_by, full = ("spline" if reader is None else "learned"), Dataset(data)
-        truth = full.load(split, limit)
-        pred = [p if "diverged_at_frame" in p.attrs else upsample_scene(p, ds.stride, truth[i], full.frame_rate, reader)[0]
-                for i, p in enumerate(pred)]
+        from gns.at_data_rate import read_split_at_data_rate
+        kept = [i for i, p in enumerate(pred) if "diverged_at_frame" not in p.attrs]
+        pairs, full, read_by = read_split_at_data_rate([pred[i] for i in kept], kept, saved, between, data, split,
+                                                       limit, ds.stride)
+        read = dict(zip(kept, (p for p, _ in pairs)))
+        pred = [read.get(i, p) for i, p in enumerate(pred)]   # a diverged rollout stays as it was, to be listed
         ds, given = full, 2 * ds.stride + 1
     info = {"run": str(run), "checkpoint": str(ckpt), "step": int(saved["step"]), "read_between": read_by,
             "data": str(data), "split": split, "given_frames": given, "seconds": seconds,
