@@ -38,6 +38,8 @@ from gns.symmetry import with_symmetries
 from gns.spec import outside_training
 from gns import api_inputs as inputs
 from gns.geometry import posed, shape_match_packed
+from gns.contacts import separation
+from gns.stepping import shifted_history
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import CheckpointError, checkpoint_of, load_simulator, parse_device
@@ -279,15 +281,22 @@ class Model:
             raise DataError("free_flight needs a model that knows gravity and its frame rate")
         if sim.options.sleep and not sim.gravity_step:
             raise DataError("sleep needs a model that knows gravity and its frame rate")
-        x = sim.advance(list(state.frames), graph)
+        frames = list(state.frames)
+        x = sim.advance(frames, graph)
         rot, centre, matched = shape_match_packed(x, graph.rest, graph.node_graph, graph.num_graphs)
         if sim.options.shape_matching:
             x = matched
+        if sim.options.keep_apart and graph.graph_scene is not None and graph.num_graphs > 1:
+            # as LearnedSimulator.rollout keeps objects apart: the pushed frame and the frames the
+            # next step reads translated alike (gns.stepping.shifted_history)
+            shift = separation(x.detach(), graph, sim.layout.floor_z)
+            x, centre = x + shift[graph.node_graph], centre + shift
+            frames, _ = shifted_history(frames, None, shift[graph.node_graph], None, sim.layout.collisions)
         quat = matrix_to_quat(rot)
         previous = self._quat_in(state.quaternions)
         # the cover nearest the previous frame's, so that quaternions are continuous in time
         quat = quat * torch.where((quat * previous).sum(-1, keepdim=True) < 0, -1.0, 1.0)
-        return State(centre, self._quat_out(quat), x, state.time + self.dt, (*state.frames[1:], x), graph)
+        return State(centre, self._quat_out(quat), x, state.time + self.dt, (*frames[1:], x), graph)
 
     def rollout(self, shapes: list[str], positions, quaternions, velocities=None, angular_velocities=None, *,
                 steps: int, scales=1.0, friction=None, restitution=None, scene=None, history=None,

@@ -383,3 +383,27 @@ def test_options_given_at_load_are_the_models_and_its_rollouts_honour_them(run):
     torch.testing.assert_close(frames.rollout(**near_floor, steps=3).vertices[1:], expected, rtol=0, atol=1e-12)
     # control: the averaging changes the answer
     assert not torch.allclose(plain.rollout(**near_floor, steps=3).vertices[1:], expected, rtol=0, atol=1e-9)
+
+
+
+def test_keep_apart_pushes_leave_velocities_to_a_model_with_collision_edges_and_give_them_to_one_without(run, tmp_path):
+    # with collision edges the network is the contact's response: the push that takes objects out of
+    # each other translates the frames the next step reads too, and the velocity it reads is the
+    # plain step's. Without them the push is the only response and parts the objects at its speed
+    assert datagen_main(["toss", "--out", str(tmp_path / "data"), "--scenes", "3", "--frames", "8",
+                         "--shapes", "cube", "--sizes", "small", "--quiet"]) == 0
+    train(tmp_path / "data", tmp_path / "single", build_config(path="gns_tiny", overrides=["train.steps=5", "valid.every=0"]),
+          log=lambda _: None)
+    start = dict(shapes=["cube", "cube"], positions=[[0.0, 0.0, 1.0], [0.42, 0.315, 1.315]], scales=0.7,
+                 quaternions=[[1.0, 0.0, 0.0, 0.0]] * 2, velocities=[[1.0, 0.5, 0.0]] * 2, scene=[0, 0],
+                 friction=0.5, restitution=0.5)
+    for path, collisions in ((run / "run", True), (tmp_path / "single", False)):
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")      # inside each other (and, for one, no collision edges)
+            steps = {k: gns.load(path, keep_apart=k) for k in (True, False)}
+            assert steps[True].collisions == collisions
+            apart, plain = (m.step(m.state(**start)) for m in (steps[True], steps[False]))
+        push = apart.frames[-1] - plain.frames[-1]
+        assert float(push.norm(dim=-1).max()) > 0.1
+        change = (apart.frames[-1] - apart.frames[-2]) - (plain.frames[-1] - plain.frames[-2])
+        torch.testing.assert_close(change, torch.zeros_like(change) if collisions else push, atol=1e-9, rtol=0)
