@@ -287,8 +287,8 @@ class Model:
         if sim.options.shape_matching:
             x = matched
         if sim.options.keep_apart and graph.graph_scene is not None and graph.num_graphs > 1:
-            # as LearnedSimulator.rollout keeps objects apart: the pushed frame and the frames the
-            # next step reads translated alike (gns.stepping.shifted_history)
+            # as LearnedSimulator.rollout keeps objects apart (gns.stepping.shifted_history: which of
+            # the frames the next step reads move with the pushed one)
             shift = separation(x.detach(), graph, sim.layout.floor_z)
             x, centre = x + shift[graph.node_graph], centre + shift
             frames, _ = shifted_history(frames, None, shift[graph.node_graph], None, sim.layout.collisions)
