@@ -38,8 +38,6 @@ from gns.symmetry import with_symmetries
 from gns.spec import outside_training
 from gns import api_inputs as inputs
 from gns.geometry import posed, shape_match_packed
-from gns.contacts import separation
-from gns.stepping import shifted_history
 from gns.simulator import LearnedSimulator
 from gns.spec import ModelSpec
 from gns.checkpoint import CheckpointError, checkpoint_of, load_simulator, parse_device
@@ -287,11 +285,9 @@ class Model:
         if sim.options.shape_matching:
             x = matched
         if sim.options.keep_apart and graph.graph_scene is not None and graph.num_graphs > 1:
-            # as LearnedSimulator.rollout keeps objects apart (gns.stepping.shifted_history: which of
-            # the frames the next step reads move with the pushed one)
-            shift = separation(x.detach(), graph, sim.layout.floor_z)
-            x, centre = x + shift[graph.node_graph], centre + shift
-            frames, _ = shifted_history(frames, None, shift[graph.node_graph], None, sim.layout.collisions)
+            # as rollouts keep objects apart (Stepping.keep_apart: the push and the frames it moves)
+            x, frames, _, shift = sim.keep_apart(x, frames, graph)
+            centre = centre + shift
         quat = matrix_to_quat(rot)
         previous = self._quat_in(state.quaternions)
         # the cover nearest the previous frame's, so that quaternions are continuous in time

@@ -69,22 +69,6 @@ def _pose_where(mask: torch.Tensor, a: tuple, b: tuple) -> tuple[torch.Tensor, t
     return torch.where(mask[:, None, None], a[0], b[0]), torch.where(mask[:, None], a[1], b[1])
 
 
-def shifted_history(frames: list, pose: list | None, node_shift: torch.Tensor, shift: torch.Tensor | None,
-                    collisions: bool = True):
-    """The history a keep-apart push leaves. For a model with collision edges, whose network is the
-    contact's response, the frames the next step reads besides the pushed one (the last HISTORY - 1)
-    and the free-flight pose of the newest of them are translated by the push too: the finite
-    differences the network and free flight read see no push. For a model without them the push is
-    the only response, so it is left in the velocity (the objects part at the push's speed); kept
-    out of it, objects driven into each other step after step go through (log, 2026-12-07)."""
-    if not collisions:
-        return frames, pose
-    frames = frames[:-(HISTORY - 1)] + [f + node_shift for f in frames[-(HISTORY - 1):]]
-    if pose is not None:
-        pose = [pose[0], (pose[1][0], pose[1][1] + shift)]
-    return frames, pose
-
-
 class Stepping:
     """The rollout methods of LearnedSimulator (see the module docstring)."""
 
@@ -246,6 +230,25 @@ class Stepping:
             counts["network"] += counted(needed)
         return x
 
+    def keep_apart(self, x: torch.Tensor, frames: list, graph: GraphBatch, pose: list | None = None):
+        """The rollout option keep_apart after a step: the objects of a scene translated out of each
+        other (gns.contacts.separation). For a model with collision edges, whose network is the
+        contact's response, the frames the next step reads besides the pushed one (the last
+        HISTORY - 1) and the free-flight pose of the newest of them move with the push too: the
+        finite differences the network and free flight read see no push, as Bullet's split impulse
+        corrects penetration apart from the velocities (2-4 points better in crowds, log
+        2026-12-07). For a model without them the push is the only response, so it is left in the
+        velocity (the objects part at the push's speed); kept out of it, objects driven into each
+        other step after step go through. Returns (x, frames, pose, the push (G, 3))."""
+        from gns.contacts import separation
+        shift = separation(x, graph, self.layout.floor_z)
+        node_shift = shift[graph.node_graph]
+        if self.layout.collisions:
+            frames = frames[:-(HISTORY - 1)] + [f + node_shift for f in frames[-(HISTORY - 1):]]
+            if pose is not None:
+                pose = [pose[0], (pose[1][0], pose[1][1] + shift)]
+        return x + node_shift, frames, pose, shift
+
     @torch.no_grad()
     def rollout(self, history: torch.Tensor, graph: GraphBatch, steps: int, poses: bool = False,
                 live_steps: torch.Tensor | None = None):
@@ -260,9 +263,7 @@ class Stepping:
         the network call; sleeping objects do not enter it either. With `keep_apart`, objects of a
         scene that overlap after the step are translated apart (gns.contacts.separation) before the
         step enters the history; with collision edges, so are the frames before it that the next
-        step reads (`shifted_history`): the push moves an object without giving it a velocity, as
-        Bullet's split impulse corrects penetration apart from the velocities (2-4 points better in
-        crowds than a push left in the velocity, log 2026-12-07). `self.rollout_counts` then says
+        step reads, so the push gives no velocity (`keep_apart`). `self.rollout_counts` then says
         how many object-steps did. With `poses`, also returns every predicted frame's pose from
         shape matching, rotations (steps, G, 3, 3) and translations (steps, G, 3). `live_steps`
         (G,): how many of the steps are each object's own (its track's length), the rest padding:
@@ -282,8 +283,6 @@ class Stepping:
         if self.options.body_frames and graph.symmetries is None:
             from gns.symmetry import with_symmetries
             graph = with_symmetries(graph)
-        if keep_apart:
-            from gns.contacts import separation
         frames = list(history.unbind(1))
         pose = [fit_packed(f, graph.rest, graph.node_graph, graph.num_graphs) for f in frames[-2:]] \
             if free_flight else None
@@ -303,18 +302,15 @@ class Stepping:
                 if shape_matching:
                     x = matched
                 if keep_apart:
-                    shift = separation(x, graph, self.layout.floor_z)
-                    x, t = x + shift[graph.node_graph], t + shift
-                    frames, pose = shifted_history(frames, pose, shift[graph.node_graph], shift, self.layout.collisions)
+                    x, frames, pose, shift = self.keep_apart(x, frames, graph, pose)
+                    t = t + shift
                 if poses:
                     rots.append(rot)
                     trans.append(t)
                 if free_flight:
                     pose = [pose[1], (rot, t)]
             elif keep_apart:
-                shift = separation(x, graph, self.layout.floor_z)[graph.node_graph]
-                x = x + shift
-                frames, _ = shifted_history(frames, None, shift, None, self.layout.collisions)
+                x, frames, _, _ = self.keep_apart(x, frames, graph)
             frames.append(x)
             out.append(x)
         self.rollout_counts = counts

@@ -385,7 +385,6 @@ def test_options_given_at_load_are_the_models_and_its_rollouts_honour_them(run):
     assert not torch.allclose(plain.rollout(**near_floor, steps=3).vertices[1:], expected, rtol=0, atol=1e-9)
 
 
-
 def test_keep_apart_pushes_leave_velocities_to_a_model_with_collision_edges_and_give_them_to_one_without(run, tmp_path):
     # with collision edges the network is the contact's response: the push that takes objects out of
     # each other translates the frames the next step reads too, and the velocity it reads is the
